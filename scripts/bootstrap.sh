@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Set up everything the project needs on a fresh Debian machine: system libraries, then a virtual
+# environment at .venv/ with the project installed in editable mode. Safe to rerun.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+need_apt=()
+for lib in libusb-1.0.so.0 libgomp.so.1; do
+  ldconfig -p 2>/dev/null | grep -q "$lib" || need_apt+=("$lib")
+done
+if [ ${#need_apt[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ]; then
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
+  else
+    echo "bootstrap: missing ${need_apt[*]}; run: sudo apt-get install libusb-1.0-0 libgomp1" >&2
+    exit 1
+  fi
+fi
+
+stamp=.venv/.bootstrap-$(sha256sum pyproject.toml | cut -c1-16)
+if [ ! -f "$stamp" ]; then
+  [ -x .venv/bin/python ] || python3 -m venv .venv
+  .venv/bin/pip install -q --upgrade pip >/dev/null
+  # The CPU build of torch; a bare "torch" requirement would pull a multi-GB CUDA build.
+  log=.venv/bootstrap.log
+  .venv/bin/pip install "torch==2.13.0" >"$log" 2>&1 || { cat "$log"; exit 1; }
+  .venv/bin/pip install -e ".[dev]" >>"$log" 2>&1 || { cat "$log"; exit 1; }
+  .venv/bin/python -c "import marionette, open3d, av, prefect, torch" 
+  rm -f .venv/.bootstrap-*
+  touch "$stamp"
+fi

@@ -1,0 +1,1 @@
+"""Layered height-field terrain scanning (TRN2 chunks)."""
