@@ -132,6 +132,25 @@ class Layout:
     def attachments(self) -> tuple[Entity, ...]:
         return tuple(e for e in self.entities if not e.articulated)
 
+    def dim_names(self) -> list[str]:
+        """A name for every dimension of the state vector, e.g. ``hunter.head.y``, ``monster.rot6d.2``."""
+        names = [""] * self.dim
+        for e in self.entities:
+            for part in ("root", "joints", "points", "rot6d"):
+                key = f"{e.name}.{part}"
+                if key not in self.slices:
+                    continue
+                a, b = self.slices[key]
+                if part == "rot6d":
+                    labels = [f"{key}.{i}" for i in range(6)]
+                elif part == "root":
+                    labels = [f"{key}.{ax}" for ax in "xyz"]
+                else:
+                    joints = e.rig.keep[1:] if part == "joints" else e.rig.keep
+                    labels = [f"{e.name}.{j}.{ax}" for j in joints for ax in "xyz"]
+                names[a:b] = labels
+        return names
+
     def to_json(self) -> dict:
         """The layout as JSON: name, dim, slices and each entity with its rig."""
         return {
@@ -231,7 +250,9 @@ def build_layout(scene: str, entities: list[Entity]) -> Layout:
     for e in entities:
         if e.owner is not None:
             if e.owner not in names or not next(o for o in entities if o.name == e.owner).articulated:
-                raise SchemaError(f"scene {scene!r}: entity {e.name!r} is owned by {e.owner!r}, which is not an articulated entity of the scene")
+                raise SchemaError(
+                    f"scene {scene!r}: entity {e.name!r} is owned by {e.owner!r}, which is not an articulated entity of the scene"
+                )
         elif not e.articulated:
             raise SchemaError(f"scene {scene!r}: attachment {e.name!r} needs an owner")
     slices: dict[str, tuple[int, int]] = {}

@@ -1,0 +1,188 @@
+"""The ``marionette`` command."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _size(s: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in s.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be HxW, e.g. 176x320, not {s!r}") from None
+    return h, w
+
+
+def cmd_synth(a: argparse.Namespace) -> int:
+    from marionette.synth import generate
+
+    t0 = time.time()
+    dirs = generate(a.out, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height)
+    print(f"wrote {len(dirs)} recordings under {a.out} in {time.time() - t0:.1f} s")
+    return 0
+
+
+def _options(a: argparse.Namespace):
+    from marionette.ingest import IngestOptions, VideoSettings
+
+    h, w = a.video_size
+    return IngestOptions(
+        scene=a.scene,
+        monster_species=a.monster_species,
+        weapon=a.weapon,
+        min_segment_frames=a.min_segment_frames,
+        video=VideoSettings(height=h, width=w, chunk_frames=a.chunk_frames, crf=a.crf),
+        compression=a.compression,
+    )
+
+
+def cmd_ingest(a: argparse.Namespace) -> int:
+    from marionette.ingest import build_corpus
+
+    t0 = time.time()
+    report = build_corpus(a.src, a.corpus, _options(a), workers=a.workers, progress=not a.quiet)
+    counts: dict[str, int] = {}
+    for r in report["results"]:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+        if r["status"] in ("quarantined", "skipped"):
+            print(f"{r['status']}: {r['sample']}: {r['reason']}")
+    info = report["info"]
+    print(
+        f"corpus {a.corpus}: {info['total_segments']} segments, {info['total_frames']} frames, "
+        f"{', '.join(f'{v} {k}' for k, v in sorted(counts.items()))} in {time.time() - t0:.1f} s"
+    )
+    return 0
+
+
+def inspect_text(corpus_path: Path) -> str:
+    """A human summary of a corpus: segments, frames, hours, splits, vocab, layout, shards, quarantine."""
+    from marionette.corpus import Corpus
+
+    c = Corpus(corpus_path)
+    info, seg = c.info, c.segments
+    lines = [f"corpus   {c.path}"]
+    lines.append(f"layout   {c.layout.scene} dim={c.layout.dim} hash={c.layout.hash}")
+    for name, (s0, s1) in c.layout.slices.items():
+        lines.append(f"           {name:<20} [{s0}, {s1})")
+    frames = info["total_frames"]
+    lines.append(
+        f"samples  {info['total_samples']} ({info['total_ingested']} ingested, {info['total_quarantined']} quarantined, {info['total_skipped']} skipped)"
+    )
+    lines.append(
+        f"segments {info['total_segments']}  frames {frames}  hours {frames / c.fps / 3600:.4f}  fps {c.fps:g}  video chunks {info['total_chunks']}"
+    )
+    splits: dict[str, list[int]] = {}
+    for sp, fr in zip(seg["split"].to_pylist(), seg["frames"].to_pylist()):
+        splits.setdefault(sp, [0, 0])
+        splits[sp][0] += 1
+        splits[sp][1] += fr
+    lines.append("splits   " + ", ".join(f"{k}: {v[0]} segments / {v[1]} frames" for k, v in sorted(splits.items())))
+    for etype, v in c.vocab["entity_types"].items():
+        kinds: dict[str, int] = {}
+        for act in v["actions"][1:]:
+            kinds[act["class"]] = kinds.get(act["class"], 0) + 1
+        lines.append(f"vocab    {etype}: {v['size']} tokens ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})")
+    lines.append(f"shards   {len(info['shards'])} state + video: {c.path / 'state'}, {c.path / 'video'}")
+    q = c.quarantine.to_pylist()
+    lines.append(f"quarantine {len(q)}")
+    for r in q:
+        lines.append(f"  {r['sample']}: {r['reason']}")
+    skipped = [r for r in c.samples.to_pylist() if r["status"] == "skipped"]
+    if skipped:
+        lines.append(f"skipped  {len(skipped)} (outside the requested slice)")
+        for r in skipped:
+            lines.append(f"  {r['sample']}: {r['reason']}")
+    return "\n".join(lines)
+
+
+def cmd_inspect(a: argparse.Namespace) -> int:
+    if a.json:
+        from marionette.corpus import Corpus
+
+        print(json.dumps(Corpus(a.corpus).info, indent=1))
+    else:
+        print(inspect_text(a.corpus))
+    return 0
+
+
+def cmd_demo(a: argparse.Namespace) -> int:
+    """Synthetic recordings → corpus → inspect → the 20 fps dynamics view, end to end."""
+    from marionette.corpus import Corpus
+    from marionette.ingest import IngestOptions, build_corpus
+    from marionette.synth import generate
+
+    out = Path(a.out)
+    src, corpus = out / "recordings", out / "corpus"
+    t0 = time.time()
+    print(f"[1/3] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
+    generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height)
+    print(f"[2/3] building the corpus {corpus} with {a.workers} workers")
+    build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
+    c = Corpus(corpus)
+    rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
+    print(f"[3/3] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
+    print(inspect_text(corpus))
+    print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="marionette", description=__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    s = sub.add_parser("synth", help="write synthetic WildWorld-format recordings")
+    s.add_argument("out", type=Path)
+    s.add_argument("--recordings", type=int, default=2)
+    s.add_argument("--seconds", type=float, default=20.0)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--width", type=int, default=320)
+    s.add_argument("--height", type=int, default=180)
+    s.set_defaults(fn=cmd_synth)
+
+    s = sub.add_parser("ingest", help="ingest WildWorld recordings into a corpus (then finalize)")
+    s.add_argument("src", type=Path)
+    s.add_argument("corpus", type=Path)
+    s.add_argument("--scene", default="duel")
+    s.add_argument("--monster-species", type=int, default=None)
+    s.add_argument("--weapon", type=int, default=None)
+    s.add_argument("--workers", type=int, default=1)
+    s.add_argument("--min-segment-frames", type=int, default=30)
+    s.add_argument("--video-size", type=_size, default=(176, 320), help="training resolution HxW")
+    s.add_argument("--chunk-frames", type=int, default=81)
+    s.add_argument("--crf", type=int, default=20, help="x264 quality of the video chunks (lower is better)")
+    s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(fn=cmd_ingest)
+
+    s = sub.add_parser("inspect", help="summarise a corpus")
+    s.add_argument("corpus", type=Path)
+    s.add_argument("--json", action="store_true", help="print info.json")
+    s.set_defaults(fn=cmd_inspect)
+
+    s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")
+    s.add_argument("--out", type=Path, default=Path("demo-run"))
+    s.add_argument("--recordings", type=int, default=3)
+    s.add_argument("--seconds", type=float, default=20.0)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--width", type=int, default=320)
+    s.add_argument("--height", type=int, default=180)
+    s.add_argument("--workers", type=int, default=2)
+    s.set_defaults(fn=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.fn(args)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"marionette {args.cmd}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

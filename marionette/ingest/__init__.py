@@ -1,0 +1,96 @@
+"""Ingest: WildWorld samples → state shards (Arrow) and video shards (webdataset), then finalize.
+
+``build_corpus`` is the whole stage in one process pool (the CLI); the Prefect flow
+``build-corpus`` fans the same ``ingest_sample`` calls out over Dask and then calls ``finalize``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+from marionette.ingest.finalize import finalize
+from marionette.ingest.sample import IngestOptions, SampleResult, ingest_sample, input_hash, sample_key, split_of
+from marionette.ingest.video import VideoSettings
+from marionette.ingest.wildworld import SampleError, SampleRef, discover, read_sample
+from marionette.schema import SchemaError
+
+__all__ = [
+    "IngestOptions",
+    "SampleError",
+    "SampleRef",
+    "SampleResult",
+    "VideoSettings",
+    "build_corpus",
+    "check_corpus_options",
+    "discover",
+    "finalize",
+    "ingest_sample",
+    "input_hash",
+    "load_stage_map",
+    "read_sample",
+    "sample_key",
+    "split_of",
+]
+
+
+def load_stage_map(source: Path) -> dict[str, str]:
+    """Optional ``stages.json`` in the source root: recording id (``part/id``) → stage id."""
+    p = Path(source) / "stages.json"
+    if not p.exists():
+        return {}
+    try:
+        d = json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{p}: invalid JSON ({exc})") from None
+    return {str(k): str(v) for k, v in d.items()}
+
+
+def check_corpus_options(corpus: Path, options: IngestOptions) -> None:
+    """Refuse to add samples of one scene layout to a corpus built for another."""
+    info = Path(corpus) / "meta" / "info.json"
+    if info.exists():
+        have = json.loads(info.read_text())["layout"]
+        want = options.layout
+        if have["hash"] != want.hash:
+            raise SchemaError(
+                f"{corpus}: the corpus holds layout {have['name']!r} (dim {have['dim']}, hash {have['hash']}); "
+                f"this build asks for {want.scene!r} (dim {want.dim}, hash {want.hash})"
+            )
+
+
+def _ingest_one(args: tuple[SampleRef, str, IngestOptions]) -> SampleResult:
+    ref, corpus, options = args
+    return ingest_sample(ref, Path(corpus), options, worker=f"pid-{os.getpid()}")
+
+
+def build_corpus(source: Path, corpus: Path, options: IngestOptions, workers: int = 1, progress: bool = True) -> dict:
+    """Discover, ingest every sample (in ``workers`` processes), finalize; returns a build report."""
+    corpus = Path(corpus)
+    check_corpus_options(corpus, options)
+    refs = discover(source)
+    results: list[SampleResult] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(refs), desc="ingest", unit="sample")
+    jobs = [(r, str(corpus), options) for r in refs]
+    if workers <= 1:
+        for j in jobs:
+            results.append(_ingest_one(j))
+            if bar:
+                bar.update(1)
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            for fut in as_completed([pool.submit(_ingest_one, j) for j in jobs]):
+                results.append(fut.result())
+                if bar:
+                    bar.update(1)
+    if bar:
+        bar.close()
+    info = finalize(corpus, options, load_stage_map(source))
+    results.sort(key=lambda r: r.sample)
+    return {"info": info, "results": [r.__dict__ for r in results]}

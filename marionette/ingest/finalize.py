@@ -1,0 +1,335 @@
+"""Finalize: move staged samples into numbered shards and derive the corpus metadata.
+
+The move is planned first (``meta/finalize-plan.json``, written atomically), then carried out with
+renames that are safe to repeat, so a crash at any point is repaired by running finalize again.
+Derived files — segments, quarantine, vocab, stats, info — are recomputed from the per-sample
+records in ``meta/samples/``, whose size grows with the number of recordings, not of frames.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_moments
+from marionette.io import text_sha256, write_json, write_parquet
+from marionette.schema import load_scene
+
+# Action classes from motion statistics (per played instance, medians over instances):
+# attack      — the peak root-frame speed of any joint or owned attachment point ≥ ATTACK_PEAK_MPS;
+# locomotion  — a looping (state) action whose mean horizontal root speed ≥ LOCOMOTION_MPS;
+# stationary  — a looping action below that speed;
+# other       — an event that is not an attack (dodge, roar, ...).
+ATTACK_PEAK_MPS = 7.0
+LOCOMOTION_MPS = 0.5
+
+
+def shard_name(n: int) -> str:
+    return f"shard-{n:06d}"
+
+
+def classify(kind: str, instances: list[list[float]]) -> str:
+    """Action class from per-instance [mean root speed, peak body speed, frames]."""
+    if not instances:
+        return "other"
+    arr = np.asarray(instances, np.float64)
+    if np.median(arr[:, 1]) >= ATTACK_PEAK_MPS:
+        return "attack"
+    if kind == "state":
+        return "locomotion" if np.median(arr[:, 0]) >= LOCOMOTION_MPS else "stationary"
+    return "other"
+
+
+def build_vocab(records: list[dict]) -> dict:
+    """Dense tokens per entity type over the corpus (token 0 = no valid action), clip lengths, kinds, classes."""
+    merged: dict[str, dict[int, dict]] = {}
+    for r in records:
+        for etype, acts in r.get("actions", {}).items():
+            for cid, d in acts.items():
+                cur = merged.setdefault(etype, {}).setdefault(
+                    int(cid), {"frames": 0, "max_motion_frame": -1, "wraps": False, "instances": []}
+                )
+                cur["frames"] += d["frames"]
+                cur["max_motion_frame"] = max(cur["max_motion_frame"], d["max_motion_frame"])
+                cur["wraps"] = cur["wraps"] or d["wraps"]
+                cur["instances"] += d["instances"]
+    vocab: dict = {"version": 1, "entity_types": {}}
+    for etype in sorted(merged):
+        actions = [
+            {
+                "composite": 0,
+                "token": 0,
+                "name": "no valid action",
+                "clip_length": 1,
+                "kind": "none",
+                "class": "none",
+                "frames": 0,
+            }
+        ]
+        token = 1
+        for cid in sorted(merged[etype]):
+            d = merged[etype][cid]
+            if cid == 0:
+                actions[0]["frames"] = d["frames"]
+                continue
+            kind = "state" if d["wraps"] else "event"
+            inst = np.asarray(d["instances"], np.float64).reshape(-1, 3)
+            actions.append(
+                {
+                    "composite": cid,
+                    "bank": (cid - 1) // 1000,
+                    "motion": (cid - 1) % 1000,
+                    "token": token,
+                    "clip_length": d["max_motion_frame"] + 1,
+                    "kind": kind,
+                    "class": classify(kind, d["instances"]),
+                    "frames": d["frames"],
+                    "instances": len(inst),
+                    "median_root_speed_mps": round(float(np.median(inst[:, 0])), 4) if len(inst) else 0.0,
+                    "median_peak_body_speed_mps": round(float(np.median(inst[:, 1])), 4) if len(inst) else 0.0,
+                }
+            )
+            token += 1
+        vocab["entity_types"][etype] = {"size": token, "actions": actions}
+    vocab["hash"] = text_sha256(json.dumps(vocab["entity_types"], sort_keys=True))[:16]
+    return vocab
+
+
+def build_stats(records: list[dict]) -> dict:
+    """Per-feature mean/std/min/max over the train split (all samples if it is empty)."""
+    train = [r for r in records if r.get("split") == "train"] or records
+    acc: dict[str, dict] = {}
+    for r in train:
+        for k, m in (r.get("stats") or {}).items():
+            acc[k] = merge_moments(acc.get(k), m)
+    out = {"split": "train" if any(r.get("split") == "train" for r in records) else "all"}
+    for k, m in sorted(acc.items()):
+        n = max(m["count"], 1)
+        out[k] = {
+            "mean": m["mean"],
+            "std": np.sqrt(np.asarray(m["m2"]) / n).tolist(),
+            "min": m["min"],
+            "max": m["max"],
+            "count": m["count"],
+        }
+    return out
+
+
+def _load_records(d: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))] if d.exists() else []
+
+
+def _plan(corpus: Path) -> dict:
+    meta = corpus / "meta"
+    committed = {r["key"]: r for r in _load_records(meta / "samples")}
+    staged = sorted(
+        (json.loads(p.read_text()) for p in (corpus / "staging").glob("*/record.json")),
+        key=lambda r: r["sample"],
+    )
+    used = [r["shard"] for r in committed.values() if r.get("shard") is not None]
+    next_shard = max(used) + 1 if used else 0
+    moves, deletes, records = [], [], []
+    for rec in staged:
+        old = committed.get(rec["key"])
+        old_shard = old.get("shard") if old else None
+        stage = corpus / "staging" / rec["key"]
+        if rec["status"] == "ingested":
+            shard = old_shard if old_shard is not None else next_shard
+            next_shard += shard == next_shard
+            rec["shard"] = shard
+            moves.append([str(stage / "state.arrow"), str(corpus / "state" / f"{shard_name(shard)}.arrow")])
+            moves.append([str(stage / "video.tar"), str(corpus / "video" / f"{shard_name(shard)}.tar")])
+        else:
+            rec["shard"] = None
+            if old_shard is not None:  # a recording that was good and now is not: its shard goes
+                deletes += [
+                    str(corpus / "state" / f"{shard_name(old_shard)}.arrow"),
+                    str(corpus / "video" / f"{shard_name(old_shard)}.tar"),
+                ]
+        records.append(rec)
+    return {"records": records, "moves": moves, "deletes": deletes}
+
+
+def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:
+    """Commit staged samples to numbered shards and rewrite the derived metadata; returns info.json."""
+    corpus = Path(corpus)
+    meta = corpus / "meta"
+    (corpus / "state").mkdir(parents=True, exist_ok=True)
+    (corpus / "video").mkdir(parents=True, exist_ok=True)
+    plan_path = meta / "finalize-plan.json"
+    if plan_path.exists():
+        plan = json.loads(plan_path.read_text())
+    else:
+        plan = _plan(corpus)
+        if plan["records"]:
+            write_json(plan_path, plan)
+    for src, dst in plan["moves"]:
+        if os.path.exists(src):
+            os.replace(src, dst)
+        elif not os.path.exists(dst):
+            raise FileNotFoundError(f"finalize: staged file {src} is gone and {dst} does not exist")
+    for p in plan["deletes"]:
+        Path(p).unlink(missing_ok=True)
+    for rec in plan["records"]:
+        write_json(meta / "samples" / f"{rec['key']}.json", rec)
+        shutil.rmtree(corpus / "staging" / rec["key"], ignore_errors=True)
+    info = write_metadata(corpus, options, stages)
+    plan_path.unlink(missing_ok=True)
+    return info
+
+
+def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:
+    """Derive segments.parquet, samples.parquet, quarantine.parquet, vocab.json, stats.json and info.json."""
+    meta = corpus / "meta"
+    info_path = meta / "info.json"
+    old_info = json.loads(info_path.read_text()) if info_path.exists() else None
+    if options is None:
+        if old_info is None:
+            raise FileNotFoundError(f"{info_path}: no corpus here and no ingest options given")
+        options = IngestOptions.from_json(old_info["ingest"])
+    stages = dict(stages or {})
+    if old_info:
+        stages = {**old_info.get("stages", {}), **stages}
+    layout = load_scene(options.scene)
+    records = _load_records(meta / "samples")
+    ingested = [r for r in records if r["status"] == "ingested"]
+
+    seg_rows: dict[str, list] = {
+        k: []
+        for k in (
+            "segment",
+            "sample",
+            "stage",
+            "species",
+            "weapon",
+            "frames",
+            "start",
+            "stop",
+            "chunks",
+            "split",
+            "shard",
+            "hash",
+        )
+    }
+    for r in ingested:
+        types = r.get("types", {})
+        species = next((types[e.name] for e in layout.entities if e.source_kind == "m"), -1)
+        weapon = next((types[e.name] for e in layout.entities if e.source_kind == "w"), -1)
+        for s in r["segments"]:
+            for k, v in (
+                ("segment", s["segment"]),
+                ("sample", r["sample"]),
+                ("stage", stages.get(r["sample"], "default")),
+                ("species", species),
+                ("weapon", weapon),
+                ("frames", s["frames"]),
+                ("start", s["start"]),
+                ("stop", s["stop"]),
+                ("chunks", s.get("chunks", 0)),
+                ("split", s["split"]),
+                ("shard", r["shard"]),
+                ("hash", s["hash"]),
+            ):
+                seg_rows[k].append(v)
+    seg_types = {
+        "species": pa.int32(),
+        "weapon": pa.int32(),
+        "frames": pa.int32(),
+        "start": pa.int32(),
+        "stop": pa.int32(),
+        "chunks": pa.int32(),
+        "shard": pa.int32(),
+    }
+    write_parquet(
+        meta / "segments.parquet", pa.table({k: pa.array(v, seg_types.get(k, pa.string())) for k, v in seg_rows.items()})
+    )
+    write_parquet(
+        meta / "samples.parquet",
+        pa.table(
+            {
+                "sample": pa.array([r["sample"] for r in records], pa.string()),
+                "status": pa.array([r["status"] for r in records], pa.string()),
+                "reason": pa.array([r.get("reason", "") for r in records], pa.string()),
+                "input_hash": pa.array([r["input_hash"] for r in records], pa.string()),
+                "shard": pa.array([r.get("shard") for r in records], pa.int32()),
+                "source": pa.array([r.get("source", "") for r in records], pa.string()),
+                "state_hash": pa.array([r.get("state_hash", "") for r in records], pa.string()),
+            }
+        ),
+    )
+    bad = [r for r in records if r["status"] == "quarantined"]
+    write_parquet(
+        meta / "quarantine.parquet",
+        pa.table(
+            {
+                "sample": pa.array([r["sample"] for r in bad], pa.string()),
+                "reason": pa.array([r["reason"] for r in bad], pa.string()),
+                "input_hash": pa.array([r["input_hash"] for r in bad], pa.string()),
+                "source": pa.array([r.get("source", "") for r in bad], pa.string()),
+            }
+        ),
+    )
+    vocab = build_vocab(ingested)
+    write_json(meta / "vocab.json", vocab)
+    stats = build_stats(ingested)
+    write_json(meta / "stats.json", stats)
+
+    fps = sorted({r["fps"] for r in ingested}) or [30.0]
+    splits: dict[str, int] = {}
+    for r in ingested:
+        for s in r["segments"]:
+            splits[s["split"]] = splits.get(s["split"], 0) + s["frames"]
+    info = {
+        "codebase_version": f"marionette-ingest-{INGEST_VERSION}",
+        "layout": {"hash": layout.hash, **layout.to_json()},
+        "fps": fps[0] if len(fps) == 1 else fps,
+        "dynamics_fps": 20,
+        "ingest": options.to_json(),
+        "features": features(layout),
+        "total_samples": len(records),
+        "total_ingested": len(ingested),
+        "total_quarantined": len(bad),
+        "total_skipped": sum(r["status"] == "skipped" for r in records),
+        "total_segments": len(seg_rows["segment"]),
+        "total_frames": int(sum(seg_rows["frames"])),
+        "total_chunks": int(sum(seg_rows["chunks"])),
+        "frames_per_split": splits,
+        "shards": sorted(r["shard"] for r in ingested),
+        "stages": stages,
+        "vocab_hash": vocab["hash"],
+        "state_path": "state/shard-{shard:06d}.arrow",
+        "video_path": "video/shard-{shard:06d}.tar",
+    }
+    write_json(info_path, info)
+    return info
+
+
+def features(layout) -> dict:
+    """LeRobot-style features: every column of a state shard with dtype, shape and names."""
+    f = {
+        "segment": {"dtype": "string", "shape": [1], "names": None},
+        "sample": {"dtype": "string", "shape": [1], "names": None},
+        "frame": {"dtype": "int32", "shape": [1], "names": None},
+        "t": {"dtype": "float64", "shape": [1], "names": None},
+        "state": {"dtype": "float32", "shape": [layout.dim], "names": layout.dim_names()},
+    }
+    for e in layout.articulated:
+        f[f"{e.name}.type_id"] = {"dtype": "int32", "shape": [1], "names": None}
+        f[f"{e.name}.action"] = {"dtype": "int32", "shape": [1], "names": None}
+        f[f"{e.name}.motion_frame"] = {"dtype": "int32", "shape": [1], "names": None}
+        f[f"{e.name}.hp"] = {"dtype": "float32", "shape": [1], "names": None}
+        f[f"{e.name}.root_world"] = {"dtype": "float64", "shape": [3], "names": ["x", "y", "z"]}
+        f[f"{e.name}.rot_world"] = {"dtype": "float64", "shape": [4], "names": ["x", "y", "z", "w"]}
+        f[f"{e.name}.pos_check_m"] = {"dtype": "float32", "shape": [1], "names": None}
+    for e in layout.attachments:
+        f[f"{e.name}.type_id"] = {"dtype": "int32", "shape": [1], "names": None}
+    f["camera.K"] = {"dtype": "float64", "shape": [4], "names": ["fx", "fy", "cx", "cy"]}
+    f["camera.pos"] = {"dtype": "float64", "shape": [3], "names": ["x", "y", "z"]}
+    f["camera.rot"] = {"dtype": "float64", "shape": [4], "names": ["x", "y", "z", "w"]}
+    f["valid"] = {"dtype": "bool", "shape": [1], "names": None}
+    return f

@@ -1,0 +1,360 @@
+"""One WildWorld sample → staged state rows (Arrow), video chunks (webdataset tar) and a summary.
+
+A sample is staged under ``<corpus>/staging/<key>/`` and only becomes part of the corpus when
+``finalize`` moves it into a numbered shard; ``record.json`` is written last and marks the staged
+sample as complete, so a crash mid-sample leaves nothing a rerun would mistake for finished work.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from marionette import geometry as geo
+from marionette.ingest.video import VideoSettings, write_video_shard
+from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, SampleSkipped, read_sample
+from marionette.io import file_sha256, read_ipc, text_sha256, write_ipc, write_json
+from marionette.schema import Layout, load_scene, state_schema
+
+INGEST_VERSION = "1"
+
+
+@dataclass(frozen=True)
+class IngestOptions:
+    """What a build ingests and how: scene, slice (species, weapon), segmenting, video, Arrow codec."""
+
+    scene: str = "duel"
+    monster_species: int | None = None
+    weapon: int | None = None
+    min_segment_frames: int = 30
+    video: VideoSettings = field(default_factory=VideoSettings)
+    compression: str = "zstd"
+    split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
+
+    @property
+    def layout(self) -> Layout:
+        return load_scene(self.scene)
+
+    def type_filter(self) -> dict[str, set[int]]:
+        """Accepted type ids per entity name: the requested slice, else what the rigs declare."""
+        out = {}
+        for e in self.layout.entities:
+            ids = set(e.rig.type_ids)
+            if e.source_kind == "m" and self.monster_species is not None:
+                ids = {self.monster_species}
+            if e.source_kind == "w" and self.weapon is not None:
+                ids = {self.weapon}
+            out[e.name] = ids
+        return out
+
+    def key(self) -> str:
+        """Hash of everything that changes what ingest writes."""
+        d = asdict(self)
+        d["layout_hash"] = self.layout.hash
+        d["ingest_version"] = INGEST_VERSION
+        return text_sha256(json.dumps(d, sort_keys=True, default=str))[:16]
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["split_fractions"] = list(self.split_fractions)
+        return d
+
+    @staticmethod
+    def from_json(d: dict) -> IngestOptions:
+        d = dict(d)
+        d["video"] = VideoSettings(**d["video"])
+        d["split_fractions"] = tuple(d["split_fractions"])
+        return IngestOptions(**d)
+
+
+@dataclass
+class SampleResult:
+    """What happened to one sample: ingested, unchanged (no work), skipped or quarantined."""
+
+    sample: str
+    status: str
+    input_hash: str
+    reason: str = ""
+    segments: int = 0
+    frames: int = 0
+    worker: str = ""
+
+
+def safe_name(s: str) -> str:
+    """A name usable in file names and webdataset keys: no dots, slashes or spaces."""
+    return re.sub(r"[^A-Za-z0-9_-]", "-", s)
+
+
+def sample_key(ref: SampleRef) -> str:
+    """Directory/key name of a sample inside the corpus."""
+    return f"{safe_name(ref.part)}__{safe_name(ref.sample_id)}"
+
+
+def split_of(recording: str, fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> str:
+    """train / val / test from a hash of the recording id: stable under adding recordings."""
+    u = int.from_bytes(hashlib.sha256(recording.encode()).digest()[:8], "big") / 2**64
+    return "train" if u < fractions[0] else "val" if u < fractions[0] + fractions[1] else "test"
+
+
+def input_hash(ref: SampleRef, options: IngestOptions) -> str:
+    """Hash of a sample's files and the options: the cache key of its ingest."""
+    parts = [ref.name, options.key()]
+    for f in ("state.csv", "skeleton.npz", "rgb.mp4"):
+        p = ref.path / f
+        parts.append(f"{f}:{file_sha256(p) if p.exists() else 'missing'}")
+    parts.append(f"edges:{file_sha256(ref.edges_path) if ref.edges_path.exists() else 'missing'}")
+    return text_sha256(*parts)[:32]
+
+
+def valid_runs(valid: np.ndarray, min_len: int) -> list[tuple[int, int]]:
+    """Maximal runs [start, stop) of True at least ``min_len`` long."""
+    v = np.concatenate([[False], np.asarray(valid, bool), [False]])
+    edges = np.flatnonzero(np.diff(v.astype(np.int8)))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2]) if b - a >= min_len]
+
+
+def _describe_invalid(sample: RecordedSample) -> str:
+    parts = []
+    for name, track in list(sample.entities.items()) + [("camera", None)]:
+        bad = ~(track.valid if track is not None else sample.camera_valid)
+        if bad.any():
+            idx = np.flatnonzero(bad)
+            parts.append(f"{name} invalid on {len(idx)} frames (first {int(idx[0])})")
+    return "; ".join(parts) or "all frames valid"
+
+
+# ------------------------------------------------------------------------------------------------
+# summaries merged at finalize: running moments (Chan et al.) and per-action motion statistics
+
+
+def moments(x: np.ndarray) -> dict:
+    """count, mean, M2, min, max per column of (N, F) float64 data."""
+    x = np.asarray(x, np.float64)
+    return {
+        "count": int(len(x)),
+        "mean": x.mean(0).tolist(),
+        "m2": ((x - x.mean(0)) ** 2).sum(0).tolist(),
+        "min": x.min(0).tolist(),
+        "max": x.max(0).tolist(),
+    }
+
+
+def merge_moments(a: dict | None, b: dict) -> dict:
+    """Merge two moment summaries (parallel variance algorithm; stable for large offsets)."""
+    if a is None or a["count"] == 0:
+        return b
+    if b["count"] == 0:
+        return a
+    na, nb = a["count"], b["count"]
+    ma, mb = np.array(a["mean"]), np.array(b["mean"])
+    d = mb - ma
+    n = na + nb
+    return {
+        "count": n,
+        "mean": (ma + d * nb / n).tolist(),
+        "m2": (np.array(a["m2"]) + np.array(b["m2"]) + d**2 * na * nb / n).tolist(),
+        "min": np.minimum(a["min"], b["min"]).tolist(),
+        "max": np.maximum(a["max"], b["max"]).tolist(),
+    }
+
+
+def action_stats(layout: Layout, state: np.ndarray, sample: RecordedSample, a: int, b: int, fps: float) -> dict:
+    """Per articulated entity and composite action: frames, largest motion_frame, whether it wrapped,
+    and per played instance the mean horizontal root speed (m/s) and the peak root-frame speed of any
+    joint or owned attachment point (m/s)."""
+    out: dict[str, dict[str, dict]] = {}
+    n = b - a
+    for e in layout.articulated:
+        tr = sample.entities[e.name]
+        rig_key = f"{e.rig.name}:{int(tr.type_id[a])}"
+        act, mf = tr.action[a:b], tr.motion_frame[a:b]
+        local = [state[:, layout.slice(f"{e.name}.joints")].reshape(n, -1, 3)]
+        local += [state[:, layout.slice(f"{o.name}.points")].reshape(n, -1, 3) for o in layout.attachments if o.owner == e.name]
+        p = np.concatenate(local, axis=1).astype(np.float64)
+        body_speed = np.zeros(n)
+        body_speed[1:] = np.linalg.norm(np.diff(p, axis=0), axis=-1).max(axis=1) * fps
+        root = tr.joints_world[a:b, 0]
+        root_speed = np.zeros(n)
+        root_speed[1:] = np.linalg.norm(np.diff(root[:, [0, 2]], axis=0), axis=-1) * fps
+        starts = np.flatnonzero(np.concatenate([[True], act[1:] != act[:-1]]))
+        stops = np.concatenate([starts[1:], [n]])
+        ent = out.setdefault(rig_key, {})
+        for s, t in zip(starts, stops):
+            cid = int(act[s])
+            d = ent.setdefault(str(cid), {"frames": 0, "max_motion_frame": -1, "wraps": False, "instances": []})
+            d["frames"] += int(t - s)
+            d["max_motion_frame"] = max(d["max_motion_frame"], int(mf[s:t].max()))
+            d["wraps"] = bool(d["wraps"] or (np.diff(mf[s:t]) < 0).any())
+            lo = s + 1 if s == 0 else s  # the segment's first frame has no previous frame
+            if t - lo >= 1:
+                d["instances"].append(
+                    [round(float(root_speed[lo:t].mean()), 4), round(float(body_speed[lo:t].max()), 4), int(t - s)]
+                )
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+def _segment_table(layout: Layout, sample: RecordedSample, seg_id: str, a: int, b: int, state: np.ndarray) -> pa.Table:
+    """Rows [a, b) of a sample as a state-shard table."""
+    schema = state_schema(layout)
+    n = b - a
+    cols: dict[str, pa.Array] = {
+        "segment": pa.array([seg_id] * n, pa.string()),
+        "sample": pa.array([sample.ref.name] * n, pa.string()),
+        "frame": pa.array(np.arange(a, b, dtype=np.int32)),
+        "t": pa.array(np.arange(a, b, dtype=np.float64) / sample.fps),
+        "state": pa.FixedSizeListArray.from_arrays(pa.array(state.reshape(-1), pa.float32()), layout.dim),
+    }
+
+    def fixed(x: np.ndarray, w: int) -> pa.Array:
+        return pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(x, np.float64).reshape(-1)), w)
+
+    for e in layout.articulated:
+        tr = sample.entities[e.name]
+        cols[f"{e.name}.type_id"] = pa.array(tr.type_id[a:b].astype(np.int32))
+        cols[f"{e.name}.action"] = pa.array(tr.action[a:b])
+        cols[f"{e.name}.motion_frame"] = pa.array(tr.motion_frame[a:b])
+        cols[f"{e.name}.hp"] = pa.array(tr.hp[a:b])
+        cols[f"{e.name}.root_world"] = fixed(tr.joints_world[a:b, 0], 3)
+        cols[f"{e.name}.rot_world"] = fixed(tr.rot[a:b], 4)
+        cols[f"{e.name}.pos_check_m"] = pa.array(
+            np.nan_to_num(np.linalg.norm(tr.pos[a:b] - tr.joints_world[a:b, 0], axis=1), nan=-1).astype(np.float32)
+        )
+    for e in layout.attachments:
+        cols[f"{e.name}.type_id"] = pa.array(sample.entities[e.name].type_id[a:b].astype(np.int32))
+    cols["camera.K"] = fixed(sample.camera_K[a:b], 4)
+    cols["camera.pos"] = fixed(sample.camera_pos[a:b], 3)
+    cols["camera.rot"] = fixed(sample.camera_rot[a:b], 4)
+    cols["valid"] = pa.array(np.ones(n, bool))
+    return pa.Table.from_pydict(cols, schema=schema)
+
+
+def staging_dir(corpus: Path, ref: SampleRef) -> Path:
+    return Path(corpus) / "staging" / sample_key(ref)
+
+
+def committed_hash(corpus: Path, ref: SampleRef) -> str | None:
+    """Input hash of the sample as the corpus (or its staging area) already holds it."""
+    for p in (Path(corpus) / "meta" / "samples" / f"{sample_key(ref)}.json", staging_dir(corpus, ref) / "record.json"):
+        if p.exists():
+            return json.loads(p.read_text())["input_hash"]
+    return None
+
+
+def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: str = "") -> SampleResult:
+    """Ingest one sample into the corpus staging area; no work when its input hash is unchanged."""
+    corpus = Path(corpus)
+    h = input_hash(ref, options)
+    if committed_hash(corpus, ref) == h:
+        return SampleResult(ref.name, "unchanged", h, worker=worker)
+    stage = staging_dir(corpus, ref)
+    stage.mkdir(parents=True, exist_ok=True)
+    (stage / "record.json").unlink(missing_ok=True)
+    layout = options.layout
+    record: dict = {"sample": ref.name, "key": sample_key(ref), "input_hash": h, "source": str(ref.path.resolve())}
+    try:
+        sample = read_sample(ref, layout, options.type_filter())
+        runs = valid_runs(sample.valid, options.min_segment_frames)
+        if not runs:
+            raise SampleError(
+                f"{ref.path}: no valid segment of at least {options.min_segment_frames} frames "
+                f"({sample.n_frames} frames; {_describe_invalid(sample)})"
+            )
+        tables, segs, summaries, stats = [], [], {}, None
+        split = split_of(ref.name, options.split_fractions)
+        for k, (a, b) in enumerate(runs):
+            seg_id = f"{safe_name(ref.part)}-{safe_name(ref.sample_id)}-s{k:03d}"
+            joints = {e.name: sample.entities[e.name].joints_world[a:b] for e in layout.entities}
+            rots = {e.name: sample.entities[e.name].rot[a:b] for e in layout.articulated}
+            state = geo.world_to_state(layout, joints, rots)
+            tables.append(_segment_table(layout, sample, seg_id, a, b, state))
+            seg_hash = hashlib.sha256(
+                state.tobytes() + tables[-1].column(f"{layout.articulated[0].name}.action").to_numpy().tobytes()
+            )
+            segs.append(
+                {"segment": seg_id, "start": a, "stop": b, "frames": b - a, "split": split, "hash": seg_hash.hexdigest()[:32]}
+            )
+            for rk, acts in action_stats(layout, state, sample, a, b, sample.fps).items():
+                for cid, d in acts.items():
+                    cur = summaries.setdefault(rk, {}).setdefault(
+                        cid, {"frames": 0, "max_motion_frame": -1, "wraps": False, "instances": []}
+                    )
+                    cur["frames"] += d["frames"]
+                    cur["max_motion_frame"] = max(cur["max_motion_frame"], d["max_motion_frame"])
+                    cur["wraps"] = cur["wraps"] or d["wraps"]
+                    cur["instances"] += d["instances"]
+            feats = {"state": state.astype(np.float64)}
+            for e in layout.articulated:
+                feats[f"{e.name}.root_world"] = sample.entities[e.name].joints_world[a:b, 0]
+            part = {k: moments(v) for k, v in feats.items()}
+            stats = part if stats is None else {k: merge_moments(stats[k], part[k]) for k in part}
+        write_ipc(stage / "state.arrow", pa.concat_tables(tables), options.compression)
+        video_records = write_video_shard(
+            stage / "video.tar",
+            ref.path / "rgb.mp4",
+            [(s["segment"], s["start"], s["stop"], sample.camera_K[s["start"] : s["stop"]]) for s in segs],
+            sample.fps,
+            options.video,
+            {"sample": ref.name},
+        )
+        per_seg_chunks: dict[str, int] = {}
+        for r in video_records:
+            per_seg_chunks[r["segment"]] = per_seg_chunks.get(r["segment"], 0) + 1
+        for s in segs:
+            s["chunks"] = per_seg_chunks.get(s["segment"], 0)
+        types = {e.name: int(sample.entities[e.name].type_id[runs[0][0]]) for e in layout.entities}
+        record.update(
+            status="ingested",
+            fps=sample.fps,
+            n_frames=sample.n_frames,
+            video_size=list(sample.video_size),
+            types=types,
+            split=split,
+            segments=segs,
+            actions=summaries,
+            stats=stats,
+            pos_check_m={
+                e.name: max(
+                    float(
+                        np.nan_to_num(
+                            np.linalg.norm(
+                                sample.entities[e.name].pos[a:b] - sample.entities[e.name].joints_world[a:b, 0], axis=1
+                            ),
+                            nan=-1.0,
+                        ).max()
+                    )
+                    for a, b in runs
+                )
+                for e in layout.articulated
+            },
+            state_hash=file_sha256(stage / "state.arrow"),
+        )
+        result = SampleResult(ref.name, "ingested", h, segments=len(segs), frames=sum(s["frames"] for s in segs), worker=worker)
+    except SampleSkipped as exc:
+        record.update(status="skipped", reason=str(exc))
+        result = SampleResult(ref.name, "skipped", h, reason=str(exc), worker=worker)
+    except SampleError as exc:
+        record.update(status="quarantined", reason=str(exc))
+        result = SampleResult(ref.name, "quarantined", h, reason=str(exc), worker=worker)
+    except Exception as exc:  # an unexpected failure quarantines this sample, never the build
+        reason = f"{ref.path}: unexpected {type(exc).__name__}: {exc}"
+        record.update(status="quarantined", reason=reason, traceback=traceback.format_exc(limit=6))
+        result = SampleResult(ref.name, "quarantined", h, reason=reason, worker=worker)
+    if record["status"] != "ingested":
+        for f in ("state.arrow", "video.tar"):
+            (stage / f).unlink(missing_ok=True)
+    write_json(stage / "record.json", record)
+    return result
+
+
+def read_staged_state(stage: Path) -> pa.Table:
+    return read_ipc(stage / "state.arrow")

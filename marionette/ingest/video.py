@@ -1,0 +1,190 @@
+"""Video chunks for the webdataset shards: crop to the training aspect, resize, encode 81-frame clips.
+
+Image coordinates are continuous: pixel (i, j) covers [j, j+1) × [i, i+1), so a centred principal
+point is cx = W/2. Cropping x0 columns and scaling by s maps fx → s·fx and cx → s·(cx − x0).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import tarfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import av
+import numpy as np
+
+from marionette.io import atomic_path
+
+
+@dataclass(frozen=True)
+class VideoSettings:
+    """Training-resolution video chunks: size (height, width), frames per chunk, x264 quality."""
+
+    height: int = 176
+    width: int = 320
+    chunk_frames: int = 81
+    crf: int = 20
+    preset: str = "veryfast"
+
+    def key(self) -> str:
+        return f"{self.height}x{self.width}-{self.chunk_frames}f-crf{self.crf}-{self.preset}"
+
+
+@dataclass(frozen=True)
+class CropResize:
+    """A centred whole-pixel crop of the source to the target aspect, then a resize to the target."""
+
+    x0: int
+    y0: int
+    w: int
+    h: int
+    out_h: int
+    out_w: int
+
+    @staticmethod
+    def fit(src_h: int, src_w: int, dst_h: int, dst_w: int) -> CropResize:
+        """The largest centred crop with the destination aspect (rounded to whole pixels)."""
+        if src_w * dst_h >= src_h * dst_w:  # source wider: crop columns
+            cw, ch = int(round(src_h * dst_w / dst_h)), src_h
+        else:
+            cw, ch = src_w, int(round(src_w * dst_h / dst_w))
+        return CropResize((src_w - cw) // 2, (src_h - ch) // 2, cw, ch, dst_h, dst_w)
+
+    @property
+    def sx(self) -> float:
+        return self.out_w / self.w
+
+    @property
+    def sy(self) -> float:
+        return self.out_h / self.h
+
+    def intrinsics(self, K: np.ndarray) -> np.ndarray:
+        """(…, 4) fx, fy, cx, cy in source pixels → the same in output pixels."""
+        K = np.asarray(K, np.float64)
+        return np.stack(
+            [K[..., 0] * self.sx, K[..., 1] * self.sy, (K[..., 2] - self.x0) * self.sx, (K[..., 3] - self.y0) * self.sy], -1
+        )
+
+    def to_json(self) -> dict:
+        return {"x0": self.x0, "y0": self.y0, "w": self.w, "h": self.h, "out_h": self.out_h, "out_w": self.out_w}
+
+
+def chunk_spans(n_frames: int, chunk: int) -> list[tuple[int, int]]:
+    """Chunks [start, stop) covering a segment: stride ``chunk``, the last one aligned to the end.
+
+    A segment shorter than one chunk gives no chunk.
+    """
+    if n_frames < chunk:
+        return []
+    starts = list(range(0, n_frames - chunk + 1, chunk))
+    if starts[-1] + chunk < n_frames:
+        starts.append(n_frames - chunk)
+    return [(s, s + chunk) for s in starts]
+
+
+def encode_mp4(frames: np.ndarray, fps: float, settings: VideoSettings) -> bytes:
+    """Encode (T, H, W, 3) uint8 RGB frames as an H.264 mp4 in memory (one encoder thread: deterministic)."""
+    buf = io.BytesIO()
+    with av.open(buf, "w", format="mp4") as c:
+        s = c.add_stream("libx264", rate=int(round(fps)))
+        s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
+        s.codec_context.thread_count = 1
+        s.options = {"crf": str(settings.crf), "preset": settings.preset}
+        for f in frames:
+            for p in s.encode(av.VideoFrame.from_ndarray(f, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    return buf.getvalue()
+
+
+def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, np.ndarray] | list[np.ndarray]:
+    """Decode RGB frames; all as a list, or only ``indices`` as {frame: array}."""
+    src = io.BytesIO(path_or_bytes) if isinstance(path_or_bytes, bytes | bytearray) else str(path_or_bytes)
+    out_d: dict[int, np.ndarray] = {}
+    out_l: list[np.ndarray] = []
+    with av.open(src) as c:
+        s = c.streams.video[0]
+        s.thread_type = "AUTO"
+        for i, fr in enumerate(c.decode(s)):
+            if indices is None:
+                out_l.append(fr.to_ndarray(format="rgb24"))
+            elif i in indices:
+                out_d[i] = fr.to_ndarray(format="rgb24")
+                if len(out_d) == len(indices):
+                    break
+    return out_l if indices is None else out_d
+
+
+def _tar_add(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+    info = tarfile.TarInfo(name)
+    info.size, info.mtime, info.mode = len(data), 0, 0o644  # fixed mtime: reruns give identical bytes
+    tar.addfile(info, io.BytesIO(data))
+
+
+def write_video_shard(
+    out: Path,
+    rgb_path: Path,
+    segments: list[tuple[str, int, int, np.ndarray]],
+    fps: float,
+    settings: VideoSettings,
+    meta: dict,
+) -> list[dict]:
+    """Write a webdataset tar of RGB chunks for ``segments`` [(segment id, start, stop, K (n,4))].
+
+    Keys are ``<segment>__c<chunk:05d>`` (no dots); members ``rgb.mp4`` and ``json``. The source is
+    decoded once, sequentially. Returns the json records written.
+    """
+    wanted: dict[int, list[tuple[str, int]]] = {}
+    plan: list[tuple[str, int, int, int, np.ndarray]] = []
+    for seg, a, b, K in segments:
+        for ci, (s, e) in enumerate(chunk_spans(b - a, settings.chunk_frames)):
+            plan.append((seg, ci, a + s, a + e, K[s:e]))
+            for f in range(a + s, a + e):
+                wanted.setdefault(f, []).append((seg, ci))
+    records: list[dict] = []
+    buffers: dict[tuple[str, int], list[np.ndarray]] = {(p[0], p[1]): [] for p in plan}
+    with atomic_path(out) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
+        if plan:
+            with av.open(str(rgb_path)) as c:
+                s = c.streams.video[0]
+                s.thread_type = "AUTO"
+                src_h, src_w = s.codec_context.height, s.codec_context.width
+                cr = CropResize.fit(src_h, src_w, settings.height, settings.width)
+                x0, y0, cw, ch = cr.x0, cr.y0, cr.w, cr.h
+                pending = {(p[0], p[1]): p for p in plan}
+                for i, fr in enumerate(c.decode(s)):
+                    if i not in wanted:
+                        if i > max(wanted):
+                            break
+                        continue
+                    img = fr.to_ndarray(format="rgb24")[y0 : y0 + ch, x0 : x0 + cw]
+                    small = (
+                        av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+                        .reformat(width=settings.width, height=settings.height, interpolation="AREA")
+                        .to_ndarray(format="rgb24")
+                    )
+                    for key in wanted[i]:
+                        buffers[key].append(small)
+                        seg, ci, a, b, K = pending[key]
+                        if len(buffers[key]) == b - a:
+                            rec = {
+                                **meta,
+                                "segment": seg,
+                                "chunk": ci,
+                                "frames": [a, b],
+                                "fps": fps,
+                                "source_size": [src_h, src_w],
+                                "crop": cr.to_json(),
+                                "resize": [settings.height, settings.width],
+                                "scale": [cr.sy, cr.sx],
+                                "K": np.round(cr.intrinsics(K), 6).tolist(),
+                            }
+                            mp4 = encode_mp4(np.stack(buffers.pop(key)), fps, settings)
+                            name = f"{seg}__c{ci:05d}"
+                            _tar_add(tar, f"{name}.rgb.mp4", mp4)
+                            _tar_add(tar, f"{name}.json", json.dumps(rec, sort_keys=True).encode())
+                            records.append(rec)
+    return records

@@ -1,0 +1,367 @@
+"""Reading one WildWorld-format sample (the public layout) into arrays a scene layout asks for.
+
+A sample is ``data_part<x>/<id>/`` with ``rgb.mp4``, ``depth.mkv``, ``state.csv`` and
+``skeleton.npz``; ``data_part<x>/skeleton_edges.json`` gives each skeleton type's edges. Columns of
+state.csv hold scalars or Python tuple literals; invalid values are ``nan``. List columns are
+0-based (``npc.list.0.*``), skeleton keys 1-based (``n1_<type_id>``).
+
+Every error names the file and, where there is one, the row (1-based data row, header excluded)
+and column, and is raised as ``SampleError`` so the caller can quarantine the sample.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import av
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.csv as pacsv
+
+from marionette.schema import Entity, Layout
+
+REQUIRED_FILES = ("rgb.mp4", "state.csv", "skeleton.npz")
+FLOAT_TUPLE_WIDTH = {"camera.K": 4, "camera.pos": 3, "camera.rot": 4, "pos": 3, "rot": 4}
+
+
+class SampleError(ValueError):
+    """A sample cannot be ingested; the message names the file and row or frame."""
+
+
+class SampleSkipped(Exception):
+    """A sample lies outside the requested slice (species, weapon); it is listed, not quarantined."""
+
+
+@dataclass(frozen=True)
+class SampleRef:
+    """Where a sample lives: ``root/part/sample_id``."""
+
+    root: Path
+    part: str
+    sample_id: str
+
+    @property
+    def path(self) -> Path:
+        return self.root / self.part / self.sample_id
+
+    @property
+    def name(self) -> str:
+        """Recording id used throughout the corpus: ``<part>/<id>``."""
+        return f"{self.part}/{self.sample_id}"
+
+    @property
+    def edges_path(self) -> Path:
+        return self.root / self.part / "skeleton_edges.json"
+
+
+def discover(source: Path) -> list[SampleRef]:
+    """All sample directories under ``source`` (a root holding ``data_part*/`` or one part), sorted."""
+    source = Path(source)
+    if not source.is_dir():
+        raise FileNotFoundError(f"{source}: source directory does not exist")
+    parts = sorted(p for p in source.iterdir() if p.is_dir() and p.name.startswith("data_part"))
+    if not parts and source.name.startswith("data_part"):
+        parts, source = [source], source.parent
+    refs = []
+    for part in parts:
+        for d in sorted(part.iterdir()):
+            if d.is_dir() and not d.name.startswith("."):
+                refs.append(SampleRef(source, part.name, d.name))
+    return refs
+
+
+@dataclass
+class EntityTrack:
+    """One entity's recorded arrays over a sample's frames (float64 positions)."""
+
+    type_id: np.ndarray  # (N,) float64, nan where absent
+    joints_world: np.ndarray  # (N, K, 3) kept joints in rig keep order, float64
+    valid: np.ndarray  # (N,) bool
+    rot: np.ndarray | None = None  # (N, 4) xyzw (articulated only)
+    pos: np.ndarray | None = None  # (N, 3)
+    action: np.ndarray | None = None  # (N,) int32 composite id, 0 = no valid action
+    motion_frame: np.ndarray | None = None  # (N,) int32, -1 where invalid
+    hp: np.ndarray | None = None  # (N,) float32
+
+
+@dataclass
+class RecordedSample:
+    """A sample read for one layout: per-entity tracks and the camera, all over N frames."""
+
+    ref: SampleRef
+    n_frames: int
+    fps: float
+    entities: dict[str, EntityTrack] = field(default_factory=dict)
+    camera_K: np.ndarray | None = None  # (N, 4)
+    camera_pos: np.ndarray | None = None  # (N, 3)
+    camera_rot: np.ndarray | None = None  # (N, 4) camera-to-world xyzw, OpenGL camera frame
+    camera_valid: np.ndarray | None = None  # (N,)
+    video_size: tuple[int, int] = (0, 0)  # (height, width)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Frames where every entity of the layout and the camera are valid."""
+        v = self.camera_valid.copy()
+        for t in self.entities.values():
+            v &= t.valid
+        return v
+
+
+# ------------------------------------------------------------------------------------------------
+# state.csv
+
+
+def _list_prefix(kind: str, index: int) -> str:
+    return {"m": "monster", "n": "npc"}[kind] + f".list.{index - 1}."
+
+
+def _entity_columns(e: Entity) -> dict[str, str]:
+    """Column name (in state.csv) for each field an entity needs."""
+    if e.articulated:
+        p = _list_prefix(e.source_kind, e.source_index)
+        return {f: p + f for f in ("type_id", "pos", "rot", "motion_bank_id", "motion_id", "motion_frame", "hp")}
+    # an attachment (weapon): its type comes from the owner player's weapon_id
+    return {"type_id": _list_prefix("n", e.source_index) + "weapon_id"}
+
+
+def _find_bad_row(path: Path, n_cols: int) -> str:
+    """Locate the first row whose field count differs from the header (slow path, errors only)."""
+    with open(path, newline="") as fh:
+        for i, row in enumerate(csv.reader(fh)):
+            if i and len(row) != n_cols:
+                return f"row {i} (line {i + 1}) has {len(row)} fields, the header has {n_cols}"
+    return "a row has the wrong number of fields"
+
+
+def _parse_tuple_column(col: pa.ChunkedArray, width: int, path: Path, name: str) -> np.ndarray:
+    """Parse a column of tuple literals '(a, b, c)' (or 'nan') into (N, width) float64, nan where invalid."""
+    col = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
+    if pa.types.is_floating(col.type) or pa.types.is_integer(col.type) or pa.types.is_null(col.type):
+        # a column with no valid tuple at all is read as numbers/nulls
+        vals = col.cast(pa.float64()).to_numpy(zero_copy_only=False)
+        if np.isfinite(vals).any():
+            raise SampleError(f"{path}: column {name!r} holds scalars, expected {width}-tuples")
+        return np.full((len(col), width), np.nan)
+    stripped = pc.utf8_trim(col.fill_null("nan"), "() ")
+    parts = pc.split_pattern(stripped, ",")
+    lens = pc.list_value_length(parts).to_numpy(zero_copy_only=False)
+    low = pc.utf8_lower(stripped).to_numpy(zero_copy_only=False)
+    invalid = (lens == 1) & np.isin(low, ["nan", ""])
+    bad = ~invalid & (lens != width)
+    if bad.any():
+        r = int(np.flatnonzero(bad)[0])
+        raise SampleError(f"{path}: row {r + 1}, column {name!r}: expected a {width}-tuple, got {col[r].as_py()!r}")
+    out = np.full((len(col), width), np.nan)
+    ok = np.flatnonzero(~invalid)
+    if len(ok):
+        flat = pc.utf8_trim_whitespace(pc.list_flatten(parts.take(pa.array(ok))))
+        try:
+            vals = flat.cast(pa.float64()).to_numpy(zero_copy_only=False)
+        except pa.ArrowInvalid:
+            strs = flat.to_numpy(zero_copy_only=False)
+            for j, s in enumerate(strs):
+                try:
+                    float(s)
+                except ValueError:
+                    r = int(ok[j // width])
+                    raise SampleError(f"{path}: row {r + 1}, column {name!r}: cannot parse {col[r].as_py()!r}") from None
+            raise
+        out[ok] = vals.reshape(-1, width)
+    return out
+
+
+def _parse_scalar_column(col: pa.ChunkedArray, path: Path, name: str) -> np.ndarray:
+    """A numeric column as float64 (nan where invalid), naming the row of an unparsable cell."""
+    col = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
+    if pa.types.is_null(col.type):
+        return np.full(len(col), np.nan)
+    if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+        try:
+            return pc.utf8_trim_whitespace(col.fill_null("nan")).cast(pa.float64()).to_numpy(zero_copy_only=False)
+        except pa.ArrowInvalid:
+            for r, s in enumerate(col.to_pylist()):
+                try:
+                    float(s if s is not None else "nan")
+                except ValueError:
+                    raise SampleError(f"{path}: row {r + 1}, column {name!r}: not a number: {s!r}") from None
+            raise
+    return col.cast(pa.float64()).to_numpy(zero_copy_only=False)
+
+
+def read_state_csv(path: Path, columns: list[str]) -> tuple[dict[str, pa.ChunkedArray], int]:
+    """Read the named columns of a state.csv with pyarrow; malformed rows raise SampleError."""
+    path = Path(path)
+    if not path.exists():
+        raise SampleError(f"{path}: missing")
+    bad_rows: list[str] = []
+
+    def on_bad(row):  # noqa: ANN001 — pyarrow's InvalidRow
+        bad_rows.append(row.text)
+        return "skip"
+
+    try:
+        with open(path, "rb") as fh:
+            header = next(csv.reader([fh.readline().decode("utf-8", "replace")]), [])
+    except OSError as exc:
+        raise SampleError(f"{path}: unreadable ({exc})") from None
+    missing = [c for c in columns if c not in header]
+    if missing:
+        raise SampleError(f"{path}: header lacks columns {missing[:6]}{' ...' if len(missing) > 6 else ''}")
+    tuple_like = {c: pa.string() for c in columns}
+    try:
+        table = pacsv.read_csv(
+            path,
+            parse_options=pacsv.ParseOptions(invalid_row_handler=on_bad),
+            convert_options=pacsv.ConvertOptions(include_columns=columns, column_types=tuple_like, strings_can_be_null=False),
+        )
+    except pa.ArrowInvalid as exc:
+        raise SampleError(f"{path}: not a readable CSV ({exc})") from None
+    if bad_rows:
+        raise SampleError(f"{path}: {_find_bad_row(path, len(header))}")
+    return {c: table.column(c) for c in columns}, table.num_rows
+
+
+# ------------------------------------------------------------------------------------------------
+# skeleton.npz, edges, video
+
+
+def load_skeletons(path: Path) -> dict[str, np.ndarray]:
+    """All arrays of a skeleton.npz (no pickle); corrupt or truncated files raise SampleError."""
+    path = Path(path)
+    if not path.exists():
+        raise SampleError(f"{path}: missing")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        raise SampleError(f"{path}: unreadable, truncated or corrupt ({type(exc).__name__}: {exc})") from None
+
+
+def load_edges(path: Path) -> dict[str, list[list[int]]]:
+    """skeleton_edges.json: skeleton type key → [[parent, child], ...]."""
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise SampleError(f"{path}: missing") from None
+    except json.JSONDecodeError as exc:
+        raise SampleError(f"{path}: invalid JSON ({exc})") from None
+
+
+def video_info(path: Path) -> tuple[int, float, int, int]:
+    """(frame count, fps, height, width) of a video, counting packets (no decoding)."""
+    path = Path(path)
+    if not path.exists():
+        raise SampleError(f"{path}: missing")
+    try:
+        with av.open(str(path)) as c:
+            s = c.streams.video[0]
+            fps = float(s.average_rate or s.guessed_rate or 30)
+            n = sum(1 for p in c.demux(s) if p.size > 0)
+            return n, fps, s.codec_context.height, s.codec_context.width
+    except (av.error.FFmpegError, IndexError) as exc:
+        raise SampleError(f"{path}: unreadable video ({exc})") from None
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+def _mode_type(type_id: np.ndarray) -> int | None:
+    v = type_id[np.isfinite(type_id)]
+    if not len(v):
+        return None
+    vals, counts = np.unique(v.astype(np.int64), return_counts=True)
+    return int(vals[np.argmax(counts)])
+
+
+def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]] | None = None) -> RecordedSample:
+    """Read a sample for ``layout``: every entity's kept joints, rotations, actions, and the camera.
+
+    ``type_filter`` maps an entity name to the type ids to accept (default: its rig's ``type_ids``);
+    a sample whose entity has another type raises SampleSkipped.
+    """
+    d = ref.path
+    for f in REQUIRED_FILES:
+        if not (d / f).exists():
+            raise SampleError(f"{d / f}: missing")
+    cols = ["camera.K", "camera.pos", "camera.rot"]
+    per_entity = {e.name: _entity_columns(e) for e in layout.entities}
+    for m in per_entity.values():
+        cols += list(m.values())
+    raw, n = read_state_csv(d / "state.csv", cols)
+    csv_path = d / "state.csv"
+
+    def tup(c: str, w: int) -> np.ndarray:
+        return _parse_tuple_column(raw[c], w, csv_path, c)
+
+    def num(c: str) -> np.ndarray:
+        return _parse_scalar_column(raw[c], csv_path, c)
+
+    skel = load_skeletons(d / "skeleton.npz")
+    edges = load_edges(ref.edges_path)
+    n_video, fps, vh, vw = video_info(d / "rgb.mp4")
+
+    sample = RecordedSample(ref=ref, n_frames=n, fps=fps, video_size=(vh, vw))
+    sample.camera_K = tup("camera.K", 4)
+    sample.camera_pos = tup("camera.pos", 3)
+    sample.camera_rot = tup("camera.rot", 4)
+    sample.camera_valid = (
+        np.isfinite(sample.camera_K).all(1) & np.isfinite(sample.camera_pos).all(1) & np.isfinite(sample.camera_rot).all(1)
+    )
+    counts = {"state.csv rows": n, "rgb.mp4 frames": n_video}
+    for e in layout.entities:
+        c = per_entity[e.name]
+        type_id = num(c["type_id"])
+        if e.owner is not None and not e.articulated:
+            # the weapon is absent whenever its owner is
+            pass
+        t = _mode_type(type_id)
+        allowed = (type_filter or {}).get(e.name, set(e.rig.type_ids))
+        if t is None:
+            raise SampleError(f"{csv_path}: column {c['type_id']!r} is nan on every row: entity {e.name!r} never appears")
+        if t not in allowed:
+            raise SampleSkipped(f"{e.name} type {t} is outside the requested slice {sorted(allowed)}")
+        key = f"{e.source_kind}{e.source_index}_{t}"
+        if key not in skel:
+            raise SampleError(f"{d / 'skeleton.npz'}: no key {key!r} for entity {e.name!r} (keys: {sorted(skel)})")
+        arr = skel[key]
+        if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] != len(e.rig.source_joints):
+            raise SampleError(
+                f"{d / 'skeleton.npz'}: key {key!r} has shape {arr.shape}, rig {e.rig.name!r} expects (N, {len(e.rig.source_joints)}, 3)"
+            )
+        if e.rig.edges_key in edges and len(edges[e.rig.edges_key]) != len(e.rig.source_joints) - 1:
+            raise SampleError(
+                f"{ref.edges_path}: {e.rig.edges_key!r} has {len(edges[e.rig.edges_key])} edges, "
+                f"rig {e.rig.name!r} has {len(e.rig.source_joints)} joints"
+            )
+        counts[f"skeleton.npz {key} frames"] = arr.shape[0]
+        joints = arr[:, list(e.rig.keep_source_index), :].astype(np.float64) if arr.shape[0] == n else None
+        if joints is None:
+            continue
+        present = np.isfinite(type_id) & (type_id == t)
+        track = EntityTrack(type_id=type_id, joints_world=joints, valid=present & np.isfinite(joints).all(axis=(1, 2)))
+        if e.articulated:
+            track.rot = tup(c["rot"], 4)
+            track.pos = tup(c["pos"], 3)
+            bank, motion, mf = num(c["motion_bank_id"]), num(c["motion_id"]), num(c["motion_frame"])
+            ok = np.isfinite(bank) & np.isfinite(motion) & (bank >= 0) & (motion >= 0)
+            track.action = np.where(ok, np.nan_to_num(bank) * 1000 + np.nan_to_num(motion) + 1, 0).astype(np.int32)
+            track.motion_frame = np.where(np.isfinite(mf), np.nan_to_num(mf, nan=-1), -1).astype(np.int32)
+            track.hp = num(c["hp"]).astype(np.float32)
+            rn = np.linalg.norm(np.nan_to_num(track.rot), axis=1)
+            track.valid &= np.isfinite(track.rot).all(1) & (rn > 0.5)
+            bad_rot = np.isfinite(track.rot).all(1) & present & ((rn < 0.9) | (rn > 1.1))
+            if bad_rot.any():
+                r = int(np.flatnonzero(bad_rot)[0])
+                raise SampleError(f"{csv_path}: row {r + 1}, column {c['rot']!r}: not a unit quaternion (norm {rn[r]:.3f})")
+        sample.entities[e.name] = track
+    if len(set(counts.values())) != 1:
+        listed = ", ".join(f"{k} {v}" for k, v in counts.items())
+        raise SampleError(f"{d}: frame counts disagree: {listed}")
+    for e in layout.attachments:  # an attachment is only valid while its owner is
+        sample.entities[e.name].valid &= sample.entities[e.owner].valid
+    return sample
