@@ -103,14 +103,29 @@ def split_of(recording: str, fractions: tuple[float, float, float] = (0.8, 0.1, 
     return "train" if u < fractions[0] else "val" if u < fractions[0] + fractions[1] else "test"
 
 
-def input_hash(ref: SampleRef, options: IngestOptions) -> str:
-    """Hash of a sample's files and the options: the cache key of its ingest."""
-    parts = [ref.name, options.key()]
-    for f in ("state.csv", "skeleton.npz", "rgb.mp4"):
-        p = ref.path / f
-        parts.append(f"{f}:{file_sha256(p) if p.exists() else 'missing'}")
-    parts.append(f"edges:{file_sha256(ref.edges_path) if ref.edges_path.exists() else 'missing'}")
-    return text_sha256(*parts)[:32]
+def file_digests(ref: SampleRef, known: dict | None = None) -> dict[str, list]:
+    """[size, mtime_ns, sha256] of a sample's input files; a file whose size and mtime match ``known``
+    reuses its recorded digest, so a rerun over hundreds of hours of video reads no video bytes."""
+    out: dict[str, list] = {}
+    for name, p in [(f, ref.path / f) for f in ("state.csv", "skeleton.npz", "rgb.mp4")] + [
+        ("skeleton_edges.json", ref.edges_path)
+    ]:
+        if not p.exists():
+            out[name] = [-1, -1, "missing"]
+            continue
+        st = p.stat()
+        prev = (known or {}).get(name)
+        if prev and prev[0] == st.st_size and prev[1] == st.st_mtime_ns:
+            out[name] = prev
+        else:
+            out[name] = [st.st_size, st.st_mtime_ns, file_sha256(p)]
+    return out
+
+
+def input_hash(ref: SampleRef, options: IngestOptions, digests: dict[str, list] | None = None) -> str:
+    """Hash of a sample's file contents and the options: the cache key of its ingest."""
+    digests = digests or file_digests(ref)
+    return text_sha256(ref.name, options.key(), *(f"{k}:{v[2]}" for k, v in sorted(digests.items())))[:32]
 
 
 def valid_runs(valid: np.ndarray, min_len: int) -> list[tuple[int, int]]:
@@ -242,25 +257,33 @@ def staging_dir(corpus: Path, ref: SampleRef) -> Path:
     return Path(corpus) / "staging" / sample_key(ref)
 
 
-def committed_hash(corpus: Path, ref: SampleRef) -> str | None:
-    """Input hash of the sample as the corpus (or its staging area) already holds it."""
-    for p in (Path(corpus) / "meta" / "samples" / f"{sample_key(ref)}.json", staging_dir(corpus, ref) / "record.json"):
+def known_record(corpus: Path, ref: SampleRef) -> dict | None:
+    """The newest record of the sample: staged (ingested, not yet finalized) or committed."""
+    for p in (staging_dir(corpus, ref) / "record.json", Path(corpus) / "meta" / "samples" / f"{sample_key(ref)}.json"):
         if p.exists():
-            return json.loads(p.read_text())["input_hash"]
+            return json.loads(p.read_text())
     return None
 
 
 def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: str = "") -> SampleResult:
     """Ingest one sample into the corpus staging area; no work when its input hash is unchanged."""
     corpus = Path(corpus)
-    h = input_hash(ref, options)
-    if committed_hash(corpus, ref) == h:
+    known = known_record(corpus, ref)
+    digests = file_digests(ref, (known or {}).get("files"))
+    h = input_hash(ref, options, digests)
+    if known is not None and known["input_hash"] == h:
         return SampleResult(ref.name, "unchanged", h, worker=worker)
     stage = staging_dir(corpus, ref)
     stage.mkdir(parents=True, exist_ok=True)
     (stage / "record.json").unlink(missing_ok=True)
     layout = options.layout
-    record: dict = {"sample": ref.name, "key": sample_key(ref), "input_hash": h, "source": str(ref.path.resolve())}
+    record: dict = {
+        "sample": ref.name,
+        "key": sample_key(ref),
+        "input_hash": h,
+        "files": digests,
+        "source": str(ref.path.resolve()),
+    }
     try:
         sample = read_sample(ref, layout, options.type_filter())
         runs = valid_runs(sample.valid, options.min_segment_frames)
