@@ -221,3 +221,26 @@ def test_slice_filter_skips_and_lists(synth_source, tmp_path):
     assert c.quarantine.num_rows == 0
     assert "skipped" in inspect_text(corpus)
     assert pc.sum(c.segments["frames"]).as_py() in (None, 0)
+
+
+def test_hunter_only_scene_and_foreign_shards(synth_source, corpus, tmp_path):
+    from dataclasses import replace
+
+    solo = tmp_path / "solo"
+    build_corpus(synth_source, solo, replace(TEST_OPTIONS, scene="hunter_solo"), workers=1, progress=False)
+    cs = Corpus(solo, expect="hunter_solo")
+    assert cs.info["layout"]["dim"] == 108 and "monster.root" not in cs.info["layout"]["slices"]
+    # without the monster, its absent spans no longer break segments
+    assert cs.info["total_frames"] > Corpus(corpus).info["total_frames"]
+    # a duel corpus refuses hunter_solo samples, naming both layouts
+    duel_copy = tmp_path / "duel"
+    shutil.copytree(corpus, duel_copy)
+    with pytest.raises(SchemaError, match="duel.*hunter_solo"):
+        build_corpus(synth_source, duel_copy, replace(TEST_OPTIONS, scene="hunter_solo"), workers=1, progress=False)
+    # a foreign shard dropped into a corpus is caught by the reader
+    c = Corpus(duel_copy)
+    shard = c.shard_ids()[0]
+    shutil.copy(cs.state_path(cs.shard_ids()[0]), c.state_path(shard))
+    with pytest.raises(SchemaError) as ei:
+        c.read_shard(shard)
+    assert "hunter_solo" in str(ei.value) and "duel" in str(ei.value) and f"shard-{shard:06d}" in str(ei.value)

@@ -107,7 +107,7 @@ def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, n
     out_l: list[np.ndarray] = []
     with av.open(src) as c:
         s = c.streams.video[0]
-        s.thread_type = "AUTO"
+        s.codec_context.thread_count = 1
         for i, fr in enumerate(c.decode(s)):
             if indices is None:
                 out_l.append(fr.to_ndarray(format="rgb24"))
@@ -150,7 +150,7 @@ def write_video_shard(
         if plan:
             with av.open(str(rgb_path)) as c:
                 s = c.streams.video[0]
-                s.thread_type = "AUTO"
+                s.codec_context.thread_count = 1  # one codec thread: parallelism comes from workers
                 src_h, src_w = s.codec_context.height, s.codec_context.width
                 cr = CropResize.fit(src_h, src_w, settings.height, settings.width)
                 x0, y0, cw, ch = cr.x0, cr.y0, cr.w, cr.h

@@ -1,0 +1,278 @@
+"""Writing synthetic recordings in the public WildWorld layout, plus their truth side files.
+
+``out_dir/<part>/<id>/{rgb.mp4, depth.mkv, state.csv, skeleton.npz}``, ``out_dir/<part>/skeleton_edges.json``
+and ``out_dir/truth/<part>/<id>.{npz,json}`` (outside the WildWorld layout). See docs/formats.md,
+"Synthetic recordings".
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+
+from marionette.geometry import matrix_to_quat, yaw_quat
+from marionette.schema import load_rig
+
+from . import sim
+from .clips import CLIPS, TYPE_IDS, clip_table
+from .render import DEPTH_ENCODING, Renderer, encode_depth, follow_camera, intrinsics
+
+RECORDING_EPOCH = 1767225600  # 2026-01-01T00:00:00Z; recording k starts k days later
+NPC_FIELDS = ("type_id", "member_id", "weapon_id", "pos", "rot", "motion_bank_id", "motion_id", "motion_frame", "hp",
+              "max_hp", "red_hp", "sp", "max_sp", "atk", "wp_atk", "attr", "wp_attr", "crit_rate", "crit_atk_rate", "def",
+              "resist_fire", "resist_water", "resist_ice", "resist_elec", "resist_dragon")  # fmt: skip
+MONSTER_FIELDS = ("type_id", "pos", "rot", "motion_bank_id", "motion_id", "motion_frame", "hp", "max_hp", "cond")
+COLUMNS = (
+    ["camera.K", "camera.pos", "camera.rot", "npc.count", "npc.tracking"]
+    + [f"npc.list.0.{f}" for f in NPC_FIELDS]
+    + ["monster.count"]
+    + [f"monster.list.0.{f}" for f in MONSTER_FIELDS]
+)
+RIGS = {"monster": "drake", "hunter": "hunter", "weapon": "greatsword"}
+HIT = {"attack": (0.55, 40.0), "heavy_attack": (0.55, 70.0), "bite": (0.42, 18.0), "tail_swipe": (0.5, 25.0)}
+
+
+def _tuple(v, digits: int = 6) -> str:
+    v = np.asarray(v, dtype=np.float64)
+    if not np.isfinite(v).all():
+        return "nan"
+    return "(" + ", ".join(f"{x:.{digits}f}" for x in v) + ")"
+
+
+def _num(v) -> str:
+    if isinstance(v, str):
+        return v
+    if v is None or not np.isfinite(v):
+        return "nan"
+    return str(int(v)) if float(v).is_integer() else f"{float(v):.6f}"
+
+
+def _atomic(path: Path, write) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _edges(rig) -> np.ndarray:
+    return np.array([(p, c) for c, p in enumerate(rig.source_parents) if p >= 0], dtype=np.int64)
+
+
+def _hp(plan: sim.Plan, roots: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Hit points per frame: each attack that lands (targets within reach at its hit frame) takes damage."""
+    N = plan.n_frames
+    hp = {"hunter": np.full(N, 150.0), "monster": np.full(N, 2400.0)}
+    for ent, other, reach in (("hunter", "monster", 6.0), ("monster", "hunter", 7.5)):
+        for seg in plan.tracks[ent].segments:
+            if seg.clip not in HIT:
+                continue
+            at, dmg = HIT[seg.clip]
+            f = seg.start + int(at * CLIPS[ent][seg.clip].length)
+            if f < N and np.linalg.norm(roots[ent][f] - roots[other][f]) < reach:
+                hp[other][f:] -= dmg * (3.0 if other == "monster" else 1.0)
+    hp["hunter"] = np.maximum(hp["hunter"], 1.0)
+    hp["monster"] = np.maximum(hp["monster"], 1.0)
+    return hp
+
+
+def _yuv420p_frame(rgb: np.ndarray) -> av.VideoFrame:
+    """RGB (H, W, 3) uint8 → yuv420p frame, BT.601 limited range, converted in numpy.
+
+    Converting here rather than in swscale keeps the encoded bitstream byte-stable between runs.
+    """
+    f = rgb.astype(np.float64)
+    y = 16 + 0.257 * f[..., 0] + 0.504 * f[..., 1] + 0.098 * f[..., 2]
+    u = 128 - 0.148 * f[..., 0] - 0.291 * f[..., 1] + 0.439 * f[..., 2]
+    v = 128 + 0.439 * f[..., 0] - 0.368 * f[..., 1] - 0.071 * f[..., 2]
+    H, W = y.shape
+    frame = av.VideoFrame(W, H, "yuv420p")
+    for plane, c in zip(
+        frame.planes, (y, u.reshape(H // 2, 2, W // 2, 2).mean(axis=(1, 3)), v.reshape(H // 2, 2, W // 2, 2).mean(axis=(1, 3)))
+    ):
+        buf = np.zeros((c.shape[0], plane.line_size), np.uint8)
+        buf[:, : c.shape[1]] = np.clip(np.round(c), 0, 255)
+        plane.update(buf.tobytes())
+    return frame
+
+
+def _write_video(path: Path, frames, fps: int, codec: str, pix_fmt: str, fmt: str, options: dict) -> None:
+    def write(tmp: Path) -> None:
+        # bitexact: no random container ids or encoder version strings, so reruns are byte-identical.
+        with av.open(str(tmp), "w", format=fmt, options={"fflags": "+bitexact"}) as c:
+            s = c.add_stream(codec, rate=fps)
+            s.width, s.height = frames[0].shape[1], frames[0].shape[0]
+            s.pix_fmt = pix_fmt
+            s.codec_context.thread_count = 1  # one thread: the bitstream is then byte-stable
+            s.time_base = Fraction(1, fps)
+            s.options = options
+            for i, fr in enumerate(frames):
+                vf = av.VideoFrame.from_ndarray(fr, format="gray") if fr.ndim == 2 else _yuv420p_frame(fr)
+                vf.pts, vf.time_base = i, Fraction(1, fps)
+                for p in s.encode(vf):
+                    c.mux(p)
+            for p in s.encode():
+                c.mux(p)
+
+    _atomic(path, write)
+
+
+def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: float, width: int, height: int, fps: int) -> Path:
+    """Simulate, render and write one recording; returns its sample directory."""
+    sample_id = f"rec{index:04d}"
+    d = Path(out_dir) / part / sample_id
+    d.mkdir(parents=True, exist_ok=True)
+    N = int(round(seconds * fps))
+    plan = sim.simulate(seed, index, N, float(fps))
+    times = np.arange(N) / fps
+    sk = sim.skeletons_at(plan, times)
+    roots, yaws = {}, {}
+    for ent in ("hunter", "monster"):
+        roots[ent], yaws[ent], _ = sim.roots_at(plan, ent, times)
+    present = np.ones(N, bool)
+    present[plan.absent[0] : plan.absent[1]] = False
+    cam_valid = np.ones(N, bool)
+    cam_valid[plan.camera_invalid[0] : plan.camera_invalid[1]] = False
+    cam_pos, cam_rot = follow_camera(roots["hunter"], yaws["hunter"], roots["monster"], present)
+
+    rigs = {e: load_rig(r) for e, r in RIGS.items()}
+    edges = {e: _edges(r) for e, r in rigs.items()}
+    radii = {}
+    for e, r in rigs.items():
+        scale = np.ones(len(edges[e]))
+        if e == "monster":  # a thick body and neck, a tapering tail
+            child = [r.source_joints[c] for c in edges[e][:, 1]]
+            scale = np.array([3.0 if n.startswith(("spine", "chest")) else 2.0 if n.startswith(("neck", "head"))
+                              else max(0.6, 2.2 - 0.17 * int(n[4:])) if n.startswith("tail") else 1.0 for n in child])  # fmt: skip
+        radii[e] = r.capsule_radius_m * scale
+    renderer = Renderer(width, height, edges, radii)
+    rgb, depth = [], []
+    for i in range(N):
+        bodies = {"hunter": sk["hunter"][i], "weapon": sk["weapon"][i], "monster": sk["monster"][i] if present[i] else None}
+        img, z = renderer.render(cam_pos[i], cam_rot[i], bodies)
+        rgb.append(img)
+        depth.append(encode_depth(z))
+    # One thread and no lookahead / macroblock tree: measured to make the bitstream byte-stable across runs.
+    x264 = {
+        "crf": "20",
+        "preset": "veryfast",
+        "x264-params": "threads=1:lookahead-threads=1:sync-lookahead=0:rc-lookahead=0:mbtree=0",
+    }
+    _write_video(d / "rgb.mp4", rgb, fps, "libx264", "yuv420p", "mp4", x264)
+    _write_video(d / "depth.mkv", depth, fps, "libx265", "gray", "matroska",
+                 {"x265-params": "lossless=1:log-level=error:pools=1:frame-threads=1"})  # fmt: skip
+
+    # state.csv
+    hp = _hp(plan, roots)
+    K = intrinsics(width, height)
+    cam_q = matrix_to_quat(cam_rot)
+    hq, mq = yaw_quat(yaws["hunter"]), yaw_quat(yaws["monster"])
+    hnames, hmf = sim.clip_at_frames(plan, "hunter", np.arange(N))
+    mnames, mmf = sim.clip_at_frames(plan, "monster", np.arange(N))
+    rows = []
+    for i in range(N):
+        hc, mc = CLIPS["hunter"][hnames[i]], CLIPS["monster"][mnames[i]]
+        row = [_tuple(K), _tuple(cam_pos[i]), _tuple(cam_q[i], 8)] if cam_valid[i] else ["nan"] * 3
+        row += ["1", "0"]
+        npc = {"type_id": 0, "member_id": 0, "weapon_id": TYPE_IDS["weapon"], "pos": _tuple(roots["hunter"][i]),
+               "rot": _tuple(hq[i], 8), "motion_bank_id": hc.bank, "motion_id": hc.motion, "motion_frame": int(hmf[i]),
+               "hp": hp["hunter"][i], "max_hp": 150, "red_hp": min(150.0, hp["hunter"][i] + 10.0), "sp": 100, "max_sp": 100,
+               "atk": 220, "wp_atk": 1150, "attr": 0, "wp_attr": 2, "crit_rate": 0.15, "crit_atk_rate": 1.25, "def": 180,
+               "resist_fire": 3, "resist_water": 0, "resist_ice": -2, "resist_elec": 1, "resist_dragon": 0}  # fmt: skip
+        row += [_num(npc[f]) if not isinstance(npc[f], str) else npc[f] for f in NPC_FIELDS]
+        if present[i]:
+            frac = hp["monster"][i] / 2400.0
+            cond = "angry" if frac < 0.7 else "tired" if mc.name == "idle" and frac < 0.9 else "none"
+            mon = {"type_id": TYPE_IDS["monster"], "pos": _tuple(roots["monster"][i]), "rot": _tuple(mq[i], 8),
+                   "motion_bank_id": mc.bank, "motion_id": mc.motion, "motion_frame": int(mmf[i]), "hp": hp["monster"][i],
+                   "max_hp": 2400, "cond": cond}  # fmt: skip
+            row += ["1"] + [_num(mon[f]) if not isinstance(mon[f], str) else mon[f] for f in MONSTER_FIELDS]
+        else:
+            row += ["0"] + ["nan"] * len(MONSTER_FIELDS)
+        rows.append(row)
+
+    def write_csv(tmp: Path) -> None:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(COLUMNS)
+            w.writerows(rows)
+
+    _atomic(d / "state.csv", write_csv)
+
+    m = sk["monster"].astype(np.float32)
+    m[~present] = np.nan
+    arrays = {"m1_25": m, "n1_0": sk["hunter"].astype(np.float32), "w1_3": sk["weapon"].astype(np.float32)}
+    _atomic(d / "skeleton.npz", lambda tmp: _savez(tmp, arrays))
+
+    # Truth side file.
+    tdir = Path(out_dir) / "truth" / part
+    tdir.mkdir(parents=True, exist_ok=True)
+    truth = {
+        "heading_monster": yaws["monster"], "heading_hunter": yaws["hunter"],
+        "root_world_monster": roots["monster"], "root_world_hunter": roots["hunter"],
+        "monster_present": present, "camera_valid": cam_valid,
+        "camera_pos_world": cam_pos, "camera_rot_cw": cam_rot,
+    }  # fmt: skip
+    _atomic(tdir / f"{sample_id}.npz", lambda tmp: _savez(tmp, truth))
+    meta = {
+        "sample_id": sample_id, "part": part, "seed": seed, "index": index, "n_frames": N, "fps": fps,
+        "width": width, "height": height, "recording_time": RECORDING_EPOCH + 86400 * index,
+        "depth_encoding": DEPTH_ENCODING, "camera_K": list(K),
+        "monster_absent_frames": list(plan.absent), "camera_invalid_frames": list(plan.camera_invalid),
+        "clips": {e: {str(k): v for k, v in clip_table(e).items()} for e in ("monster", "hunter")},
+        "segments": {e: [{"start": s.start, "clip": s.clip, "length": s.length} for s in plan.tracks[e].segments]
+                     for e in ("monster", "hunter")},
+    }  # fmt: skip
+    _atomic(tdir / f"{sample_id}.json", lambda tmp: tmp.write_text(json.dumps(meta, indent=1)))
+    return d
+
+
+def _savez(tmp: Path, arrays: dict) -> None:
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def write_edges(out_dir: Path, part: str) -> Path:
+    """``<part>/skeleton_edges.json``: edges key → [[parent, child], ...] in source joint indices."""
+    path = Path(out_dir) / part / "skeleton_edges.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = {load_rig(r).edges_key: _edges(load_rig(r)).tolist() for r in RIGS.values()}
+    _atomic(path, lambda tmp: tmp.write_text(json.dumps(data)))
+    return path
+
+
+def generate(out_dir, recordings: int = 2, seconds: float = 20.0, seed: int = 0, width: int = 320, height: int = 180,
+             fps: int = 30, part: str = "data_part1") -> list[Path]:  # fmt: skip
+    """Write ``recordings`` synthetic recordings of ``seconds`` s each; returns the sample directories."""
+    out_dir = Path(out_dir)
+    write_edges(out_dir, part)
+    return [write_recording(out_dir, part, k, seed, seconds, width, height, fps) for k in range(recordings)]
+
+
+def load_truth(out_dir, part: str, sample_id: str) -> dict:
+    """The truth of one synthetic recording: headings, roots, clips, spans, recording time, depth encoding."""
+    tdir = Path(out_dir) / "truth" / part
+    meta = json.loads((tdir / f"{sample_id}.json").read_text())
+    with np.load(tdir / f"{sample_id}.npz", allow_pickle=False) as z:
+        arr = {k: z[k] for k in z.files}
+    meta["clips"] = {e: {int(k): v for k, v in t.items()} for e, t in meta["clips"].items()}
+    return {
+        **meta,
+        "heading": {"monster": arr["heading_monster"], "hunter": arr["heading_hunter"]},
+        "root_world": {"monster": arr["root_world_monster"], "hunter": arr["root_world_hunter"]},
+        "monster_present": arr["monster_present"],
+        "camera_valid": arr["camera_valid"],
+        "camera_pos_world": arr["camera_pos_world"],
+        "camera_rot_cw": arr["camera_rot_cw"],
+    }
+
+
+def world_skeletons_at(out_dir, part: str, sample_id: str, times_s) -> dict[str, np.ndarray]:
+    """Analytic world source skeletons (float64) at times (s from frame 0), re-simulated from the seed."""
+    meta = json.loads((Path(out_dir) / "truth" / part / f"{sample_id}.json").read_text())
+    plan = sim.simulate(meta["seed"], meta["index"], meta["n_frames"], float(meta["fps"]))
+    return sim.skeletons_at(plan, times_s)

@@ -1,0 +1,193 @@
+"""Ray-cast rendering of the synthetic game: a follow camera, shaded RGB and an 8-bit depth map.
+
+Cameras are pinhole, OpenGL frame (looks down its local −Z, +Y up), camera-to-world rotation R_cw
+and position in the world. One ray per pixel centre; with the ray direction written as
+R_cw · ((u + ½ − cx)/fx, −(v + ½ − cy)/fy, −1) the ray parameter at a hit is the z-depth (m).
+
+Depth encoding (8-bit, inverse depth): code = 0 where nothing is hit or z > Z_FAR, else
+code = clip(round(1 + 254 · (1/z − 1/Z_FAR) / (1/Z_NEAR − 1/Z_FAR)), 1, 255); decoding inverts it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+from . import terrain as ter
+
+Z_NEAR, Z_FAR = 2.0, 300.0
+VFOV_DEG = 60.0
+DEPTH_ENCODING = {
+    "kind": "inverse_depth_u8",
+    "z_near_m": Z_NEAR,
+    "z_far_m": Z_FAR,
+    "formula": "code = 0 if no hit or z > z_far else clip(round(1 + 254 * (1/z - 1/z_far) / (1/z_near - 1/z_far)), 1, 255)",
+    "depth": "z-depth along the camera's viewing axis (m), characters included",
+}
+
+
+def encode_depth(z: np.ndarray) -> np.ndarray:
+    """z-depth (m, inf = no hit) → uint8 code (0 = no hit / beyond Z_FAR)."""
+    z = np.asarray(z, dtype=np.float64)
+    ok = np.isfinite(z) & (z <= Z_FAR) & (z > 0)
+    inv = 1.0 / np.where(ok, z, 1.0)
+    code = np.clip(np.round(1 + 254 * (inv - 1 / Z_FAR) / (1 / Z_NEAR - 1 / Z_FAR)), 1, 255)
+    return np.where(ok, code, 0).astype(np.uint8)
+
+
+def decode_depth(code: np.ndarray) -> np.ndarray:
+    """uint8 code → z-depth (m); nan where the code is 0. Codes may be fractional (bin edges)."""
+    c = np.asarray(code, dtype=np.float64)
+    inv = (c - 1) / 254 * (1 / Z_NEAR - 1 / Z_FAR) + 1 / Z_FAR
+    return np.where(c > 0, 1.0 / np.maximum(inv, 1e-12), np.nan)
+
+
+def intrinsics(width: int, height: int) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) in pixels for the fixed vertical field of view."""
+    f = (height / 2) / np.tan(np.radians(VFOV_DEG) / 2)
+    return f, f, width / 2, height / 2
+
+
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera-to-world rotation (3, 3), OpenGL frame, looking from ``eye`` at ``target`` with world +Y up."""
+    back = eye - target
+    back = back / np.linalg.norm(back)
+    right = np.cross([0.0, 1.0, 0.0], back)
+    right = right / np.linalg.norm(right)
+    up = np.cross(back, right)
+    return np.stack([right, up, back], axis=1)
+
+
+def follow_camera(hunter_root: np.ndarray, hunter_yaw: np.ndarray, monster_root: np.ndarray, present: np.ndarray):
+    """Smoothed third-person camera per frame: positions (N, 3) and camera-to-world rotations (N, 3, 3)."""
+    N = len(hunter_root)
+    pos, rot = np.zeros((N, 3)), np.zeros((N, 3, 3))
+    eye = look = None
+    for i in range(N):
+        fwd = np.array([np.sin(hunter_yaw[i]), 0.0, np.cos(hunter_yaw[i])])
+        want_eye = hunter_root[i] - 6.0 * fwd + np.array([0.0, 3.0, 0.0])
+        want_look = hunter_root[i] + np.array([0.0, 0.6, 0.0]) + 2.0 * fwd
+        if present[i] and np.linalg.norm(monster_root[i] - hunter_root[i]) < 25.0:
+            want_look = 0.65 * want_look + 0.35 * monster_root[i]
+        eye = want_eye if eye is None else eye + 0.12 * (want_eye - eye)
+        look = want_look if look is None else look + 0.2 * (want_look - look)
+        floor = float(ter.ground_height(eye[0], eye[2])) + 1.5
+        eye = np.array([eye[0], max(eye[1], floor), eye[2]])
+        pos[i], rot[i] = eye, look_at(eye, look)
+    return pos, rot
+
+
+def _capsules(points: np.ndarray, edges: np.ndarray, radius: np.ndarray, sides: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Prisms along bones plus octahedra at joints: vertices (V, 3) float32, triangles (T, 3) uint32."""
+    a, b = points[edges[:, 0]], points[edges[:, 1]]  # (E, 3)
+    r = radius[:, None, None]
+    axis = b - a
+    axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
+    helper = np.where(np.abs(axis[:, 1:2]) < 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]))
+    u = np.cross(axis, helper)
+    u /= np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-9)
+    v = np.cross(axis, u)
+    th = 2 * np.pi * np.arange(sides) / sides
+    ring = np.cos(th)[None, :, None] * u[:, None] + np.sin(th)[None, :, None] * v[:, None]  # (E, S, 3)
+    V = np.concatenate([a[:, None] + r * ring, b[:, None] + r * ring], axis=1)  # (E, 2S, 3)
+    j = np.arange(sides)
+    k = (j + 1) % sides
+    quad = np.concatenate([np.stack([j, k, j + sides], -1), np.stack([k, k + sides, j + sides], -1)])  # (2S, 3)
+    T = quad[None] + (2 * sides * np.arange(len(edges)))[:, None, None]
+    V, T = V.reshape(-1, 3), T.reshape(-1, 3)
+    # Joint blobs.
+    octa = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64)
+    of = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    jr = np.zeros(len(points))
+    np.maximum.at(jr, edges[:, 0], radius)
+    np.maximum.at(jr, edges[:, 1], radius)
+    BV = (points[:, None] + 1.3 * jr[:, None, None] * octa[None]).reshape(-1, 3)
+    BT = (of[None] + 6 * np.arange(len(points))[:, None, None]).reshape(-1, 3) + len(V)
+    return np.concatenate([V, BV]).astype(np.float32), np.concatenate([T, BT]).astype(np.uint32)
+
+
+class Renderer:
+    """Renders frames of the stage with characters; the terrain scene is built once."""
+
+    MATERIALS = ("ground", "wall", "deck", "monster", "hunter", "weapon")
+
+    def __init__(self, width: int, height: int, edges: dict[str, np.ndarray], radii: dict[str, np.ndarray]):
+        self.width, self.height = width, height
+        self.K = intrinsics(width, height)
+        self.edges, self.radii = edges, radii
+        self.terrain = o3d.t.geometry.RaycastingScene()
+        self.terrain_ids = {}
+        for name, V, T in ter.terrain_mesh():
+            self.terrain_ids[self.terrain.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(T))] = self.MATERIALS.index(name)
+        fx, fy, cx, cy = self.K
+        u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+        self.dirs_cam = np.stack([(u - cx) / fx, -(v - cy) / fy, -np.ones_like(u)], -1)  # (H, W, 3)
+
+    def rays(self, pos: np.ndarray, R_cw: np.ndarray) -> np.ndarray:
+        """(H, W, 3) world ray directions whose parameter is the z-depth."""
+        return self.dirs_cam @ R_cw.T
+
+    def render(self, pos: np.ndarray, R_cw: np.ndarray, bodies: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """RGB (H, W, 3) uint8 and z-depth (H, W) float64 (inf where nothing is hit)."""
+        d = self.rays(pos, R_cw)
+        rays = np.concatenate([np.broadcast_to(pos, d.shape), d], -1).astype(np.float32)
+        hit = self.terrain.cast_rays(o3d.core.Tensor(rays))
+        t = hit["t_hit"].numpy().astype(np.float64)
+        n = hit["primitive_normals"].numpy().astype(np.float64)
+        gid = hit["geometry_ids"].numpy()
+        mat = np.full(t.shape, -1, dtype=np.int64)
+        for g, m in self.terrain_ids.items():
+            mat[gid == g] = m
+        mat[~np.isfinite(t)] = -1
+        chars = o3d.t.geometry.RaycastingScene()
+        char_ids = {}
+        for name, pts in bodies.items():
+            if pts is None or not np.isfinite(pts).all():
+                continue
+            V, T = _capsules(pts, self.edges[name], self.radii[name])
+            char_ids[chars.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(T))] = self.MATERIALS.index(name)
+        if char_ids:
+            ch = chars.cast_rays(o3d.core.Tensor(rays))
+            tc = ch["t_hit"].numpy().astype(np.float64)
+            nearer = np.isfinite(tc) & (tc < t)
+            t = np.where(nearer, tc, t)
+            n = np.where(nearer[..., None], ch["primitive_normals"].numpy(), n)
+            cg = ch["geometry_ids"].numpy()
+            for g, m in char_ids.items():
+                mat[nearer & (cg == g)] = m
+        return self._shade(pos, d, t, n, mat), t
+
+    def _shade(self, pos, d, t, n, mat) -> np.ndarray:
+        H, W = t.shape
+        dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        sky = np.clip(0.5 + 0.5 * dn[..., 1:2], 0, 1)
+        img = (1 - sky) * np.array([0.85, 0.9, 1.0]) + sky * np.array([0.35, 0.55, 0.9])
+        hitm = mat >= 0
+        if hitm.any():
+            tt = np.where(hitm, t, 0.0)
+            p = pos + tt[..., None] * d
+            n = np.where(np.sum(n * d, -1, keepdims=True) > 0, -n, n)
+            sun = np.array([0.4, 0.8, 0.3]) / np.linalg.norm([0.4, 0.8, 0.3])
+            lam = 0.35 + 0.65 * np.clip(np.sum(n * sun, -1), 0, 1)
+            check = ((np.floor(p[..., 0] / 2) + np.floor(p[..., 2] / 2)) % 2)[..., None]
+            fine = (0.5 + 0.5 * np.sin(p[..., 0] * 3.1) * np.sin(p[..., 2] * 2.7))[..., None]
+            grass = np.array([0.30, 0.55, 0.22]) * (0.85 + 0.15 * check) * (0.9 + 0.1 * fine)
+            rock = np.array([0.50, 0.47, 0.44]) * (0.85 + 0.15 * fine)
+            steep = (n[..., 1:2] < 0.88).astype(np.float64)
+            base = {
+                0: grass * (1 - steep) + rock * steep,
+                1: rock * (0.8 + 0.2 * (np.floor(p[..., 1:2] * 2) % 2)),
+                2: np.array([0.55, 0.38, 0.2]) * (0.8 + 0.2 * (np.floor(p[..., 0:1] * 3) % 2)),
+                3: np.array([0.6, 0.15, 0.1]),
+                4: np.array([0.15, 0.3, 0.75]),
+                5: np.array([0.85, 0.85, 0.9]),
+            }
+            col = np.zeros((H, W, 3))
+            for m, c in base.items():
+                sel = mat == m
+                col[sel] = np.broadcast_to(c, (H, W, 3))[sel]
+            fog = np.clip(tt / 250.0, 0, 1)[..., None] ** 2
+            shaded = col * lam[..., None]
+            shaded = shaded * (1 - fog) + img * fog
+            img = np.where(hitm[..., None], shaded, img)
+        return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
