@@ -21,7 +21,7 @@ def cmd_synth(a: argparse.Namespace) -> int:
     from marionette.synth import generate
 
     t0 = time.time()
-    dirs = generate(a.out, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height)
+    dirs = generate(a.out, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
     print(f"wrote {len(dirs)} recordings under {a.out} in {time.time() - t0:.1f} s")
     return 0
 
@@ -119,7 +119,7 @@ def cmd_demo(a: argparse.Namespace) -> int:
     src, corpus = out / "recordings", out / "corpus"
     t0 = time.time()
     print(f"[1/3] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
-    generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height)
+    generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
     print(f"[2/3] building the corpus {corpus} with {a.workers} workers")
     build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
     c = Corpus(corpus)
@@ -141,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--width", type=int, default=320)
     s.add_argument("--height", type=int, default=180)
+    s.add_argument("--workers", type=int, default=1, help="recordings generated in parallel processes")
     s.set_defaults(fn=cmd_synth)
 
     s = sub.add_parser("ingest", help="ingest WildWorld recordings into a corpus (then finalize)")
@@ -165,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")
     s.add_argument("--out", type=Path, default=Path("demo-run"))
-    s.add_argument("--recordings", type=int, default=3)
+    s.add_argument("--recordings", type=int, default=4)
     s.add_argument("--seconds", type=float, default=20.0)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--width", type=int, default=320)

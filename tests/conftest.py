@@ -21,7 +21,7 @@ def synth_source(tmp_path_factory) -> Path:
     from marionette.synth import generate
 
     root = tmp_path_factory.mktemp("synth")
-    generate(root, **SYNTH)
+    generate(root, **SYNTH, workers=2)
     return root
 
 

@@ -246,11 +246,18 @@ def write_edges(out_dir: Path, part: str) -> Path:
 
 
 def generate(out_dir, recordings: int = 2, seconds: float = 20.0, seed: int = 0, width: int = 320, height: int = 180,
-             fps: int = 30, part: str = "data_part1") -> list[Path]:  # fmt: skip
-    """Write ``recordings`` synthetic recordings of ``seconds`` s each; returns the sample directories."""
+             fps: int = 30, part: str = "data_part1", workers: int = 1) -> list[Path]:  # fmt: skip
+    """Write ``recordings`` synthetic recordings of ``seconds`` s each (in ``workers`` processes);
+    returns the sample directories. Each recording depends only on (seed, index), never on ``workers``."""
     out_dir = Path(out_dir)
     write_edges(out_dir, part)
-    return [write_recording(out_dir, part, k, seed, seconds, width, height, fps) for k in range(recordings)]
+    args = [(out_dir, part, k, seed, seconds, width, height, fps) for k in range(recordings)]
+    if workers <= 1 or recordings <= 1:
+        return [write_recording(*a) for a in args]
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(write_recording, *zip(*args)))
 
 
 def load_truth(out_dir, part: str, sample_id: str) -> dict:
