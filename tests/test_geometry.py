@@ -110,7 +110,15 @@ def synthetic_world(n=1200, offset=(-950.0, 40.0, 850.0), seed=0):
         yaw = np.cumsum(rng.normal(0, 0.05, n))
         pitch = 0.2 * np.sin(np.linspace(0, 20, n))
         q = geo.quat_continuity(
-            np.stack([np.sin(pitch / 2) * np.cos(yaw / 2), np.sin(yaw / 2) * np.cos(pitch / 2), -np.sin(pitch / 2) * np.sin(yaw / 2), np.cos(yaw / 2) * np.cos(pitch / 2)], 1)
+            np.stack(
+                [
+                    np.sin(pitch / 2) * np.cos(yaw / 2),
+                    np.sin(yaw / 2) * np.cos(pitch / 2),
+                    -np.sin(pitch / 2) * np.sin(yaw / 2),
+                    np.cos(yaw / 2) * np.cos(pitch / 2),
+                ],
+                1,
+            )
         )
         root = np.asarray(offset) + np.cumsum(rng.normal(0, 0.1, (n, 3)), axis=0)
         local = rng.normal(0, 1.0, (e.rig.n_keep - 1, 3)) + 0.05 * rng.normal(size=(n, e.rig.n_keep - 1, 3))
@@ -156,4 +164,6 @@ def test_resampling_linear_motion_is_exact_and_discrete_fields_hold():
     assert (t30[idx] <= t20 + 1e-9).all() and (t20 - t30[idx] < 1 / 30 + 1e-9).all()
     # constant-rate yaw: slerp reproduces it exactly
     q = geo.yaw_quat(1.3 * t30)
-    np.testing.assert_allclose(geo.quat_to_matrix(geo.resample_quats(t30, q, t20)), geo.quat_to_matrix(geo.yaw_quat(1.3 * t20)), atol=1e-9)
+    np.testing.assert_allclose(
+        geo.quat_to_matrix(geo.resample_quats(t30, q, t20)), geo.quat_to_matrix(geo.yaw_quat(1.3 * t20)), atol=1e-9
+    )

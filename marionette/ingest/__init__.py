@@ -12,7 +12,16 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 from marionette.ingest.finalize import finalize
-from marionette.ingest.sample import IngestOptions, SampleResult, ingest_sample, input_hash, sample_key, split_of
+from marionette.ingest.sample import (
+    IngestOptions,
+    SampleResult,
+    file_digests,
+    ingest_sample,
+    input_hash,
+    known_record,
+    sample_key,
+    split_of,
+)
 from marionette.ingest.video import VideoSettings
 from marionette.ingest.wildworld import SampleError, SampleRef, discover, read_sample
 from marionette.schema import SchemaError
@@ -26,9 +35,11 @@ __all__ = [
     "build_corpus",
     "check_corpus_options",
     "discover",
+    "file_digests",
     "finalize",
     "ingest_sample",
     "input_hash",
+    "known_record",
     "load_stage_map",
     "read_sample",
     "sample_key",

@@ -1,0 +1,206 @@
+"""The build-corpus flow, for real: a loopback Prefect server, the deployments in infra/prefect.yaml,
+a process worker and a local Dask cluster; then the flow called in-process on ephemeral Prefect."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PREFECT = str(Path(sys.executable).with_name("prefect"))
+POOL = "marionette-local"
+DEPLOYMENT = "build-corpus/local"
+SYNTH = {"recordings": 3, "seconds": 6.0, "seed": 11, "width": 160, "height": 96}
+SMALL_VIDEO = {"video_height": 64, "video_width": 112, "chunk_frames": 17}
+
+pytestmark = pytest.mark.slow
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def prefect_env(home: Path, api_url: str | None) -> dict[str, str]:
+    """An environment isolated in ``home``: own database, no telemetry, no UI, quick worker polling."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(
+        PREFECT_HOME=str(home),
+        PREFECT_API_DATABASE_CONNECTION_URL=f"sqlite+aiosqlite:///{home / 'prefect.db'}",
+        PREFECT_SERVER_ANALYTICS_ENABLED="false",
+        PREFECT_UI_ENABLED="false",
+        PREFECT_SERVER_UI_ENABLED="false",
+        DO_NOT_TRACK="1",
+        PREFECT_WORKER_QUERY_SECONDS="1",
+        PREFECT_CLI_WRAP_LINES="false",
+    )
+    if api_url:
+        env["PREFECT_API_URL"] = api_url
+    return env
+
+
+def cli(env: dict, *args: str, timeout: float = 120) -> str:
+    p = subprocess.run([PREFECT, *args], env=env, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    assert p.returncode == 0, f"prefect {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}"
+    return p.stdout
+
+
+def start(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
+    """A background process in its own session, so teardown can stop it and all its children."""
+    fh = open(log, "wb")  # noqa: SIM115 — closed with the process in stop()
+    return subprocess.Popen(cmd, env=env, cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    for sig, wait in ((signal.SIGINT, 15), (signal.SIGTERM, 10), (signal.SIGKILL, 10)):  # a worker exits on SIGINT
+        if proc.poll() is not None:
+            break
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            proc.wait(timeout=wait)
+        except subprocess.TimeoutExpired:
+            continue
+    if proc.stdout:
+        proc.stdout.close()
+
+
+def tail(log: Path, n: int = 4000) -> str:
+    return log.read_text(errors="replace")[-n:] if log.exists() else ""
+
+
+@pytest.fixture(scope="module")
+def synth_small(tmp_path_factory) -> Path:
+    from marionette.synth import generate
+
+    root = tmp_path_factory.mktemp("synth-flow")
+    generate(root, **SYNTH)
+    return root
+
+
+@pytest.fixture(scope="module")
+def local_prefect(tmp_path_factory):
+    """Server on 127.0.0.1, a process work pool, the deployments from infra/prefect.yaml, a worker."""
+    home = tmp_path_factory.mktemp("prefect-home")
+    port = free_port()
+    api = f"http://127.0.0.1:{port}/api"
+    env = prefect_env(home, api)
+    procs: list[subprocess.Popen] = []
+    logs = {"server": home / "server.log", "worker": home / "worker.log"}
+    try:
+        procs.append(
+            start([PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port), "--no-ui"], env, logs["server"])
+        )
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                if httpx.get(f"{api}/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert procs[0].poll() is None, f"server exited:\n{tail(logs['server'])}"
+            assert time.monotonic() < deadline, f"server not healthy after 120 s:\n{tail(logs['server'])}"
+            time.sleep(0.5)
+        cli(env, "work-pool", "create", POOL, "--type", "process")
+        cli(env, "deploy", "--no-prompt", "--prefect-file", "infra/prefect.yaml", "--name", "local")
+        procs.append(start([PREFECT, "worker", "start", "--pool", POOL, "--type", "process"], env, logs["worker"]))
+        yield {"env": env, "api": api, "logs": logs}
+    finally:
+        for p in reversed(procs):
+            stop(p)
+
+
+def run_deployment(prefect: dict, timeout: float = 240, **params) -> str:
+    """``prefect deployment run`` with ``-p`` parameters; waits for a terminal state; returns the run id."""
+    args = ["deployment", "run", DEPLOYMENT]
+    for k, v in params.items():
+        args += ["-p", f"{k}={v}"]
+    out = cli(prefect["env"], *args)
+    m = re.search(r"UUID:\s*([0-9a-f-]{36})", out)
+    assert m, out
+    run_id = m.group(1)
+    deadline = time.monotonic() + timeout
+    while True:
+        state = httpx.get(f"{prefect['api']}/flow_runs/{run_id}", timeout=10).json()["state"]
+        if state["type"] in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED"):
+            break
+        assert time.monotonic() < deadline, f"flow run {run_id} still {state['type']}:\n{tail(prefect['logs']['worker'])}"
+        time.sleep(1)
+    assert state["type"] == "COMPLETED", f"flow run {run_id}: {state}\n{tail(prefect['logs']['worker'], 8000)}"
+    return run_id
+
+
+def shard_files(corpus: Path) -> dict[str, tuple[bytes, int]]:
+    return {str(p.relative_to(corpus)): (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(corpus.glob("*/shard-*"))}
+
+
+@pytest.mark.timeout(600)
+def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_prefect, synth_small, tmp_path):
+    corpus = tmp_path / "corpus"
+    run_id = run_deployment(local_prefect, source=synth_small, corpus=corpus, **SMALL_VIDEO)
+
+    info = json.loads((corpus / "meta" / "info.json").read_text())
+    assert info["total_ingested"] == 3
+    report = json.loads((corpus / "meta" / "builds" / f"{run_id}.json").read_text())
+    assert report["flow_run_id"] == run_id
+    assert [s["status"] for s in report["samples"]] == ["ingested"] * 3
+    addresses = {s["worker"].split("/pid-")[0] for s in report["samples"]}
+    assert len(addresses) >= 2 and all(a.startswith("tcp://127.0.0.1:") for a in addresses), addresses
+    shards = shard_files(corpus)
+    assert len(shards) == 6  # a state and a video shard per sample
+
+    run_id2 = run_deployment(local_prefect, source=synth_small, corpus=corpus, **SMALL_VIDEO)
+    report2 = json.loads((corpus / "meta" / "builds" / f"{run_id2}.json").read_text())
+    assert [s["status"] for s in report2["samples"]] == ["unchanged"] * 3, report2["samples"]
+    assert report2["counts"] == {"unchanged": 3}
+    assert shard_files(corpus) == shards  # same bytes, same mtimes
+    assert json.loads((corpus / "meta" / "info.json").read_text())["total_ingested"] == 3
+
+    artifacts = httpx.post(
+        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["build-corpus-report"]}}}
+    )
+    assert any(a["flow_run_id"] == run_id2 and "unchanged" in a["data"] for a in artifacts.json())
+
+
+@pytest.mark.timeout(300)
+def test_flow_in_process_reports_quarantined_sample(synth_small, tmp_path):
+    from prefect.server.api.server import SubprocessASGIServer
+    from prefect.settings import PREFECT_API_URL, PREFECT_HOME, temporary_settings
+
+    from flows.build_corpus import build_corpus
+
+    source = tmp_path / "source"
+    shutil.copytree(synth_small, source)
+    bad = sorted(p for p in source.glob("data_part*/*") if p.is_dir())[1]
+    (bad / "rgb.mp4").unlink()
+    corpus = tmp_path / "corpus"
+    with temporary_settings(updates={PREFECT_HOME: tmp_path / "prefect-home", PREFECT_API_URL: None}):
+        try:
+            report = build_corpus(source=str(source), corpus=str(corpus), n_workers=2, **SMALL_VIDEO)
+        finally:
+            SubprocessASGIServer().stop()  # the ephemeral API server; else it is stopped at exit, after pytest closed stdout
+
+    by_sample = {s["sample"]: s for s in report["samples"]}
+    assert len(by_sample) == 3
+    bad_name = f"{bad.parent.name}/{bad.name}"
+    assert by_sample[bad_name]["status"] == "quarantined"
+    assert "rgb.mp4" in by_sample[bad_name]["reason"]
+    assert sorted(s["status"] for s in report["samples"]) == ["ingested", "ingested", "quarantined"]
+    assert all(s["worker"].startswith("tcp://") for s in report["samples"])
+    assert report["corpus_totals"]["total_ingested"] == 2 and report["corpus_totals"]["total_quarantined"] == 1
+    on_disk = json.loads((corpus / "meta" / "builds" / f"{report['flow_run_id']}.json").read_text())
+    assert on_disk == report
