@@ -224,7 +224,7 @@ def root_deltas_local(roots_world: np.ndarray, R: np.ndarray) -> np.ndarray:
 def integrate_roots(anchor_world: np.ndarray, deltas_local: np.ndarray, R: np.ndarray) -> np.ndarray:
     """World roots x_t = x_0 + Σ_{1≤τ≤t} R_τ δ_τ, float64. (3,), (N,3), (N,3,3) → (N,3)."""
     steps = np.einsum("nij,nj->ni", np.asarray(R, np.float64), np.asarray(deltas_local, np.float64))
-    steps[0] = 0.0
+    steps[:1] = 0.0  # δ_0 is 0 by definition; tolerate an empty sequence
     return np.asarray(anchor_world, np.float64) + np.cumsum(steps, axis=0)
 
 
@@ -256,11 +256,11 @@ def world_to_state(layout, joints_world: dict[str, np.ndarray], rot_world: dict[
         root = X[:, 0, :]
         frames[e.name] = (root, R)
         state[:, layout.slice(f"{e.name}.root")] = root_deltas_local(root, R)
-        state[:, layout.slice(f"{e.name}.joints")] = to_local(X[:, 1:], root, R).reshape(n, -1)
+        state[:, layout.slice(f"{e.name}.joints")] = to_local(X[:, 1:], root, R).reshape(n, 3 * (e.rig.n_keep - 1))
         state[:, layout.slice(f"{e.name}.rot6d")] = matrix_to_rot6d(R)
     for e in layout.attachments:
         root, R = frames[e.owner]
-        state[:, layout.slice(f"{e.name}.points")] = to_local(joints_world[e.name], root, R).reshape(n, -1)
+        state[:, layout.slice(f"{e.name}.points")] = to_local(joints_world[e.name], root, R).reshape(n, 3 * e.rig.n_keep)
     return state.astype(np.float32)
 
 
@@ -277,12 +277,12 @@ def state_to_world(layout, state: np.ndarray, anchors_world: dict[str, np.ndarra
     for e in layout.articulated:
         R = rot6d_to_matrix(s[:, layout.slice(f"{e.name}.rot6d")])
         root = integrate_roots(anchors_world[e.name], s[:, layout.slice(f"{e.name}.root")], R)
-        local = s[:, layout.slice(f"{e.name}.joints")].reshape(n, -1, 3)
+        local = s[:, layout.slice(f"{e.name}.joints")].reshape(n, e.rig.n_keep - 1, 3)
         joints = np.concatenate([root[:, None, :], to_world(local, root, R)], axis=1)
         out[e.name] = {"joints": joints, "R": R}
     for e in layout.attachments:
         owner = out[e.owner]
-        local = s[:, layout.slice(f"{e.name}.points")].reshape(n, -1, 3)
+        local = s[:, layout.slice(f"{e.name}.points")].reshape(n, e.rig.n_keep, 3)
         out[e.name] = {"joints": to_world(local, owner["joints"][:, 0], owner["R"]), "R": owner["R"]}
     return out
 

@@ -167,3 +167,16 @@ def test_resampling_linear_motion_is_exact_and_discrete_fields_hold():
     np.testing.assert_allclose(
         geo.quat_to_matrix(geo.resample_quats(t30, q, t20)), geo.quat_to_matrix(geo.yaw_quat(1.3 * t20)), atol=1e-9
     )
+
+
+def test_empty_and_single_frame_sequences():
+    layout = load_scene("duel")
+    empty = {e.name: np.zeros((0, e.rig.n_keep, 3)) for e in layout.entities}
+    rots = {e.name: np.zeros((0, 4)) for e in layout.articulated}
+    state = geo.world_to_state(layout, empty, rots)
+    assert state.shape == (0, 276)
+    back = geo.state_to_world(layout, state, {e.name: np.zeros(3) for e in layout.articulated})
+    assert back["hunter"]["joints"].shape == (0, 32, 3)
+    t = np.array([0.5])
+    np.testing.assert_allclose(geo.resample_positions(t, np.ones((1, 3)), np.array([0.0, 0.5, 1.0])), np.ones((3, 3)))
+    np.testing.assert_allclose(geo.resample_quats(t, geo.yaw_quat(np.array([0.3])), np.array([0.0, 1.0])), geo.yaw_quat(np.array([0.3, 0.3])))
