@@ -21,7 +21,7 @@ fi
 stamp=.venv/.bootstrap-$(sha256sum pyproject.toml | cut -c1-16)
 if [ ! -f "$stamp" ]; then
   [ -x .venv/bin/python ] || python3 -m venv .venv
-  .venv/bin/pip install -q --upgrade pip >/dev/null
+  .venv/bin/pip install -q --upgrade pip >/dev/null 2>&1 || true
   # The CPU build of torch; a bare "torch" requirement would pull a multi-GB CUDA build.
   log=.venv/bootstrap.log
   .venv/bin/pip install "torch==2.13.0" >"$log" 2>&1 || { cat "$log"; exit 1; }
