@@ -121,7 +121,7 @@ def dask_runner(dask_address: str | None, n_workers: int) -> DaskTaskRunner:
     """An existing Dask scheduler by address, else a local cluster of single-threaded processes."""
     if dask_address:
         return DaskTaskRunner(address=dask_address)
-    return DaskTaskRunner(cluster_kwargs={"n_workers": n_workers, "threads_per_worker": 1, "processes": True})
+    return DaskTaskRunner(cluster_kwargs={"n_workers": n_workers, "threads_per_worker": 1, "processes": True, "dashboard_address": ":0"})
 
 
 def build_report(run_id: str, source: str, corpus: str, options: IngestOptions, results: list[dict], info: dict) -> dict:

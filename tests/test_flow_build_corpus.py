@@ -179,7 +179,7 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
 @pytest.mark.timeout(300)
 def test_flow_in_process_reports_quarantined_sample(synth_small, tmp_path):
     from prefect.server.api.server import SubprocessASGIServer
-    from prefect.settings import PREFECT_API_URL, PREFECT_HOME, temporary_settings
+    from prefect.settings import PREFECT_API_URL, PREFECT_HOME, PREFECT_LOGGING_TO_API_ENABLED, temporary_settings
 
     from flows.build_corpus import build_corpus
 
@@ -188,7 +188,9 @@ def test_flow_in_process_reports_quarantined_sample(synth_small, tmp_path):
     bad = sorted(p for p in source.glob("data_part*/*") if p.is_dir())[1]
     (bad / "rgb.mp4").unlink()
     corpus = tmp_path / "corpus"
-    with temporary_settings(updates={PREFECT_HOME: tmp_path / "prefect-home", PREFECT_API_URL: None}):
+    # logs stay local here: shipping them to the ephemeral API races its shutdown at exit
+    settings = {PREFECT_HOME: tmp_path / "prefect-home", PREFECT_API_URL: None, PREFECT_LOGGING_TO_API_ENABLED: False}
+    with temporary_settings(updates=settings):
         try:
             report = build_corpus(source=str(source), corpus=str(corpus), n_workers=2, **SMALL_VIDEO)
         finally:
