@@ -291,44 +291,43 @@ def state_to_world(layout, state: np.ndarray, anchors_world: dict[str, np.ndarra
 # Time resampling
 
 
+def _bracket(t_src: np.ndarray, t_dst: np.ndarray, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bracketing source indices (i0, i1) and the fraction w ∈ [0, 1] of each destination time;
+    times outside [t_src[0], t_src[-1]] clamp to the ends. Needs at least two source samples."""
+    if method not in ("linear", "nearest"):
+        raise ValueError(f"unknown resampling method {method!r}; use 'linear' or 'nearest'")
+    t_src = np.asarray(t_src, np.float64)
+    t_dst = np.clip(np.asarray(t_dst, np.float64), t_src[0], t_src[-1])
+    i1 = np.clip(np.searchsorted(t_src, t_dst, side="right"), 1, len(t_src) - 1)
+    i0 = i1 - 1
+    span = t_src[i1] - t_src[i0]
+    w = np.clip((t_dst - t_src[i0]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+    return i0, i1, w
+
+
 def resample_positions(t_src: np.ndarray, values: np.ndarray, t_dst: np.ndarray, method: str = "linear") -> np.ndarray:
     """Resample values (N, ...) sampled at increasing times t_src (N,) to t_dst (M,), float64.
 
     ``linear`` interpolates between the bracketing samples; ``nearest`` takes the closest one.
-    Times outside [t_src[0], t_src[-1]] clamp to the ends.
     """
-    t_src = np.asarray(t_src, np.float64)
-    t_dst = np.clip(np.asarray(t_dst, np.float64), t_src[0], t_src[-1])
     v = np.asarray(values, np.float64)
-    i1 = np.clip(np.searchsorted(t_src, t_dst, side="right"), 1, len(t_src) - 1) if len(t_src) > 1 else np.zeros(len(t_dst), int)
-    if len(t_src) == 1:
-        return np.repeat(v[:1], len(t_dst), axis=0)
-    i0 = i1 - 1
-    span = t_src[i1] - t_src[i0]
-    w = np.clip((t_dst - t_src[i0]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+    if len(v) == 1:
+        return np.repeat(v, len(t_dst), axis=0)
+    i0, i1, w = _bracket(t_src, t_dst, method)
     if method == "nearest":
         return v[np.where(w < 0.5, i0, i1)]
-    if method != "linear":
-        raise ValueError(f"unknown resampling method {method!r}; use 'linear' or 'nearest'")
     w = w.reshape((-1,) + (1,) * (v.ndim - 1))
     return (1 - w) * v[i0] + w * v[i1]
 
 
 def resample_quats(t_src: np.ndarray, q: np.ndarray, t_dst: np.ndarray, method: str = "linear") -> np.ndarray:
     """Resample (x, y, z, w) quaternions (N, 4) by slerp (``linear``) or ``nearest``, with sign continuity."""
-    t_src = np.asarray(t_src, np.float64)
     q = quat_continuity(np.asarray(q, np.float64))
-    if len(t_src) == 1:
-        return np.repeat(q[:1], len(t_dst), axis=0)
-    t_dst = np.clip(np.asarray(t_dst, np.float64), t_src[0], t_src[-1])
-    i1 = np.clip(np.searchsorted(t_src, t_dst, side="right"), 1, len(t_src) - 1)
-    i0 = i1 - 1
-    span = t_src[i1] - t_src[i0]
-    w = np.clip((t_dst - t_src[i0]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+    if len(q) == 1:
+        return np.repeat(q, len(t_dst), axis=0)
+    i0, i1, w = _bracket(t_src, t_dst, method)
     if method == "nearest":
         return q[np.where(w < 0.5, i0, i1)]
-    if method != "linear":
-        raise ValueError(f"unknown resampling method {method!r}; use 'linear' or 'nearest'")
     return quat_slerp(q[i0], q[i1], w)
 
 
