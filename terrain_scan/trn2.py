@@ -1,0 +1,135 @@
+"""The TRN2 chunk file: a 100 m × 100 m chunk of 100 × 100 cells, up to ``max_layers`` layers per cell.
+
+Little-endian. A 32-byte header — ``b"TRN2"``, int32 version = 2, int32 cx, int32 cz,
+int32 chunk_m = 100, float32 cell_m = 1.0, int32 cell_count = 10000, int32 max_layers — then
+cell_count × max_layers records of 24 bytes, cell-major (all slots of cell 0, then cell 1):
+float32 h, float32 nx, ny, nz, uint16 hit_count (saturating), uint8 flags (bit 0 valid, bit 1
+filled by hole-fill), uint8 pad = 0, uint32 last_ts (unix seconds of the newest recording that
+observed the layer). Unused slots are all zero; slot order carries no meaning.
+
+Cell index = row × 100 + col; world x = cx·100 + col, world z = cz·100 + row; a cell covers
+[x, x+1) × [z, z+1). Chunk and cell of a world point use floor, never truncation.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MAGIC = b"TRN2"
+VERSION = 2
+CHUNK_M = 100
+CELL_M = 1.0
+CELLS = 100  # cells per side
+CELL_COUNT = CELLS * CELLS
+HEADER = struct.Struct("<4siiiifii")
+RECORD = np.dtype([("h", "<f4"), ("n", "<f4", (3,)), ("hits", "<u2"), ("flags", "u1"), ("pad", "u1"), ("ts", "<u4")])
+FLAG_VALID = 1
+FLAG_FILLED = 2
+assert HEADER.size == 32 and RECORD.itemsize == 24
+
+
+class TerrainFormatError(ValueError):
+    """A chunk file does not follow TRN2; the message names the file and what is wrong."""
+
+
+@dataclass
+class Chunk:
+    """One chunk: ``cells`` is a (10000, max_layers) structured array of RECORD."""
+
+    cx: int
+    cz: int
+    cells: np.ndarray
+
+    @property
+    def max_layers(self) -> int:
+        return self.cells.shape[1]
+
+    @staticmethod
+    def empty(cx: int, cz: int, max_layers: int = 8) -> Chunk:
+        return Chunk(cx, cz, np.zeros((CELL_COUNT, max_layers), RECORD))
+
+    def valid(self) -> np.ndarray:
+        """(10000, L) bool: slots holding a layer."""
+        return (self.cells["flags"] & FLAG_VALID) != 0
+
+    def to_bytes(self) -> bytes:
+        """The exact file bytes."""
+        head = HEADER.pack(MAGIC, VERSION, self.cx, self.cz, CHUNK_M, CELL_M, CELL_COUNT, self.max_layers)
+        return head + np.ascontiguousarray(self.cells, RECORD).tobytes()
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Chunk) and self.to_bytes() == other.to_bytes()
+
+
+def chunk_of(x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Chunk indices (cx, cz) of world points (floor division; −0.5 m is in chunk −1)."""
+    return np.floor(np.asarray(x, np.float64) / CHUNK_M).astype(np.int64), np.floor(np.asarray(z, np.float64) / CHUNK_M).astype(
+        np.int64
+    )
+
+
+def cell_of(x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Global cell indices (world x and z of the cell's lower corner, in cells) by floor."""
+    return np.floor(np.asarray(x, np.float64) / CELL_M).astype(np.int64), np.floor(np.asarray(z, np.float64) / CELL_M).astype(
+        np.int64
+    )
+
+
+def split_cell(gx: np.ndarray, gz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Global cell indices → (cx, cz, index within the chunk = row × 100 + col)."""
+    cx, col = np.divmod(gx, CELLS)
+    cz, row = np.divmod(gz, CELLS)
+    return cx, cz, row * CELLS + col
+
+
+def decode(data: bytes, where: str = "<bytes>") -> Chunk:
+    """Parse TRN2 bytes; any deviation from the format raises TerrainFormatError naming ``where``."""
+    if len(data) < HEADER.size:
+        raise TerrainFormatError(f"{where}: truncated: {len(data)} bytes, the header alone is {HEADER.size}")
+    magic, version, cx, cz, chunk_m, cell_m, cell_count, max_layers = HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise TerrainFormatError(f"{where}: bad magic {magic!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise TerrainFormatError(f"{where}: unsupported version {version}, expected {VERSION}")
+    if chunk_m != CHUNK_M or cell_m != CELL_M or cell_count != CELL_COUNT:
+        raise TerrainFormatError(
+            f"{where}: chunk_m={chunk_m}, cell_m={cell_m}, cell_count={cell_count}; expected {CHUNK_M}, {CELL_M}, {CELL_COUNT}"
+        )
+    if not 1 <= max_layers <= 255:
+        raise TerrainFormatError(f"{where}: max_layers={max_layers} out of range 1..255")
+    want = HEADER.size + CELL_COUNT * max_layers * RECORD.itemsize
+    if len(data) != want:
+        raise TerrainFormatError(
+            f"{where}: {'truncated' if len(data) < want else 'trailing bytes'}: {len(data)} bytes, expected {want}"
+        )
+    cells = np.frombuffer(data, RECORD, count=CELL_COUNT * max_layers, offset=HEADER.size).reshape(CELL_COUNT, max_layers).copy()
+    valid = (cells["flags"] & FLAG_VALID) != 0
+    if not np.isfinite(cells["h"][valid]).all() or not np.isfinite(cells["n"][valid]).all():
+        raise TerrainFormatError(f"{where}: a valid layer holds a non-finite height or normal")
+    return Chunk(int(cx), int(cz), cells)
+
+
+def read_chunk(path: Path) -> Chunk:
+    """Read one chunk file."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise TerrainFormatError(f"{path}: no such chunk file") from None
+    return decode(data, str(path))
+
+
+def write_chunk(path: Path, chunk: Chunk) -> None:
+    """Write one chunk file atomically."""
+    from marionette.io import write_bytes
+
+    write_bytes(path, chunk.to_bytes())
+
+
+def chunk_filename(cx: int, cz: int) -> str:
+    """File name of a chunk in a stage directory, e.g. ``chunk_-10_8.trn2``."""
+    return f"chunk_{cx}_{cz}.trn2"
