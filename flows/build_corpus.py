@@ -63,7 +63,9 @@ def sample_cache_key(context: TaskRunContext, parameters: dict) -> str | None:
 
 @task(cache_policy=NO_CACHE)
 def check_corpus(corpus: str, options: IngestOptions) -> None:
+    """Refuse a corpus of another layout; complete a finalize that crashed before re-ingesting."""
     ingest.check_corpus_options(Path(corpus), options)
+    ingest.finish_pending(Path(corpus))
 
 
 @task(cache_policy=NO_CACHE)
@@ -121,7 +123,9 @@ def dask_runner(dask_address: str | None, n_workers: int) -> DaskTaskRunner:
     """An existing Dask scheduler by address, else a local cluster of single-threaded processes."""
     if dask_address:
         return DaskTaskRunner(address=dask_address)
-    return DaskTaskRunner(cluster_kwargs={"n_workers": n_workers, "threads_per_worker": 1, "processes": True, "dashboard_address": ":0"})
+    return DaskTaskRunner(
+        cluster_kwargs={"n_workers": n_workers, "threads_per_worker": 1, "processes": True, "dashboard_address": ":0"}
+    )
 
 
 def build_report(run_id: str, source: str, corpus: str, options: IngestOptions, results: list[dict], info: dict) -> dict:
@@ -199,11 +203,12 @@ def build_corpus(
         video=VideoSettings(height=video_height, width=video_width, chunk_frames=chunk_frames, crf=crf),
         compression=compression,
     )
-    check_corpus(corpus, options)
-    fan_out = ingest_samples.with_options(task_runner=dask_runner(dask_address, n_workers))
-    results = fan_out(source, corpus, options.to_json())
-    info = finalize_corpus(source, corpus, options)
-    report = build_report(str(flow_run.id), source, corpus, options, results, info)
-    path = publish_report(corpus, report)
+    with ingest.corpus_lock(Path(corpus)):  # held by this flow-run process; one build per corpus at a time
+        check_corpus(corpus, options)
+        fan_out = ingest_samples.with_options(task_runner=dask_runner(dask_address, n_workers))
+        results = fan_out(source, corpus, options.to_json())
+        info = finalize_corpus(source, corpus, options)
+        report = build_report(str(flow_run.id), source, corpus, options, results, info)
+        path = publish_report(corpus, report)
     get_run_logger().info("build report: %s (%s)", path, report["counts"])
     return report

@@ -21,7 +21,9 @@ def cmd_synth(a: argparse.Namespace) -> int:
     from marionette.synth import generate
 
     t0 = time.time()
-    dirs = generate(a.out, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
+    dirs = generate(
+        a.out, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers
+    )
     print(f"wrote {len(dirs)} recordings under {a.out} in {time.time() - t0:.1f} s")
     return 0
 

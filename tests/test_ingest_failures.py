@@ -93,7 +93,8 @@ def test_bad_samples_are_quarantined_and_the_rest_ingested(synth_source, tmp_pat
     assert q == reasons
     assert c.info["total_ingested"] == 1 and len(c.shard_ids()) == 1
     assert c.read_shard(c.shard_ids()[0]).num_rows == c.info["total_frames"]
-    assert not list(corpus.rglob("*.tmp")) and not (corpus / "staging").exists() or not list((corpus / "staging").iterdir())
+    assert not list(corpus.rglob("*.tmp"))
+    assert not (corpus / "staging").exists() or not list((corpus / "staging").iterdir())
 
 
 def _tree(corpus: Path) -> dict[str, bytes]:

@@ -120,9 +120,10 @@ class Corpus:
             for s in pc.unique(src["segment"]).to_pylist()
         ]
         table = pa.concat_tables(parts) if parts else state_schema(self.layout).empty_table()
-        for old in path.parent.glob(f"shard-{shard:06d}-*.arrow"):
-            old.unlink()
         write_ipc(path, table, self.info["ingest"].get("compression", "zstd"))
+        for old in path.parent.glob(f"shard-{shard:06d}-*.arrow"):  # views of an older version of the shard
+            if old != path:
+                old.unlink(missing_ok=True)
         return table
 
     def dynamics_segment(self, segment: str, fps: float = 20.0, method: str = "linear") -> pa.Table:

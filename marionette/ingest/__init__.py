@@ -11,7 +11,7 @@ import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-from marionette.ingest.finalize import finalize
+from marionette.ingest.finalize import corpus_lock, finalize, finish_pending
 from marionette.ingest.sample import (
     IngestOptions,
     SampleResult,
@@ -34,6 +34,8 @@ __all__ = [
     "VideoSettings",
     "build_corpus",
     "check_corpus_options",
+    "corpus_lock",
+    "finish_pending",
     "discover",
     "file_digests",
     "finalize",
@@ -80,7 +82,13 @@ def _ingest_one(args: tuple[SampleRef, str, IngestOptions]) -> SampleResult:
 def build_corpus(source: Path, corpus: Path, options: IngestOptions, workers: int = 1, progress: bool = True) -> dict:
     """Discover, ingest every sample (in ``workers`` processes), finalize; returns a build report."""
     corpus = Path(corpus)
-    check_corpus_options(corpus, options)
+    with corpus_lock(corpus):
+        check_corpus_options(corpus, options)
+        finish_pending(corpus)  # a finalize that crashed completes before anything is re-ingested
+        return _build(source, corpus, options, workers, progress)
+
+
+def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, progress: bool) -> dict:
     refs = discover(source)
     results: list[SampleResult] = []
     bar = None

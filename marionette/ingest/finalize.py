@@ -8,6 +8,8 @@ records in ``meta/samples/``, whose size grows with the number of recordings, no
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import shutil
@@ -124,63 +126,101 @@ def _load_records(d: Path) -> list[dict]:
     return [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))] if d.exists() else []
 
 
-def _plan(corpus: Path) -> dict:
-    meta = corpus / "meta"
-    committed = {r["key"]: r for r in _load_records(meta / "samples")}
-    staged = sorted(
-        (json.loads(p.read_text()) for p in (corpus / "staging").glob("*/record.json")),
-        key=lambda r: r["sample"],
-    )
-    used = [r["shard"] for r in committed.values() if r.get("shard") is not None]
+def _plan(corpus: Path, options_key: str | None) -> dict:
+    """Shard numbers and renames for every staged record; paths relative to the corpus."""
+    committed = {r["key"]: r for r in _load_records(corpus / "meta" / "samples")}
+    staged = []
+    for p in sorted((corpus / "staging").glob("*/record.json")):
+        rec = json.loads(p.read_text())
+        if options_key is not None and rec.get("options_key") != options_key:
+            shutil.rmtree(p.parent, ignore_errors=True)  # staged by a build with other options: stale
+            continue
+        staged.append(rec)
+    staged.sort(key=lambda r: r["sample"])
+    # a shard number is never given to another recording, even after its own was retired
+    used = [n for r in committed.values() for n in (r.get("shard"), r.get("retired_shard")) if n is not None]
     next_shard = max(used) + 1 if used else 0
     moves, deletes, records = [], [], []
     for rec in staged:
-        old = committed.get(rec["key"])
-        old_shard = old.get("shard") if old else None
-        stage = corpus / "staging" / rec["key"]
+        old = committed.get(rec["key"]) or {}
+        own = old.get("shard") if old.get("shard") is not None else old.get("retired_shard")
+        stage = f"staging/{rec['key']}"
         if rec["status"] == "ingested":
-            shard = old_shard if old_shard is not None else next_shard
-            next_shard += shard == next_shard
-            rec["shard"] = shard
-            moves.append([str(stage / "state.arrow"), str(corpus / "state" / f"{shard_name(shard)}.arrow")])
-            moves.append([str(stage / "video.tar"), str(corpus / "video" / f"{shard_name(shard)}.tar")])
+            if own is None:
+                own, next_shard = next_shard, next_shard + 1
+            rec["shard"] = own
+            moves.append([f"{stage}/state.arrow", f"state/{shard_name(own)}.arrow", rec["input_hash"]])
+            moves.append([f"{stage}/video.tar", f"video/{shard_name(own)}.tar", rec["input_hash"]])
         else:
             rec["shard"] = None
-            if old_shard is not None:  # a recording that was good and now is not: its shard goes
-                deletes += [
-                    str(corpus / "state" / f"{shard_name(old_shard)}.arrow"),
-                    str(corpus / "video" / f"{shard_name(old_shard)}.tar"),
-                ]
+            if own is not None:  # a recording that was good and now is not: its shard goes, its number stays reserved
+                rec["retired_shard"] = own
+                deletes += [f"state/{shard_name(own)}.arrow", f"video/{shard_name(own)}.tar"]
         records.append(rec)
     return {"records": records, "moves": moves, "deletes": deletes}
 
 
-def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:
-    """Commit staged samples to numbered shards and rewrite the derived metadata; returns info.json."""
-    corpus = Path(corpus)
+def _execute(corpus: Path, plan: dict) -> None:
+    """Carry out a plan; every step is safe to repeat after a crash."""
     meta = corpus / "meta"
-    (corpus / "state").mkdir(parents=True, exist_ok=True)
-    (corpus / "video").mkdir(parents=True, exist_ok=True)
-    plan_path = meta / "finalize-plan.json"
-    if plan_path.exists():
-        plan = json.loads(plan_path.read_text())
-    else:
-        plan = _plan(corpus)
-        if plan["records"]:
-            write_json(plan_path, plan)
-    for src, dst in plan["moves"]:
-        if os.path.exists(src):
-            os.replace(src, dst)
-        elif not os.path.exists(dst):
-            raise FileNotFoundError(f"finalize: staged file {src} is gone and {dst} does not exist")
+    for src, dst, h in plan["moves"]:
+        src_p, dst_p = corpus / src, corpus / dst
+        if src_p.exists():
+            staged = src_p.parent / "record.json"
+            if staged.exists() and json.loads(staged.read_text())["input_hash"] != h:
+                raise RuntimeError(f"{staged}: staged sample changed after {meta / 'finalize-plan.json'} was written")
+            os.replace(src_p, dst_p)
+        elif not dst_p.exists():
+            raise FileNotFoundError(f"finalize: staged file {src_p} is gone and {dst_p} does not exist")
     for p in plan["deletes"]:
-        Path(p).unlink(missing_ok=True)
+        (corpus / p).unlink(missing_ok=True)
     for rec in plan["records"]:
         write_json(meta / "samples" / f"{rec['key']}.json", rec)
         shutil.rmtree(corpus / "staging" / rec["key"], ignore_errors=True)
-    info = write_metadata(corpus, options, stages)
-    plan_path.unlink(missing_ok=True)
-    return info
+
+
+def finish_pending(corpus: Path) -> bool:
+    """Complete a finalize that crashed after writing its plan; True if there was one."""
+    plan_path = Path(corpus) / "meta" / "finalize-plan.json"
+    if not plan_path.exists():
+        return False
+    _execute(Path(corpus), json.loads(plan_path.read_text()))
+    plan_path.unlink()
+    return True
+
+
+@contextlib.contextmanager
+def corpus_lock(corpus: Path):
+    """Hold ``<corpus>/meta/.lock`` exclusively for a build; a second concurrent build fails at once."""
+    path = Path(corpus) / "meta" / ".lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RuntimeError(f"{corpus}: another build holds {path}; wait for it to finish") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:
+    """Commit staged samples to numbered shards and rewrite the derived metadata; returns info.json.
+
+    Staged samples from a build with other ingest options are discarded, not committed.
+    """
+    corpus = Path(corpus)
+    (corpus / "state").mkdir(parents=True, exist_ok=True)
+    (corpus / "video").mkdir(parents=True, exist_ok=True)
+    plan_path = corpus / "meta" / "finalize-plan.json"
+    finish_pending(corpus)
+    plan = _plan(corpus, options.key() if options is not None else None)
+    if plan["records"]:
+        write_json(plan_path, plan)
+        _execute(corpus, plan)
+        plan_path.unlink()
+    return write_metadata(corpus, options, stages)
 
 
 def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:

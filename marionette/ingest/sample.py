@@ -88,13 +88,22 @@ class SampleResult:
 
 
 def safe_name(s: str) -> str:
-    """A name usable in file names and webdataset keys: no dots, slashes or spaces."""
-    return re.sub(r"[^A-Za-z0-9_-]", "-", s)
+    """A name usable in file names and webdataset keys (no dots, slashes or spaces) that never
+    collides: a name that had to change gets a short hash of the original appended."""
+    clean = re.sub(r"[^A-Za-z0-9_-]", "-", s)
+    if clean == s and "--" not in s:
+        return s
+    return f"{clean}--{hashlib.sha256(s.encode()).hexdigest()[:8]}"
 
 
 def sample_key(ref: SampleRef) -> str:
     """Directory/key name of a sample inside the corpus."""
     return f"{safe_name(ref.part)}__{safe_name(ref.sample_id)}"
+
+
+def segment_id(ref: SampleRef, k: int) -> str:
+    """Id of the k-th segment of a sample (also a webdataset key prefix: no dots)."""
+    return f"{safe_name(ref.part)}-{safe_name(ref.sample_id)}-s{k:03d}"
 
 
 def split_of(recording: str, fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> str:
@@ -206,7 +215,8 @@ def action_stats(layout: Layout, state: np.ndarray, sample: RecordedSample, a: i
             d = ent.setdefault(str(cid), {"frames": 0, "max_motion_frame": -1, "wraps": False, "instances": []})
             d["frames"] += int(t - s)
             d["max_motion_frame"] = max(d["max_motion_frame"], int(mf[s:t].max()))
-            d["wraps"] = bool(d["wraps"] or (np.diff(mf[s:t]) < 0).any())
+            m = mf[s:t]
+            d["wraps"] = bool(d["wraps"] or ((np.diff(m) < 0) & (m[1:] >= 0) & (m[:-1] >= 0)).any())  # -1 = invalid
             lo = s + 1 if s == 0 else s  # the segment's first frame has no previous frame
             if t - lo >= 1:
                 d["instances"].append(
@@ -265,13 +275,23 @@ def known_record(corpus: Path, ref: SampleRef) -> dict | None:
     return None
 
 
+def is_unchanged(known: dict | None, h: str) -> bool:
+    """Whether a known record already answers for input hash ``h`` (a failure that may be transient —
+    an I/O error, a bug — never does: it is retried on the next run)."""
+    return known is not None and known["input_hash"] == h and not known.get("retry", False)
+
+
 def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: str = "") -> SampleResult:
     """Ingest one sample into the corpus staging area; no work when its input hash is unchanged."""
     corpus = Path(corpus)
     known = known_record(corpus, ref)
-    digests = file_digests(ref, (known or {}).get("files"))
-    h = input_hash(ref, options, digests)
-    if known is not None and known["input_hash"] == h:
+    try:
+        digests = file_digests(ref, (known or {}).get("files"))
+    except OSError as exc:
+        digests = None
+        unreadable = f"{exc.filename or ref.path}: unreadable ({type(exc).__name__}: {exc.strerror or exc})"
+    h = input_hash(ref, options, digests) if digests is not None else "unreadable"
+    if digests is not None and is_unchanged(known, h):
         return SampleResult(ref.name, "unchanged", h, worker=worker)
     stage = staging_dir(corpus, ref)
     stage.mkdir(parents=True, exist_ok=True)
@@ -281,10 +301,13 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
         "sample": ref.name,
         "key": sample_key(ref),
         "input_hash": h,
+        "options_key": options.key(),
         "files": digests,
         "source": str(ref.path.resolve()),
     }
     try:
+        if digests is None:
+            raise OSError(unreadable)
         sample = read_sample(ref, layout, options.type_filter())
         runs = valid_runs(sample.valid, options.min_segment_frames)
         if not runs:
@@ -295,14 +318,17 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
         tables, segs, summaries, stats = [], [], {}, None
         split = split_of(ref.name, options.split_fractions)
         for k, (a, b) in enumerate(runs):
-            seg_id = f"{safe_name(ref.part)}-{safe_name(ref.sample_id)}-s{k:03d}"
+            seg_id = segment_id(ref, k)
             joints = {e.name: sample.entities[e.name].joints_world[a:b] for e in layout.entities}
             rots = {e.name: sample.entities[e.name].rot[a:b] for e in layout.articulated}
             state = geo.world_to_state(layout, joints, rots)
             tables.append(_segment_table(layout, sample, seg_id, a, b, state))
-            seg_hash = hashlib.sha256(
-                state.tobytes() + tables[-1].column(f"{layout.articulated[0].name}.action").to_numpy().tobytes()
-            )
+            seg_hash = hashlib.sha256()  # over every column but the ids: state, actions, roots, camera, ...
+            for name in tables[-1].column_names[2:]:
+                seg_hash.update(name.encode())
+                for buf in tables[-1][name].combine_chunks().buffers():
+                    if buf is not None:
+                        seg_hash.update(buf)
             segs.append(
                 {"segment": seg_id, "start": a, "stop": b, "frames": b - a, "split": split, "hash": seg_hash.hexdigest()[:32]}
             )
@@ -368,9 +394,11 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
     except SampleError as exc:
         record.update(status="quarantined", reason=str(exc))
         result = SampleResult(ref.name, "quarantined", h, reason=str(exc), worker=worker)
-    except Exception as exc:  # an unexpected failure quarantines this sample, never the build
-        reason = f"{ref.path}: unexpected {type(exc).__name__}: {exc}"
-        record.update(status="quarantined", reason=reason, traceback=traceback.format_exc(limit=6))
+    except Exception as exc:  # an unexpected failure quarantines this sample, never the build, and is retried next run
+        reason = (
+            str(exc) if isinstance(exc, OSError) and digests is None else f"{ref.path}: unexpected {type(exc).__name__}: {exc}"
+        )
+        record.update(status="quarantined", reason=reason, retry=True, traceback=traceback.format_exc(limit=6))
         result = SampleResult(ref.name, "quarantined", h, reason=reason, worker=worker)
     if record["status"] != "ingested":
         for f in ("state.arrow", "video.tar"):

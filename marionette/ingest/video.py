@@ -15,6 +15,7 @@ from pathlib import Path
 import av
 import numpy as np
 
+from marionette.ingest.wildworld import SampleError
 from marionette.io import atomic_path
 
 
@@ -91,7 +92,7 @@ def encode_mp4(frames: np.ndarray, fps: float, settings: VideoSettings) -> bytes
         s = c.add_stream("libx264", rate=int(round(fps)))
         s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
         s.codec_context.thread_count = 1
-        s.options = {"crf": str(settings.crf), "preset": settings.preset}
+        s.options = {"crf": str(settings.crf), "preset": settings.preset, "x264-params": "threads=1:lookahead-threads=1"}
         for f in frames:
             for p in s.encode(av.VideoFrame.from_ndarray(f, format="rgb24")):
                 c.mux(p)
@@ -155,9 +156,19 @@ def write_video_shard(
                 cr = CropResize.fit(src_h, src_w, settings.height, settings.width)
                 x0, y0, cw, ch = cr.x0, cr.y0, cr.w, cr.h
                 pending = {(p[0], p[1]): p for p in plan}
-                for i, fr in enumerate(c.decode(s)):
+                last = max(wanted)
+                frames = c.decode(s)
+                i = -1
+                while True:
+                    try:
+                        fr = next(frames)
+                    except StopIteration:
+                        break
+                    except av.error.FFmpegError as exc:
+                        raise SampleError(f"{rgb_path}: cannot decode frame {i + 1}: {exc}") from None
+                    i += 1
                     if i not in wanted:
-                        if i > max(wanted):
+                        if i > last:
                             break
                         continue
                     img = fr.to_ndarray(format="rgb24")[y0 : y0 + ch, x0 : x0 + cw]
@@ -187,4 +198,8 @@ def write_video_shard(
                             _tar_add(tar, f"{name}.rgb.mp4", mp4)
                             _tar_add(tar, f"{name}.json", json.dumps(rec, sort_keys=True).encode())
                             records.append(rec)
+                if buffers:
+                    (seg, ci), got = next(iter(buffers.items()))
+                    first_missing = pending[(seg, ci)][2] + len(got)
+                    raise SampleError(f"{rgb_path}: video ends before frame {first_missing} (needed for chunk {ci} of {seg})")
     return records

@@ -120,13 +120,14 @@ def _list_prefix(kind: str, index: int) -> str:
     return {"m": "monster", "n": "npc"}[kind] + f".list.{index - 1}."
 
 
-def _entity_columns(e: Entity) -> dict[str, str]:
+def _entity_columns(e: Entity, layout: Layout) -> dict[str, str]:
     """Column name (in state.csv) for each field an entity needs."""
     if e.articulated:
         p = _list_prefix(e.source_kind, e.source_index)
         return {f: p + f for f in ("type_id", "pos", "rot", "motion_bank_id", "motion_id", "motion_frame", "hp")}
-    # an attachment (weapon): its type comes from the owner player's weapon_id
-    return {"type_id": _list_prefix("n", e.source_index) + "weapon_id"}
+    # an attachment (weapon): its type is the owner player's weapon_id
+    owner = layout.entity(e.owner)
+    return {"type_id": _list_prefix(owner.source_kind, owner.source_index) + "weapon_id"}
 
 
 def _find_bad_row(path: Path, n_cols: int) -> str:
@@ -270,6 +271,24 @@ def video_info(path: Path) -> tuple[int, float, int, int]:
 # ------------------------------------------------------------------------------------------------
 
 
+def _check_edges(path: Path, edges: dict, e: Entity) -> None:
+    """The recording's skeleton edges must be exactly the rig's source tree (same joint order)."""
+    key = e.rig.edges_key
+    if key not in edges:
+        raise SampleError(f"{path}: no edges for {key!r} (entity {e.name!r}, rig {e.rig.name!r}); keys: {sorted(edges)}")
+    want = sorted((p, c) for c, p in enumerate(e.rig.source_parents) if p >= 0)
+    try:
+        got = sorted((int(p), int(c)) for p, c in edges[key])
+    except (TypeError, ValueError):
+        raise SampleError(f"{path}: {key!r} is not a list of [parent, child] index pairs") from None
+    if got != want:
+        diff = sorted(set(got) ^ set(want))[:4]
+        raise SampleError(
+            f"{path}: {key!r} edges differ from rig {e.rig.name!r} ({len(got)} vs {len(want)} edges; first differences {diff}): "
+            "the joint order is not the one the rig declares"
+        )
+
+
 def _mode_type(type_id: np.ndarray) -> int | None:
     v = type_id[np.isfinite(type_id)]
     if not len(v):
@@ -289,7 +308,7 @@ def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]]
         if not (d / f).exists():
             raise SampleError(f"{d / f}: missing")
     cols = ["camera.K", "camera.pos", "camera.rot"]
-    per_entity = {e.name: _entity_columns(e) for e in layout.entities}
+    per_entity = {e.name: _entity_columns(e, layout) for e in layout.entities}
     for m in per_entity.values():
         cols += list(m.values())
     raw, n = read_state_csv(d / "state.csv", cols)
@@ -316,9 +335,6 @@ def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]]
     for e in layout.entities:
         c = per_entity[e.name]
         type_id = num(c["type_id"])
-        if e.owner is not None and not e.articulated:
-            # the weapon is absent whenever its owner is
-            pass
         t = _mode_type(type_id)
         allowed = (type_filter or {}).get(e.name, set(e.rig.type_ids))
         if t is None:
@@ -333,11 +349,7 @@ def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]]
             raise SampleError(
                 f"{d / 'skeleton.npz'}: key {key!r} has shape {arr.shape}, rig {e.rig.name!r} expects (N, {len(e.rig.source_joints)}, 3)"
             )
-        if e.rig.edges_key in edges and len(edges[e.rig.edges_key]) != len(e.rig.source_joints) - 1:
-            raise SampleError(
-                f"{ref.edges_path}: {e.rig.edges_key!r} has {len(edges[e.rig.edges_key])} edges, "
-                f"rig {e.rig.name!r} has {len(e.rig.source_joints)} joints"
-            )
+        _check_edges(ref.edges_path, edges, e)
         counts[f"skeleton.npz {key} frames"] = arr.shape[0]
         joints = arr[:, list(e.rig.keep_source_index), :].astype(np.float64) if arr.shape[0] == n else None
         if joints is None:
