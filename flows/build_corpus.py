@@ -53,8 +53,10 @@ def sample_cache_key(context: TaskRunContext, parameters: dict) -> str | None:
     were removed never has its work skipped by a stale cache entry (None: no caching)."""
     ref, options = parameters["ref"], parameters["options"]
     known = ingest.known_record(Path(parameters["corpus"]), ref)
-    h = ingest.input_hash(ref, options, ingest.file_digests(ref, (known or {}).get("files")))
-    return h if known is not None and known["input_hash"] == h else None
+    if known is None or known.get("retry"):
+        return None  # nothing to reuse: no need to hash the files here as well as in ingest_sample
+    h = ingest.input_hash(ref, options, ingest.file_digests(ref, known.get("files")))
+    return h if known["input_hash"] == h else None
 
 
 # ------------------------------------------------------------------------------------------------

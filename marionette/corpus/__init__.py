@@ -28,6 +28,7 @@ class Corpus:
             raise FileNotFoundError(f"{info}: not a corpus (run `marionette ingest` first)")
         self.info = json.loads(info.read_text())
         self.layout = layout_from_json({k: v for k, v in self.info["layout"].items() if k != "hash"})
+        self._shard_cache: dict[int, pa.Table] = {}
         if expect is not None:
             want = load_scene(expect) if isinstance(expect, str) else expect
             if want.hash != self.layout.hash:
@@ -70,10 +71,16 @@ class Corpus:
         return sorted(self.info["shards"])
 
     def read_shard(self, shard: int) -> pa.Table:
-        """A state shard, its layout checked against the corpus layout."""
+        """A state shard, its layout checked against the corpus layout (the last two read are kept,
+        so reading a shard's segments one by one decompresses it once)."""
+        if shard in self._shard_cache:
+            return self._shard_cache[shard]
         path = self.state_path(shard)
         table = read_ipc(path)
         check_layout(table.schema, self.layout, str(path))
+        self._shard_cache[shard] = table
+        while len(self._shard_cache) > 2:
+            self._shard_cache.pop(next(iter(self._shard_cache)))
         return table
 
     def segment_ids(self, split: str | None = None) -> list[str]:

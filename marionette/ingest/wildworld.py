@@ -262,7 +262,9 @@ def video_info(path: Path) -> tuple[int, float, int, int]:
         with av.open(str(path)) as c:
             s = c.streams.video[0]
             fps = float(s.average_rate or s.guessed_rate or 30)
-            n = sum(1 for p in c.demux(s) if p.size > 0)
+            # MP4 headers carry the frame count; containers without one (e.g. Matroska) are counted
+            # packet by packet. A header that overstates the frames is caught when chunks are decoded.
+            n = s.frames or sum(1 for p in c.demux(s) if p.size > 0)
             return n, fps, s.codec_context.height, s.codec_context.width
     except (av.error.FFmpegError, IndexError) as exc:
         raise SampleError(f"{path}: unreadable video ({exc})") from None
