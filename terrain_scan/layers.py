@@ -1,0 +1,106 @@
+"""Layers from observations: the deterministic merge rule of the layered height field.
+
+An observation is (global cell, height, normal, hits, last_ts). Within a cell, observations sorted
+by height are merged greedily: one joins the current layer while it lies within ``MERGE_M`` of that
+layer's hit-weighted mean height, else it opens a new layer. A merged layer's height is the
+hit-weighted mean, its normal the hit-weighted mean direction, its hits the sum, its last_ts the
+newest. At most ``max_layers`` layers per cell are kept (the least-hit dropped; ties keep the
+lower). Sorting first makes the result independent of the order observations arrive in, so adding
+recordings in any order gives the same layers; a recording's observations are kept apart (its
+*contribution*) so that re-scanning it replaces them instead of counting its hits twice.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MERGE_M = 0.5
+MAX_LAYERS = 8
+
+
+@dataclass
+class Observations:
+    """Columns of per-cell observations: cell (gx, gz int64), h, n (·, 3), hits (int64), ts (int64)."""
+
+    gx: np.ndarray
+    gz: np.ndarray
+    h: np.ndarray
+    n: np.ndarray
+    hits: np.ndarray
+    ts: np.ndarray
+
+    @staticmethod
+    def empty() -> Observations:
+        return Observations(
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros(0),
+            np.zeros((0, 3)),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+        )
+
+    def __len__(self) -> int:
+        return len(self.h)
+
+    @staticmethod
+    def concat(parts: list[Observations]) -> Observations:
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return Observations.empty()
+        return Observations(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("gx", "gz", "h", "n", "hits", "ts")))
+
+    def take(self, idx: np.ndarray) -> Observations:
+        return Observations(self.gx[idx], self.gz[idx], self.h[idx], self.n[idx], self.hits[idx], self.ts[idx])
+
+    def finite(self) -> Observations:
+        """Drop observations with a non-finite height or normal (nothing NaN ever reaches a layer)."""
+        ok = np.isfinite(self.h) & np.isfinite(self.n).all(axis=1) & (self.hits > 0)
+        return self.take(np.flatnonzero(ok))
+
+
+def merge(obs: Observations, merge_m: float = MERGE_M, max_layers: int = MAX_LAYERS) -> Observations:
+    """Merge observations into layers (at most ``max_layers`` per cell); rows sorted by (gx, gz, h)."""
+    obs = obs.finite()
+    if not len(obs):
+        return Observations.empty()
+    # total order: cell, height, then the other fields, so equal heights merge identically in any input order
+    order = np.lexsort((obs.ts, obs.hits, obs.n[:, 2], obs.n[:, 1], obs.n[:, 0], obs.h, obs.gz, obs.gx))
+    o = obs.take(order)
+    new_cell = np.ones(len(o), bool)
+    new_cell[1:] = (o.gx[1:] != o.gx[:-1]) | (o.gz[1:] != o.gz[:-1])
+    # greedy clustering: sequential within a cell (clusters are few per cell)
+    label = np.empty(len(o), np.int64)
+    cur, w_sum, hw_sum = -1, 0.0, 0.0
+    h, w = o.h, o.hits.astype(np.float64)
+    for i in range(len(o)):
+        if new_cell[i] or abs(h[i] - hw_sum / w_sum) > merge_m:
+            cur += 1
+            w_sum, hw_sum = 0.0, 0.0
+        w_sum += w[i]
+        hw_sum += w[i] * h[i]
+        label[i] = cur
+    n_layers = cur + 1
+    hits = np.bincount(label, weights=w, minlength=n_layers)
+    hm = np.bincount(label, weights=w * h, minlength=n_layers) / hits
+    nsum = np.stack([np.bincount(label, weights=w * o.n[:, k], minlength=n_layers) for k in range(3)], axis=1)
+    nn = np.linalg.norm(nsum, axis=1, keepdims=True)
+    normal = np.where(nn > 1e-12, nsum / np.maximum(nn, 1e-12), np.array([0.0, 1.0, 0.0]))
+    ts = np.zeros(n_layers, np.int64)
+    np.maximum.at(ts, label, o.ts)
+    first = np.flatnonzero(np.r_[True, label[1:] != label[:-1]])
+    layers = Observations(o.gx[first], o.gz[first], hm, normal, np.rint(hits).astype(np.int64), ts)
+    return _cap(layers, max_layers)
+
+
+def _cap(layers: Observations, max_layers: int) -> Observations:
+    """Keep the ``max_layers`` most-hit layers of each cell (ties: the lower); result sorted by (cell, h)."""
+    order = np.lexsort((layers.h, -layers.hits, layers.gz, layers.gx))
+    l2 = layers.take(order)
+    new_cell = np.r_[True, (l2.gx[1:] != l2.gx[:-1]) | (l2.gz[1:] != l2.gz[:-1])]
+    start = np.maximum.accumulate(np.where(new_cell, np.arange(len(l2)), 0))
+    rank = np.arange(len(l2)) - start
+    kept = l2.take(np.flatnonzero(rank < max_layers))
+    return kept.take(np.lexsort((kept.h, kept.gz, kept.gx)))
