@@ -29,10 +29,9 @@ import pyarrow as pa  # noqa: E402
 pa.set_cpu_count(1)
 pa.set_io_thread_count(1)
 
-from marionette import geometry as geo  # noqa: E402
 from marionette import synth  # noqa: E402
 from marionette.ingest import wildworld as ww  # noqa: E402
-from marionette.ingest.sample import IngestOptions, _segment_table, valid_runs  # noqa: E402
+from marionette.ingest.sample import IngestOptions, segment_states, valid_runs  # noqa: E402
 from marionette.io import read_ipc, write_ipc  # noqa: E402
 
 CODECS = ("none", "lz4", "zstd")
@@ -41,12 +40,7 @@ CODECS = ("none", "lz4", "zstd")
 def shard_table(ref: ww.SampleRef, layout, min_frames: int) -> pa.Table:
     """The state-shard table ingest builds for one recording."""
     sample = ww.read_sample(ref, layout)
-    tables = []
-    for k, (a, b) in enumerate(valid_runs(sample.valid, min_frames)):
-        joints = {e.name: sample.entities[e.name].joints_world[a:b] for e in layout.entities}
-        rots = {e.name: sample.entities[e.name].rot[a:b] for e in layout.articulated}
-        state = geo.world_to_state(layout, joints, rots)
-        tables.append(_segment_table(layout, sample, f"{ref.sample_id}-s{k:03d}", a, b, state))
+    tables = [t for _, _, _, t in segment_states(layout, sample, valid_runs(sample.valid, min_frames))]
     return pa.concat_tables(tables)
 
 

@@ -17,7 +17,6 @@ the page cache (each measurement is the median of ``--repeats`` runs after a war
 from __future__ import annotations
 
 import argparse
-import inspect
 import sys
 import tempfile
 import time
@@ -38,7 +37,7 @@ pa.set_io_thread_count(1)
 from marionette import geometry as geo  # noqa: E402
 from marionette import synth  # noqa: E402
 from marionette.ingest import wildworld as ww  # noqa: E402
-from marionette.ingest.sample import IngestOptions, _segment_table, action_stats, moments, valid_runs  # noqa: E402
+from marionette.ingest.sample import IngestOptions, _segment_table, action_stats, moments, segment_states, valid_runs  # noqa: E402
 from marionette.ingest.wildworld import SampleRef  # noqa: E402
 from marionette.io import write_ipc  # noqa: E402
 
@@ -46,21 +45,15 @@ from marionette.io import write_ipc  # noqa: E402
 def needed_columns(layout) -> list[str]:
     """The state.csv columns read_sample asks for (same order)."""
     cols = ["camera.K", "camera.pos", "camera.rot"]
-    takes_layout = len(inspect.signature(ww._entity_columns).parameters) > 1
     for e in layout.entities:
-        cols += list((ww._entity_columns(e, layout) if takes_layout else ww._entity_columns(e)).values())
+        cols += list(ww._entity_columns(e, layout).values())
     return cols
 
 
 def end_to_end(ref: SampleRef, layout, out: Path, compression: str, min_frames: int) -> int:
     """read → segment → derive → table → IPC file; returns rows written."""
     sample = ww.read_sample(ref, layout)
-    tables = []
-    for k, (a, b) in enumerate(valid_runs(sample.valid, min_frames)):
-        joints = {e.name: sample.entities[e.name].joints_world[a:b] for e in layout.entities}
-        rots = {e.name: sample.entities[e.name].rot[a:b] for e in layout.articulated}
-        state = geo.world_to_state(layout, joints, rots)
-        tables.append(_segment_table(layout, sample, f"seg-{k:03d}", a, b, state))
+    tables = [t for _, _, _, t in segment_states(layout, sample, valid_runs(sample.valid, min_frames))]
     t = pa.concat_tables(tables)
     write_ipc(out, t, compression)
     return t.num_rows

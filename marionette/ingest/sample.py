@@ -263,6 +263,15 @@ def _segment_table(layout: Layout, sample: RecordedSample, seg_id: str, a: int, 
     return pa.Table.from_pydict(cols, schema=schema)
 
 
+def segment_states(layout: Layout, sample: RecordedSample, runs: list[tuple[int, int]]):
+    """For each run [a, b) of valid frames: (k, (a, b), state (n, D) float32, shard table rows)."""
+    for k, (a, b) in enumerate(runs):
+        joints = {e.name: sample.entities[e.name].joints_world[a:b] for e in layout.entities}
+        rots = {e.name: sample.entities[e.name].rot[a:b] for e in layout.articulated}
+        state = geo.world_to_state(layout, joints, rots)
+        yield k, (a, b), state, _segment_table(layout, sample, segment_id(sample.ref, k), a, b, state)
+
+
 def staging_dir(corpus: Path, ref: SampleRef) -> Path:
     return Path(corpus) / "staging" / sample_key(ref)
 
@@ -317,12 +326,9 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
             )
         tables, segs, summaries, stats = [], [], {}, None
         split = split_of(ref.name, options.split_fractions)
-        for k, (a, b) in enumerate(runs):
+        for k, (a, b), state, table in segment_states(layout, sample, runs):
             seg_id = segment_id(ref, k)
-            joints = {e.name: sample.entities[e.name].joints_world[a:b] for e in layout.entities}
-            rots = {e.name: sample.entities[e.name].rot[a:b] for e in layout.articulated}
-            state = geo.world_to_state(layout, joints, rots)
-            tables.append(_segment_table(layout, sample, seg_id, a, b, state))
+            tables.append(table)
             seg_hash = hashlib.sha256()  # over every column but the ids: state, actions, roots, camera, ...
             for name in tables[-1].column_names[2:]:
                 seg_hash.update(name.encode())
