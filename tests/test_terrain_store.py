@@ -1,0 +1,140 @@
+"""The stage store: order independence, re-scan without double counting, incremental = full, fill."""
+
+import numpy as np
+
+from terrain_scan.fill import fill_holes
+from terrain_scan.layers import Observations
+from terrain_scan.store import Stage
+from terrain_scan.trn2 import FLAG_FILLED, read_chunk
+
+
+def _obs(rng, x0, z0, size, base, ts, deck=False):
+    gx, gz = np.meshgrid(np.arange(x0, x0 + size), np.arange(z0, z0 + size), indexing="ij")
+    gx, gz = gx.ravel(), gz.ravel()
+    keep = rng.random(len(gx)) < 0.8  # holes
+    gx, gz = gx[keep], gz[keep]
+    h = base + 0.05 * gx + rng.normal(0, 0.02, len(gx))
+    if deck:
+        on = (gz % 7) < 2
+        gx, gz, h = np.r_[gx, gx[on]], np.r_[gz, gz[on]], np.r_[h, h[on] + 5.5]
+    n = np.tile([0.0, 1.0, 0.0], (len(gx), 1))
+    return Observations(
+        gx.astype(np.int64), gz.astype(np.int64), h, n, rng.integers(1, 20, len(gx)), np.full(len(gx), ts, np.int64)
+    )
+
+
+def _recordings():
+    rng = np.random.default_rng(0)
+    return {
+        "data_part1/rec0000": _obs(rng, -960, 840, 30, 20.0, 1767225600, deck=True),
+        "data_part1/rec0001": _obs(rng, -945, 830, 30, 20.0, 1767312000),
+        "data_part1/rec0002": _obs(rng, -1100, 905, 25, 35.0, 1767398400),  # only chunk (-11, 9)
+    }
+
+
+def _chunk_bytes(d):
+    return {p.name: p.read_bytes() for p in sorted((d / "chunks").glob("*.trn2"))}
+
+
+def test_any_order_and_incremental_equal_full(tmp_path):
+    recs = _recordings()
+    full = Stage(tmp_path / "full")
+    for name, o in recs.items():
+        full.put(name, o, f"hash-{name}", int(o.ts[0]))
+    full.rebuild()
+    rev = Stage(tmp_path / "rev")
+    for name in reversed(list(recs)):
+        rev.put(name, recs[name], f"hash-{name}", int(recs[name].ts[0]))
+        rev.rebuild()  # incremental: a rebuild after every recording
+    assert _chunk_bytes(tmp_path / "full") == _chunk_bytes(tmp_path / "rev")
+    assert len(_chunk_bytes(tmp_path / "full")) >= 2
+
+
+def test_rescan_replaces_and_untouched_chunks_keep_bytes_and_mtime(tmp_path):
+    recs = _recordings()
+    st = Stage(tmp_path / "s")
+    for name, o in list(recs.items())[:2]:
+        st.put(name, o, "h", int(o.ts[0]))
+    st.rebuild()
+    before = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in (tmp_path / "s" / "chunks").glob("*")}
+    # scanning the same recording again changes nothing (hits are not counted twice)
+    name, o = next(iter(recs.items()))
+    st.put(name, o, "h", int(o.ts[0]))
+    rep = st.rebuild()
+    assert (
+        rep.written == []
+        and {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in (tmp_path / "s" / "chunks").glob("*")} == before
+    )
+    # a recording in another chunk: only that chunk is written
+    name3 = "data_part1/rec0002"
+    st.put(name3, recs[name3], "h", int(recs[name3].ts[0]))
+    rep = st.rebuild()
+    after = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in (tmp_path / "s" / "chunks").glob("*")}
+    for k, v in before.items():
+        assert after[k] == v
+    assert (-11, 9) in rep.written and len(after) == len(before) + len(rep.written)  # new chunks only (fill may spill over)
+    assert st.manifest["chunks"]["-11_9"]["recordings"] == [name3]
+    # removing it removes its chunk file
+    added = set(rep.written)
+    st.remove(name3)
+    rep = st.rebuild()
+    assert set(rep.removed) == added and {p.name for p in (tmp_path / "s" / "chunks").glob("*")} == set(before)
+
+
+def test_two_levels_and_hits_saturate(tmp_path):
+    o = _recordings()["data_part1/rec0000"]
+    o.hits[:] = 60000
+    st = Stage(tmp_path / "s")
+    st.put("a", o, "h", 5)
+    st.put("b", o, "h", 7)
+    st.rebuild()
+    for p in (tmp_path / "s" / "chunks").glob("*.trn2"):
+        c = read_chunk(p)
+        v = c.valid()
+        assert c.cells["hits"][v].max() == 65535
+        assert (v.sum(1) == 2).any()  # deck over ground
+        both = v.sum(1) == 2
+        gap = c.cells["h"][both, 1] - c.cells["h"][both, 0]
+        assert np.all(gap > 5.0)
+        assert set(np.unique(c.cells["ts"][v])) == {7}
+
+
+def test_hole_fill_needs_three_agreeing_neighbours():
+    n = np.tile([0.0, 1.0, 0.0], (8, 1))
+    ring = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+    gx = np.array([x for x, _ in ring], np.int64)
+    gz = np.array([z for _, z in ring], np.int64)
+    h = np.array([10.0, 10.5, 11.0, 10.2, 30.0, 31.0, 29.5, 10.1])
+    layers = Observations(gx, gz, h, n, np.ones(8, np.int64), np.arange(8, dtype=np.int64))
+    out, filled = fill_holes(layers, rounds=1)
+    cells = {(int(x), int(z)): (h, t, k) for x, z, h, t, k in zip(out.gx, out.gz, out.h, out.ts, out.hits)}
+    f = {(int(x), int(z)) for x, z in zip(out.gx[filled], out.gz[filled])}
+    assert (0, 0) in f
+    # the centre takes the 5 neighbours within 2 m of each other (10.0..11.0), not the 3 high ones
+    np.testing.assert_allclose(cells[(0, 0)][0], np.mean([10.0, 10.5, 11.0, 10.2, 10.1]))
+    assert cells[(0, 0)][2] == 0 and cells[(0, 0)][1] == 7
+    # (2, 0) sees 31.0, 29.5 (agreeing, but only 2) and 10.1: not filled
+    assert (2, 0) not in f
+    # (-2, 0) sees 10.0, 10.5, 11.0: filled
+    assert (-2, 0) in f
+    # only two agreeing neighbours: nothing filled
+    two = layers.take(np.array([0, 1]))
+    assert fill_holes(two, rounds=3)[1].sum() == 0
+
+
+def test_filled_flag_reaches_the_chunk(tmp_path):
+    st = Stage(tmp_path / "s")
+    gx, gz = np.meshgrid(np.arange(-3, 4), np.arange(-3, 4), indexing="ij")
+    keep = ~((gx == 0) & (gz == 0))
+    o = Observations(
+        gx[keep].astype(np.int64),
+        gz[keep].astype(np.int64),
+        np.full(keep.sum(), 2.0),
+        np.tile([0.0, 1, 0], (keep.sum(), 1)),
+        np.ones(keep.sum(), np.int64),
+        np.ones(keep.sum(), np.int64),
+    )
+    st.put("r", o, "h", 1)
+    st.rebuild()
+    c = read_chunk(tmp_path / "s" / "chunks" / "chunk_0_0.trn2")
+    assert c.cells["flags"][0, 0] & FLAG_FILLED and c.cells["h"][0, 0] == np.float32(2.0)
