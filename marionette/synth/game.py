@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+from datetime import UTC, datetime
 from fractions import Fraction
 from pathlib import Path
 
@@ -100,10 +101,12 @@ def _yuv420p_frame(rgb: np.ndarray) -> av.VideoFrame:
     return frame
 
 
-def _write_video(path: Path, frames, fps: int, codec: str, pix_fmt: str, fmt: str, options: dict) -> None:
+def _write_video(path: Path, frames, fps: int, codec: str, pix_fmt: str, fmt: str, options: dict,
+                 metadata: dict | None = None) -> None:  # fmt: skip
     def write(tmp: Path) -> None:
         # bitexact: no random container ids or encoder version strings, so reruns are byte-identical.
         with av.open(str(tmp), "w", format=fmt, options={"fflags": "+bitexact"}) as c:
+            c.metadata.update(metadata or {})
             s = c.add_stream(codec, rate=fps)
             s.width, s.height = frames[0].shape[1], frames[0].shape[0]
             s.pix_fmt = pix_fmt
@@ -162,7 +165,9 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
         "preset": "veryfast",
         "x264-params": "threads=1:lookahead-threads=1:sync-lookahead=0:rc-lookahead=0:mbtree=0",
     }
-    _write_video(d / "rgb.mp4", rgb, fps, "libx264", "yuv420p", "mp4", x264)
+    # the recording's time in the container (scanners read it; never the wall clock of the run)
+    created = datetime.fromtimestamp(RECORDING_EPOCH + 86400 * index, UTC).strftime("%Y-%m-%dT%H:%M:%S.000000Z")
+    _write_video(d / "rgb.mp4", rgb, fps, "libx264", "yuv420p", "mp4", x264, {"creation_time": created})
     _write_video(d / "depth.mkv", depth, fps, "libx265", "gray", "matroska",
                  {"x265-params": "lossless=1:log-level=error:pools=1:frame-threads=1"})  # fmt: skip
 

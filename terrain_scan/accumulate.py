@@ -1,0 +1,325 @@
+"""Scanning one recording into per-cell terrain observations: depth back-projection plus ground contacts.
+
+Two sources of evidence, both in world metres (Y up), binned into 1 m cells by floor(x), floor(z):
+
+1. **Depth.** Every depth.mkv frame with a valid camera is decoded (``DepthDecoder``) and every
+   valid pixel back-projected through the recorded pinhole camera. Pixel (row i, column j) has its
+   centre at (u, v) = (j + ½, i + ½); in the OpenGL camera frame (x right, y up, looking down −Z)
+   the point at z-depth z is ``p_cam = ((u − cx)/fx · z, −(v − cy)/fy · z, −z)`` and
+   ``p_world = pos + R(rot) p_cam`` (``rot`` camera-to-world, xyzw). Points near a recorded
+   skeleton (within the rig's capsule radius × ``mask_radius_scale`` + ``mask_margin_m`` of a bone,
+   a bone being a kept joint and its rig parent) are characters, not ground, and are dropped. The
+   remaining points of all frames are voxel down-sampled (``voxel_m``), outliers removed
+   (statistical), normals estimated over a radius of ``normal_radius_voxels`` voxels and oriented
+   to +Y; points whose normal has ny ≥ ``min_normal_y`` (walkable, upward-facing) each give one
+   observation of hit weight 1 at their own height.
+2. **Contacts.** A contact joint touching the ground marks the surface exactly: a leaf contact
+   joint of an articulated rig (one with no kept child: the hunter's ``toe_tip_*``, the drake's
+   ``claw_*``, ``jaw_tip``, ``tail10``) counts at a frame when it is at rest — speed below
+   ``contact_speed`` m/s at every frame of a ±``contact_window`` frame window — and lies within
+   ``contact_tol_m`` of the entity's lowest kept joint. It adds an observation of weight
+   ``contact_hits`` at the joint's own (x, y, z), normal +Y. This assumes a planted contact joint
+   lies on the surface (the synthetic game puts ``toe_tip_*`` and ``claw_*`` at 0 m while planted).
+
+The observations are merged per cell with ``layers.merge``; their timestamp is the recording's
+time (``recording_time``), never the wall clock.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import av
+import numpy as np
+import open3d as o3d
+
+from marionette.geometry import quat_to_matrix
+from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, read_sample
+from marionette.schema import Layout
+
+from .depth import DepthDecoder, depth_edges, smooth_codes
+from .layers import Observations, merge
+
+
+@dataclass
+class ScanResult:
+    """One recording's merged observations and what went into them."""
+
+    observations: Observations
+    recording_ts: int
+    frames_total: int = 0  # depth frames read (after the stride)
+    frames_used: int = 0
+    frames_skipped_camera: int = 0  # frames whose recorded camera is invalid
+    points_valid: int = 0  # back-projected pixels with a valid depth code
+    points_masked: int = 0  # of those, dropped as characters
+    points_kept: int = 0  # after down-sampling, outlier removal and the normal test
+    contacts_added: int = 0
+    points: np.ndarray | None = field(default=None, repr=False)  # (P, 3) kept world points, if asked for
+
+    def counters(self) -> dict[str, int]:
+        keys = ("frames_total", "frames_used", "frames_skipped_camera", "points_valid", "points_masked", "points_kept",
+                "contacts_added")  # fmt: skip
+        return {k: getattr(self, k) for k in keys}
+
+
+# ------------------------------------------------------------------------------------------------
+# pure pieces
+
+
+def recording_time(rgb_path: Path) -> int:
+    """Unix seconds of a recording from ``creation_time`` (ISO 8601) in rgb.mp4's container metadata; 0 if absent."""
+    try:
+        with av.open(str(rgb_path)) as c:
+            s = c.metadata.get("creation_time") or (c.streams.video[0].metadata.get("creation_time") if c.streams.video else None)
+    except (av.error.FFmpegError, FileNotFoundError):
+        return 0
+    if not s:
+        return 0
+    try:
+        t = dt.datetime.fromisoformat(s.strip().replace("Z", "+00:00"))
+    except ValueError:
+        return 0
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return max(0, int(t.timestamp()))
+
+
+def backproject(z: np.ndarray, K: np.ndarray, pos: np.ndarray, rot_xyzw: np.ndarray) -> np.ndarray:
+    """z-depth (H, W) → world points (H, W, 3) (NaN where z is NaN); OpenGL camera, pixel centres at +½."""
+    H, W = z.shape
+    fx, fy, cx, cy = (float(k) for k in K)
+    u = np.arange(W) + 0.5
+    v = np.arange(H) + 0.5
+    z = z.astype(np.float64)
+    p_cam = np.stack(
+        [((u[None, :] - cx) / fx) * z, (-(v[:, None] - cy) / fy) * z, -z], axis=-1
+    )  # (H, W, 3)
+    R = quat_to_matrix(np.asarray(rot_xyzw, dtype=np.float64))  # camera-to-world (3, 3)
+    return p_cam @ R.T + np.asarray(pos, dtype=np.float64)
+
+
+def segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (P, S) from points p (P, 3) to segments a→b (S, 3)."""
+    ab = b - a  # (S, 3)
+    ap = p[:, None, :] - a[None]  # (P, S, 3)
+    t = np.clip(np.sum(ap * ab[None], -1) / np.maximum(np.sum(ab * ab, -1), 1e-12)[None], 0.0, 1.0)
+    return np.linalg.norm(ap - t[..., None] * ab[None], axis=-1)
+
+
+def character_mask(points: np.ndarray, bones: Iterable[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
+    """(P,) bool: points within ``radius`` of a segment of some bone set [(a (S, 3), b (S, 3), radius)]."""
+    hit = np.zeros(len(points), bool)
+    for a, b, r in bones:
+        lo = np.minimum(a.min(0), b.min(0)) - r
+        hi = np.maximum(a.max(0), b.max(0)) + r
+        near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        if not len(near):
+            continue
+        for s in range(0, len(near), 8192):  # bounded memory: (chunk, S, 3)
+            idx = near[s : s + 8192]
+            hit[idx] |= (segment_distance(points[idx], a, b) <= r).any(1)
+    return hit
+
+
+def entity_bones(sample: RecordedSample, layout: Layout, frame: int, radius_scale: float, margin_m: float):
+    """Bones (segments kept joint → rig parent) of every entity valid at ``frame``, with mask radii."""
+    out = []
+    for e in layout.entities:
+        t = sample.entities.get(e.name)
+        if t is None or not t.valid[frame]:
+            continue
+        par = np.array(e.rig.parents)
+        child = np.flatnonzero(par >= 0)
+        J = t.joints_world[frame]
+        if len(child):
+            out.append((J[child], J[par[child]], e.rig.capsule_radius_m * radius_scale + margin_m))
+        else:  # a single point
+            out.append((J, J, e.rig.capsule_radius_m * radius_scale + margin_m))
+    return out
+
+
+def contact_observations(sample: RecordedSample, layout: Layout, ts: int, speed: float = 0.2, window: int = 2,
+                         tol_m: float = 0.05, hits: int = 1) -> Observations:  # fmt: skip
+    """Ground contacts of every articulated entity (rule in the module docstring)."""
+    parts = []
+    dt_s = 1.0 / (sample.fps or 30.0)
+    for e in layout.articulated:
+        t = sample.entities.get(e.name)
+        if t is None or not len(t.valid):
+            continue
+        par = set(e.rig.parents)
+        leaves = [k for k in e.rig.contact_index if k not in par]
+        if not leaves:
+            continue
+        J = t.joints_world  # (N, K, 3)
+        P = J[:, leaves]  # (N, C, 3)
+        v = np.full(P.shape[:2], np.inf)
+        ok_pair = t.valid[1:] & t.valid[:-1]
+        step = np.linalg.norm(P[1:] - P[:-1], axis=-1) / dt_s  # (N-1, C)
+        # speed at frame i: the larger of the steps into and out of it (inf where a neighbour is invalid)
+        sp = np.where(ok_pair[:, None], step, np.inf)
+        v[1:] = sp
+        v[:-1] = np.maximum(v[:-1], sp)
+        if len(v) == 1:
+            v[:] = np.inf
+        slow = v < speed
+        # at rest over the whole ±window
+        rest = slow.copy()
+        for d in range(1, window + 1):
+            rest[d:] &= slow[:-d]
+            rest[:-d] &= slow[d:]
+            rest[:d] = False
+            rest[len(rest) - d :] = False
+        lowest = np.min(np.where(np.isfinite(J[..., 1]), J[..., 1], np.inf), axis=1)  # (N,), inf where absent
+        low = (P[..., 1] - lowest[:, None]) <= tol_m
+        ok = rest & low & t.valid[:, None] & np.isfinite(P).all(-1)
+        fi, ci = np.nonzero(ok)
+        if not len(fi):
+            continue
+        q = P[fi, ci]
+        parts.append(
+            Observations(
+                np.floor(q[:, 0]).astype(np.int64),
+                np.floor(q[:, 2]).astype(np.int64),
+                q[:, 1].copy(),
+                np.tile([0.0, 1.0, 0.0], (len(q), 1)),
+                np.full(len(q), hits, np.int64),
+                np.full(len(q), ts, np.int64),
+            )
+        )
+    return Observations.concat(parts)
+
+
+def depth_frames(path: Path) -> Iterator[np.ndarray]:
+    """The frames of an 8-bit depth video as (H, W) uint8 codes (one decoder thread)."""
+    with av.open(str(path)) as c:
+        s = c.streams.video[0]
+        s.thread_count = 1
+        for frame in c.decode(s):
+            a = frame.to_ndarray(format="gray") if frame.format.name != "gray" else frame.to_ndarray()
+            yield a
+
+
+def ground_cloud(points: np.ndarray, voxel_m: float, min_normal_y: float, normal_radius_voxels: float = 4.0,
+                 outlier_neighbors: int = 16, outlier_std: float = 2.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Down-sample, drop outliers, estimate upward normals, keep walkable points: (P, 3) points, (P, 3) normals."""
+    if len(points) < 3:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    # work relative to a local origin: world coordinates near x = −950 lose precision in float32
+    origin = np.floor(points.min(0))
+    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor((points - origin).astype(np.float32)))
+    pc = pc.voxel_down_sample(voxel_m)
+    if len(pc.point.positions) > outlier_neighbors:
+        pc, _ = pc.remove_statistical_outliers(nb_neighbors=outlier_neighbors, std_ratio=outlier_std)
+    if len(pc.point.positions) < 3:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    pc.estimate_normals(max_nn=64, radius=normal_radius_voxels * voxel_m)
+    pc.orient_normals_to_align_with_direction(o3d.core.Tensor(np.array([0.0, 1.0, 0.0], np.float32)))
+    p = pc.point.positions.numpy().astype(np.float64) + origin
+    n = pc.point.normals.numpy().astype(np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    keep = (n[:, 1] >= min_normal_y) & np.isfinite(p).all(1) & np.isfinite(n).all(1)
+    return p[keep], n[keep]
+
+
+def voxel_reduce(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Mean point of each occupied voxel (a per-frame reduction before the global open3d pass)."""
+    if not len(points):
+        return points
+    key = np.floor(points / voxel_m).astype(np.int64)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    out = np.zeros((len(cnt), 3))
+    for k in range(3):
+        out[:, k] = np.bincount(inv, weights=points[:, k], minlength=len(cnt)) / cnt
+    return out
+
+
+def frame_points(codes: np.ndarray, sample: RecordedSample, layout: Layout, i: int, decoder: DepthDecoder,
+                 max_depth_m: float = 30.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
+                 mask_radius_scale: float = 3.0, mask_margin_m: float = 0.3) -> tuple[np.ndarray, int]:  # fmt: skip
+    """One frame's non-character world points (P, 3) and how many valid points were masked as characters.
+
+    The frame's camera must be valid. Codes are de-quantised (``smooth_codes``), pixels next to a
+    depth edge dropped (their depth mixes two surfaces after smoothing), depths beyond ``max_depth_m``
+    dropped (one code spans ~z²/511 m under the synthetic mapping: 1.8 m at 30 m).
+    """
+    z_raw = decoder.decode(codes)
+    z = decoder.decode(smooth_codes(codes, smooth_radius, smooth_tol)) if smooth_radius > 0 else z_raw
+    z[depth_edges(z_raw, edge_rel)] = np.nan
+    z[~(z <= max_depth_m)] = np.nan  # NaN stays NaN
+    P = backproject(z, sample.camera_K[i], sample.camera_pos[i], sample.camera_rot[i]).reshape(-1, 3)
+    P = P[np.isfinite(P).all(1)]
+    m = character_mask(P, entity_bones(sample, layout, i, mask_radius_scale, mask_margin_m))
+    return P[~m], int(m.sum())
+
+
+# ------------------------------------------------------------------------------------------------
+# the scan
+
+
+def scan_sample(sample: RecordedSample, layout: Layout, frames: Iterable[np.ndarray], decoder: DepthDecoder,
+                recording_ts: int = 0, frame_stride: int = 1, voxel_m: float = 0.25, min_normal_y: float = 0.5,
+                max_depth_m: float = 30.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
+                normal_radius_voxels: float = 2.0, mask_radius_scale: float = 3.0, mask_margin_m: float = 0.3,
+                contact_speed: float = 0.2, contact_window: int = 2, contact_tol_m: float = 0.05, contact_hits: int = 1,
+                keep_points: bool = False) -> ScanResult:  # fmt: skip
+    """Scan a read sample with its depth frames (codes, (H, W) uint8); see ``scan_recording``."""
+    res = ScanResult(Observations.empty(), int(recording_ts))
+    stride = max(1, int(frame_stride))
+    n = sample.n_frames
+    chunks: list[np.ndarray] = []
+    for i, codes in enumerate(frames):
+        if i >= n:
+            break
+        if i % stride:
+            continue
+        res.frames_total += 1
+        if sample.camera_valid is None or not sample.camera_valid[i]:
+            res.frames_skipped_camera += 1
+            continue
+        P, masked = frame_points(codes, sample, layout, i, decoder, max_depth_m, smooth_radius, smooth_tol, edge_rel,
+                                 mask_radius_scale, mask_margin_m)  # fmt: skip
+        res.frames_used += 1
+        res.points_valid += len(P) + masked
+        res.points_masked += masked
+        chunks.append(voxel_reduce(P, voxel_m / 2))
+    pts = np.concatenate(chunks) if chunks else np.zeros((0, 3))
+    p, nrm = ground_cloud(pts, voxel_m, min_normal_y, normal_radius_voxels)
+    res.points_kept = len(p)
+    if keep_points:
+        res.points = p
+    ts = res.recording_ts
+    depth_obs = Observations(
+        np.floor(p[:, 0]).astype(np.int64),
+        np.floor(p[:, 2]).astype(np.int64),
+        p[:, 1].copy(),
+        nrm,
+        np.ones(len(p), np.int64),
+        np.full(len(p), ts, np.int64),
+    )
+    contacts = Observations.empty()
+    if n and sample.entities:
+        contacts = contact_observations(sample, layout, ts, contact_speed, contact_window, contact_tol_m, contact_hits)
+    res.contacts_added = len(contacts)
+    res.observations = merge(Observations.concat([depth_obs, contacts]))
+    return res
+
+
+def scan_recording(ref: SampleRef, layout: Layout, decoder: DepthDecoder, frame_stride: int = 1, voxel_m: float = 0.25,
+                   min_normal_y: float = 0.5, **options) -> ScanResult:  # fmt: skip
+    """Scan one recording (``data_part<x>/<id>/``): its depth frames and contacts → merged observations.
+
+    ``options`` are ``scan_sample``'s (depth range, character mask, contact rule, ``keep_points``).
+    A missing depth.mkv raises SampleError; zero frames or only invalid cameras give empty depth
+    observations without error.
+    """
+    sample = read_sample(ref, layout)
+    depth = ref.path / "depth.mkv"
+    if not depth.exists():
+        raise SampleError(f"{depth}: missing")
+    ts = recording_time(ref.path / "rgb.mp4")
+    return scan_sample(sample, layout, depth_frames(depth), decoder, ts, frame_stride, voxel_m, min_normal_y, **options)
