@@ -111,6 +111,39 @@ def cmd_inspect(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_terrain_scan(a: argparse.Namespace) -> int:
+    from terrain_scan.depth import DepthDecoder
+    from terrain_scan.scan import ScanOptions, scan_stages
+
+    decoder = DepthDecoder.synthetic() if a.depth_decoder is None else DepthDecoder.from_json(json.loads(a.depth_decoder.read_text()))
+    options = ScanOptions(decoder=decoder.to_json(), frame_stride=a.frame_stride, voxel_m=a.voxel)
+    report = scan_stages(a.corpus, a.stage, incremental=a.incremental, options=options)
+    for st, r in report.items():
+        print(
+            f"stage {st}: {len(r['scanned'])} scanned, {len(r['unchanged'])} unchanged, {len(r['failed'])} failed; "
+            f"chunks {len(r['chunks_written'])} written, {len(r['chunks_unchanged'])} unchanged, {len(r['chunks_removed'])} removed; "
+            f"{r['layers']} layers ({r['filled']} filled) in {r['dir']}"
+        )
+    return 0
+
+
+def cmd_terrain_export(a: argparse.Namespace) -> int:
+    import numpy as np
+
+    from terrain_scan.mesh import export
+    from terrain_scan.scan import stage_dir
+    from terrain_scan.store import Stage
+
+    st = Stage(stage_dir(a.corpus, a.stage))
+    layers, _ = st.layers()
+    if not len(layers):
+        raise ValueError(f"{st.dir}: the stage has no terrain yet (run `marionette terrain scan` first)")
+    origin = np.array([np.floor(layers.gx.mean()), 0.0, np.floor(layers.gz.mean())])
+    export(layers, a.out, origin=origin)
+    print(f"wrote {a.out} ({len(layers)} layers; vertices relative to x={origin[0]:g}, z={origin[2]:g})")
+    return 0
+
+
 def cmd_demo(a: argparse.Namespace) -> int:
     """Synthetic recordings → corpus → inspect → the 20 fps dynamics view, end to end."""
     from marionette.corpus import Corpus
@@ -120,13 +153,17 @@ def cmd_demo(a: argparse.Namespace) -> int:
     out = Path(a.out)
     src, corpus = out / "recordings", out / "corpus"
     t0 = time.time()
-    print(f"[1/3] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
+    print(f"[1/4] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
     generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
-    print(f"[2/3] building the corpus {corpus} with {a.workers} workers")
+    print(f"[2/4] building the corpus {corpus} with {a.workers} workers")
     build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
     c = Corpus(corpus)
     rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
-    print(f"[3/3] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
+    print(f"[3/4] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
+    from terrain_scan.scan import scan_stages
+
+    for st, r in scan_stages(corpus, incremental=True, log=lambda *_: None).items():
+        print(f"[4/4] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
     print(inspect_text(corpus))
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
     return 0
@@ -165,6 +202,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("corpus", type=Path)
     s.add_argument("--json", action="store_true", help="print info.json")
     s.set_defaults(fn=cmd_inspect)
+
+    t = sub.add_parser("terrain", help="terrain scans: scan a corpus's stages, export meshes")
+    tsub = t.add_subparsers(dest="terrain_cmd", required=True)
+    s = tsub.add_parser("scan", help="scan the stages of a corpus into layered height-field chunks")
+    s.add_argument("corpus", type=Path)
+    s.add_argument("--stage", default=None, help="one stage id (default: every stage)")
+    s.add_argument("--incremental", action="store_true", help="scan only recordings that are new or changed")
+    s.add_argument("--frame-stride", type=int, default=1, help="use every Nth depth frame")
+    s.add_argument("--voxel", type=float, default=0.25, help="voxel size of the point down-sampling, metres")
+    s.add_argument("--depth-decoder", type=Path, default=None, help="JSON of the 8-bit depth mapping (default: the synthetic game's)")
+    s.set_defaults(fn=cmd_terrain_scan)
+    s = tsub.add_parser("export", help="export a stage's terrain as a PLY or GLB mesh")
+    s.add_argument("corpus", type=Path)
+    s.add_argument("--stage", default="default")
+    s.add_argument("--out", type=Path, required=True)
+    s.set_defaults(fn=cmd_terrain_export)
 
     s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")
     s.add_argument("--out", type=Path, default=Path("demo-run"))
