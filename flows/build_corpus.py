@@ -190,12 +190,16 @@ def build_corpus(
     min_segment_frames: int = 30,
     dask_address: str | None = None,
     n_workers: int = 2,
+    scan_terrain: bool = True,
+    terrain_frame_stride: int = 1,
 ) -> dict:
     """Ingest every WildWorld sample under ``source`` into ``corpus`` and finalize it.
 
     The fan-out runs on a local Dask cluster of ``n_workers`` processes, or on the existing scheduler
     at ``dask_address`` (its workers must be able to import ``marionette`` and ``flows`` and see both
-    paths). Returns the build report, also written to ``<corpus>/meta/builds/<flow-run-id>.json``.
+    paths). After finalize, each stage's terrain is scanned incrementally (the ``rescan-stage``
+    subflow) unless ``scan_terrain`` is false. Returns the build report, also written to
+    ``<corpus>/meta/builds/<flow-run-id>.json``.
     """
     options = IngestOptions(
         scene=scene,
@@ -210,7 +214,13 @@ def build_corpus(
         fan_out = ingest_samples.with_options(task_runner=dask_runner(dask_address, n_workers))
         results = fan_out(source, corpus, options.to_json())
         info = finalize_corpus(source, corpus, options)
+        terrain = {}
+        if scan_terrain and info["total_ingested"]:
+            from flows.rescan_stage import rescan_stage
+
+            terrain = rescan_stage(corpus, incremental=True, frame_stride=terrain_frame_stride)
         report = build_report(str(flow_run.id), source, corpus, options, results, info)
+        report["terrain"] = terrain
         path = publish_report(corpus, report)
     get_run_logger().info("build report: %s (%s)", path, report["counts"])
     return report

@@ -57,6 +57,11 @@ def cmd_ingest(a: argparse.Namespace) -> int:
         f"corpus {a.corpus}: {info['total_segments']} segments, {info['total_frames']} frames, "
         f"{', '.join(f'{v} {k}' for k, v in sorted(counts.items()))} in {time.time() - t0:.1f} s"
     )
+    if a.terrain and info["total_ingested"]:
+        from terrain_scan.scan import scan_stages
+
+        for st, r in scan_stages(a.corpus, incremental=True, log=lambda *_: None).items():
+            print(f"terrain {st}: {len(r['scanned'])} recordings scanned, {len(r['unchanged'])} unchanged, {len(r['chunks_written'])} chunks written")
     return 0
 
 
@@ -196,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--crf", type=int, default=20, help="x264 quality of the video chunks (lower is better)")
     s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd")
     s.add_argument("--quiet", action="store_true")
+    s.add_argument("--no-terrain", dest="terrain", action="store_false", help="skip the incremental terrain scan after ingest")
     s.set_defaults(fn=cmd_ingest)
 
     s = sub.add_parser("inspect", help="summarise a corpus")

@@ -102,9 +102,9 @@ def scan_stages(
             "scanned": scanned,
             "unchanged": skipped,
             "failed": failed,
-            "chunks_written": rb.written,
-            "chunks_unchanged": rb.unchanged,
-            "chunks_removed": rb.removed,
+            "chunks_written": [list(c) for c in rb.written],  # [cx, cz] pairs (JSON-shaped)
+            "chunks_unchanged": [list(c) for c in rb.unchanged],
+            "chunks_removed": [list(c) for c in rb.removed],
             "layers": rb.layers,
             "filled": rb.filled,
         }

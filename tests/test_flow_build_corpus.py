@@ -116,7 +116,7 @@ def local_prefect(tmp_path_factory):
             assert time.monotonic() < deadline, f"server not healthy after 120 s:\n{tail(logs['server'])}"
             time.sleep(0.5)
         cli(env, "work-pool", "create", POOL, "--type", "process")
-        cli(env, "deploy", "--no-prompt", "--prefect-file", "infra/prefect.yaml", "--name", "local")
+        cli(env, "deploy", "--no-prompt", "--prefect-file", "infra/prefect.yaml", "--all")
         procs.append(start([PREFECT, "worker", "start", "--pool", POOL, "--type", "process"], env, logs["worker"]))
         yield {"env": env, "api": api, "logs": logs}
     finally:
@@ -124,9 +124,9 @@ def local_prefect(tmp_path_factory):
             stop(p)
 
 
-def run_deployment(prefect: dict, timeout: float = 240, **params) -> str:
+def run_deployment(prefect: dict, timeout: float = 240, deployment: str = DEPLOYMENT, **params) -> str:
     """``prefect deployment run`` with ``-p`` parameters; waits for a terminal state; returns the run id."""
-    args = ["deployment", "run", DEPLOYMENT]
+    args = ["deployment", "run", deployment]
     for k, v in params.items():
         args += ["-p", f"{k}={v}"]
     out = cli(prefect["env"], *args)
@@ -148,6 +148,10 @@ def shard_files(corpus: Path) -> dict[str, tuple[bytes, int]]:
     return {str(p.relative_to(corpus)): (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(corpus.glob("*/shard-*"))}
 
 
+def terrain_files(corpus: Path) -> dict[str, tuple[int, bytes]]:
+    return {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in sorted((corpus / "terrain").rglob("*.trn2"))}
+
+
 @pytest.mark.timeout(600)
 def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_prefect, synth_small, tmp_path):
     corpus = tmp_path / "corpus"
@@ -162,6 +166,12 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     assert len(addresses) >= 2 and all(a.startswith("tcp://127.0.0.1:") for a in addresses), addresses
     shards = shard_files(corpus)
     assert len(shards) == 6  # a state and a video shard per sample
+    # the stage's terrain was scanned after finalize
+    assert sorted(report["terrain"]["default"]["scanned"][i]["sample"] for i in range(3)) == [
+        s["sample"] for s in report["samples"]
+    ]
+    chunks = terrain_files(corpus)
+    assert chunks
 
     run_id2 = run_deployment(local_prefect, source=synth_small, corpus=corpus, **SMALL_VIDEO)
     report2 = json.loads((corpus / "meta" / "builds" / f"{run_id2}.json").read_text())
@@ -169,6 +179,11 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     assert report2["counts"] == {"unchanged": 3}
     assert shard_files(corpus) == shards  # same bytes, same mtimes
     assert json.loads((corpus / "meta" / "info.json").read_text())["total_ingested"] == 3
+    assert len(report2["terrain"]["default"]["unchanged"]) == 3 and report2["terrain"]["default"]["chunks_written"] == []
+
+    # the rescan-stage deployment over the unchanged corpus reads nothing and rewrites no chunk
+    run_deployment(local_prefect, deployment="rescan-stage/incremental", corpus=corpus)
+    assert terrain_files(corpus) == chunks
 
     artifacts = httpx.post(
         f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["build-corpus-report"]}}}
