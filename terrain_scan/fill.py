@@ -3,9 +3,11 @@
 A round looks at every cell with no layer. For each candidate window [a, a + AGREE_M] whose lower
 end a is one of its neighbours' layer heights, it counts the neighbours with a layer inside the
 window; the window with the most neighbours (ties: the lower) wins. With at least MIN_NEIGHBOURS of
-the 8 it becomes a filled layer: the mean height and mean normal of those neighbours' layers in the
-window (per neighbour the layer nearest the window's middle), hits 0, flags valid | filled, last_ts
-the newest of them. Cells filled in a round count as neighbours in the next; rounds are bounded.
+the 8, not all on one line (a hole is filled, a border is not extrapolated), it becomes a filled
+layer: the height of a least-squares plane through those neighbours' layers (per neighbour the layer
+nearest the window's middle) at the cell's centre, their mean normal, hits 0, flags valid | filled,
+last_ts the newest of them. Cells filled in a round count as neighbours in the next; rounds are
+bounded.
 """
 
 from __future__ import annotations
@@ -90,8 +92,19 @@ def _fill_round(layers: Observations, agree_m: float, min_neighbours: int) -> Ob
     ph = np.take_along_axis(nh, pick[:, :, None], 2)[:, :, 0]
     pn = np.take_along_axis(nn, pick[:, :, None, None], 2)[:, :, 0]
     pt = np.take_along_axis(nt, pick[:, :, None], 2)[:, :, 0]
-    cnt = use.sum(1)
-    h = np.where(use, ph, 0).sum(1) / np.maximum(cnt, 1)
+    # height: a plane h = a + b·dx + c·dz fitted to the agreeing neighbours, evaluated at the centre
+    # (exact on sloped ground, where a plain mean is biased towards the side the neighbours are on)
+    off = np.asarray(OFFSETS, np.float64)  # (8, 2)
+    A = np.concatenate([np.ones((8, 1)), off], axis=1)  # (8, 3)
+    w = use.astype(np.float64)
+    AtA = np.einsum("ck,ki,kj->cij", w, A, A)
+    Atb = np.einsum("ck,ki,ck->ci", w, A, np.where(use, ph, 0.0))
+    # the offsets must span the plane: neighbours all on one line would make this an extrapolation
+    spans = np.linalg.det(AtA) > 1e-6
+    ok &= spans
+    h = np.zeros(C)
+    if spans.any():
+        h[spans] = np.linalg.solve(AtA[spans], Atb[spans][..., None])[:, 0, 0]
     nsum = np.where(use[:, :, None], pn, 0).sum(1)
     n = nsum / np.maximum(np.linalg.norm(nsum, axis=1, keepdims=True), 1e-12)
     ts = np.where(use, pt, 0).max(1)

@@ -110,16 +110,39 @@ def test_hole_fill_needs_three_agreeing_neighbours():
     cells = {(int(x), int(z)): (h, t, k) for x, z, h, t, k in zip(out.gx, out.gz, out.h, out.ts, out.hits)}
     f = {(int(x), int(z)) for x, z in zip(out.gx[filled], out.gz[filled])}
     assert (0, 0) in f
-    # the centre takes the 5 neighbours within 2 m of each other (10.0..11.0), not the 3 high ones
-    np.testing.assert_allclose(cells[(0, 0)][0], np.mean([10.0, 10.5, 11.0, 10.2, 10.1]))
+    # the centre takes the 5 neighbours within 2 m of each other (10.0..11.0), not the 3 high ones,
+    # through a least-squares plane evaluated at the centre
+    pts = np.array([[1, -1, -1, 10.0], [1, -1, 0, 10.5], [1, -1, 1, 11.0], [1, 0, -1, 10.2], [1, 1, 1, 10.1]])
+    plane = np.linalg.lstsq(pts[:, :3], pts[:, 3], rcond=None)[0]
+    np.testing.assert_allclose(cells[(0, 0)][0], plane[0])
     assert cells[(0, 0)][2] == 0 and cells[(0, 0)][1] == 7
     # (2, 0) sees 31.0, 29.5 (agreeing, but only 2) and 10.1: not filled
     assert (2, 0) not in f
-    # (-2, 0) sees 10.0, 10.5, 11.0: filled
-    assert (-2, 0) in f
+    # (-2, 0) sees 10.0, 10.5, 11.0 — three, but all on one line: a border is not extrapolated
+    assert (-2, 0) not in f
     # only two agreeing neighbours: nothing filled
     two = layers.take(np.array([0, 1]))
     assert fill_holes(two, rounds=3)[1].sum() == 0
+
+
+def test_hole_fill_is_exact_on_a_slope():
+    gx, gz = np.meshgrid(np.arange(-953, -946), np.arange(846, 853), indexing="ij")
+    gx, gz = gx.ravel(), gz.ravel()
+    hole = ((gx == -950) & (gz == 849)) | ((gx == -949) & (gz == 849))
+    h = 20.0 + 0.45 * gx - 0.2 * gz  # a 25° slope: a mean of one-sided neighbours would be off by ~0.45 m
+    o = Observations(
+        gx[~hole].astype(np.int64),
+        gz[~hole].astype(np.int64),
+        h[~hole],
+        np.tile([0.0, 1, 0], ((~hole).sum(), 1)),
+        np.ones((~hole).sum(), np.int64),
+        np.zeros((~hole).sum(), np.int64),
+    )
+    out, filled = fill_holes(o, rounds=1)
+    got = {(int(x), int(z)): v for x, z, v in zip(out.gx[filled], out.gz[filled], out.h[filled])}
+    assert set(got) == {(-950, 849), (-949, 849)}
+    for (x, z), v in got.items():
+        np.testing.assert_allclose(v, 20.0 + 0.45 * x - 0.2 * z, atol=1e-9)
 
 
 def test_filled_flag_reaches_the_chunk(tmp_path):
