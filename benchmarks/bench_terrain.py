@@ -1,0 +1,258 @@
+"""The layered height field: query speed and accuracy (bilinear vs nearest), and the scan's speed and accuracy by knob.
+
+    .venv/bin/python benchmarks/bench_terrain.py [--points 1000000] [--repeats 3] [--seconds 10]
+        [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--max-depths 15,30,60] [--part all|queries|scan]
+
+Input: one seeded synthetic recording (``marionette.synth.generate``, 320×180, ``--seconds`` long),
+made in a temp dir; every figure is per core (BLAS/OpenMP pools and torch at one thread).
+
+Queries. Three fields: hand-built 4 × 4 chunks (400 m × 400 m around the arena) holding the analytic
+ground (``terrain.ground_height`` at every cell centre, normals from ``ground_normal``) with one layer
+per cell, and with a second layer ``ROOF_M`` above it in every cell (two layers per cell); and the
+field a scan of the recording gives (``scan_recording`` at defaults, then a ``Stage`` rebuild: merge
+and hole fill). Speed: ``--points`` uniform random points over the field (ref_y within 1 m of a
+random layer), ``LayeredField.query`` (bilinear) against ``LayeredField.cell_height`` (the containing
+cell's nearest layer) and ``query_torch`` on a float32 CPU ``DenseRegion`` (inputs already float32
+tensors); median of ``--repeats`` after one warm-up run that also loads the chunks. Accuracy: the
+same points against the analytic surface (the hand-built fields: the ground, or the roof ``ROOF_M``
+above it, whichever layer ref_y was drawn near; the scanned field: ``terrain.surface_height`` at the
+point, ref_y the height of a layer of the scanned cell, points drawn uniformly inside cells the scan
+observed, not hole-filled). "away from steps" leaves out points within ``STEP_MARGIN_M`` of the
+wall's sides or the deck's edges, where a 1 m cell straddles two heights whatever the query does.
+
+Scan. ``scan_recording(ref, load_scene("duel"), DepthDecoder.synthetic(), ...)`` then
+``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, max depth 30 m):
+depth frames/s (wall time of the whole scan: sample read, video decode, back-projection, open3d
+pass, contacts, merge; one run each, a scan takes seconds) and height error of the merged layers at
+their cell centres against ``terrain.surface_height`` (as ``tests/test_terrain_accumulate.py``):
+all observed cells, and those away from the vertical steps (cell centre more than 0.6 m outside /
+inside the wall's and deck's edges).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import preamble, single_thread_env, table, time_call  # noqa: E402
+
+single_thread_env()
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+torch.set_num_threads(1)
+
+from marionette import synth  # noqa: E402
+from marionette.ingest.wildworld import discover  # noqa: E402
+from marionette.schema import load_scene  # noqa: E402
+from marionette.synth import terrain  # noqa: E402
+from terrain_scan.accumulate import scan_recording  # noqa: E402
+from terrain_scan.depth import DepthDecoder  # noqa: E402
+from terrain_scan.field import DenseRegion, LayeredField, open_stage, query_torch  # noqa: E402
+from terrain_scan.layers import merge  # noqa: E402
+from terrain_scan.store import Stage  # noqa: E402
+from terrain_scan.trn2 import CELLS, FLAG_VALID, Chunk  # noqa: E402
+
+TARGET_QPS = 5e6  # bilinear queries/s per core (issue)
+ROOF_M = 6.0  # the hand-built second layer lies this far above the ground (> 2 · MATCH_M: never mixed)
+CHUNKS_X, CHUNKS_Z = range(-12, -8), range(6, 10)  # 4 × 4 chunks: x ∈ [−1200, −800), z ∈ [600, 1000)
+STEP_MARGIN_M = 1.5  # a query reads the 2 × 2 cells around it: within 1.5 m of a step they may straddle it
+CELL_STEP_MARGIN_M = 0.6  # the scan test's margin around a cell centre
+SCAN_HEADER = ["varied", "voxel m", "stride", "max depth m", "frames", "time s", "frames/s", "points kept", "cells",
+               "layers", "RMSE all m", "layers away", "RMSE away m", "p99 away m"]  # fmt: skip
+
+
+# -- fields -------------------------------------------------------------------------------------------
+
+
+def hand_built_field(n_layers: int) -> LayeredField:
+    """Analytic ground at every cell centre of 4 × 4 chunks; with 2 layers, a roof ROOF_M above it."""
+    chunks = {}
+    col, row = np.meshgrid(np.arange(CELLS), np.arange(CELLS))  # (100, 100): cell index = row·100 + col
+    col, row = col.ravel(), row.ravel()
+    for cx in CHUNKS_X:
+        for cz in CHUNKS_Z:
+            xc, zc = cx * CELLS + col + 0.5, cz * CELLS + row + 0.5
+            g, n = terrain.ground_height(xc, zc), terrain.ground_normal(xc, zc)
+            ch = Chunk.empty(cx, cz, max_layers=n_layers)
+            for s in range(n_layers):
+                ch.cells["h"][:, s] = g + s * ROOF_M
+                ch.cells["n"][:, s] = n
+                ch.cells["hits"][:, s] = 1
+                ch.cells["flags"][:, s] = FLAG_VALID
+            chunks[(cx, cz)] = ch
+    return LayeredField.from_chunks(chunks)
+
+
+def hand_built_points(n: int, n_layers: int, rng: np.random.Generator):
+    """Uniform points over the 4 × 4 chunks, ref_y within 1 m of a random layer, and the true height."""
+    x = rng.uniform(CHUNKS_X[0] * CELLS, (CHUNKS_X[-1] + 1) * CELLS, n)
+    z = rng.uniform(CHUNKS_Z[0] * CELLS, (CHUNKS_Z[-1] + 1) * CELLS, n)
+    truth = terrain.ground_height(x, z) + ROOF_M * rng.integers(0, n_layers, n)
+    return x, z, truth + rng.uniform(-1.0, 1.0, n), truth
+
+
+def scanned_points(stage: Stage, n: int, rng: np.random.Generator):
+    """Uniform points inside observed (not hole-filled) layers' cells, ref_y = the layer's height."""
+    layers, filled = stage.layers()
+    pick = rng.choice(np.flatnonzero(~filled), n)
+    x = layers.gx[pick] + rng.random(n)
+    z = layers.gz[pick] + rng.random(n)
+    ref = layers.h[pick]
+    return x, z, ref, terrain.surface_height(x, z, ref)
+
+
+def near_step(x: np.ndarray, z: np.ndarray, margin: float) -> np.ndarray:
+    """Within ``margin`` of the wall's sides or the deck's edges."""
+    return (terrain.in_wall(x, z, margin) & ~terrain.in_wall(x, z, -margin)) | (
+        terrain.in_deck(x, z, margin) & ~terrain.in_deck(x, z, -margin)
+    )
+
+
+# -- queries -------------------------------------------------------------------------------------------
+
+
+def err_cells(err: np.ndarray) -> list[str]:
+    ok = np.isfinite(err)
+    e = np.abs(err[ok])
+    if not e.size:
+        return ["0", "—", "—", "—", f"{(~ok).sum():,}"]
+    return [
+        f"{e.size:,}",
+        f"{1e3 * np.sqrt(np.mean(e**2)):.1f}",
+        f"{1e3 * np.percentile(e, 99):.1f}",
+        f"{1e3 * e.max():.1f}",
+        f"{(~ok).sum():,}",
+    ]
+
+
+def bench_queries(fields, n: int, repeats: int):
+    """fields: [(name, field, (x, z, ref, truth))]. Returns the speed and accuracy rows."""
+    speed, acc = [], []
+    for name, field, (x, z, ref, truth) in fields:
+        tx, tz, tr = (torch.from_numpy(v.astype(np.float32)) for v in (x, z, ref))
+        pts = (x, z, ref)
+        t_bil, h_bil = time_call(lambda f=field, p=pts: f.query(*p), repeats)  # the warm-up loads the chunks
+        t_near, h_near = time_call(lambda f=field, p=pts: f.cell_height(*p), repeats)
+        t0 = time.perf_counter()
+        region = DenseRegion.from_field(field, float(x.min()), float(x.max()), float(z.min()), float(z.max()), torch.float32)
+        t_region = time.perf_counter() - t0
+        t_tor, h_tor = time_call(lambda r=region, p=(tx, tz, tr): query_torch(r, *p), repeats)
+        h_tor = h_tor.numpy().astype(np.float64)
+        width = field.width
+        for method, t in (("bilinear `query`", t_bil), ("nearest `cell_height`", t_near), ("bilinear `query_torch` f32", t_tor)):
+            qps = n / t
+            met = ("**met**" if qps >= TARGET_QPS else "**not met**") if method == "bilinear `query`" else ""
+            extra = f"{region.nx}×{region.nz} cells, built in {1e3 * t_region:.0f} ms" if "torch" in method else ""
+            speed.append([name, width, method, f"{1e3 * t:.0f}", f"{qps / 1e6:.2f}", met, extra])
+        away = ~near_step(x, z, STEP_MARGIN_M)
+        for method, h in (("bilinear `query`", h_bil), ("nearest `cell_height`", h_near), ("bilinear `query_torch` f32", h_tor)):
+            acc.append([name, method, "all", *err_cells(h - truth)])
+            acc.append([name, method, "away from steps", *err_cells((h - truth)[away])])
+    return speed, acc
+
+
+# -- scan ----------------------------------------------------------------------------------------------
+
+
+def scan_row(ref, layout, decoder, label: str, **kw) -> tuple[list[object], object]:
+    t0 = time.perf_counter()
+    res = scan_recording(ref, layout, decoder, **kw)
+    obs = merge(res.observations)
+    dt = time.perf_counter() - t0
+    x, z = obs.gx + 0.5, obs.gz + 0.5
+    d = obs.h - terrain.surface_height(x, z, obs.h)
+    away = ~near_step(x, z, CELL_STEP_MARGIN_M)
+    cells = len(set(zip(obs.gx.tolist(), obs.gz.tolist())))
+    row = [
+        label,
+        f"{kw.get('voxel_m', 0.25):g}",
+        kw.get("frame_stride", 1),
+        f"{kw.get('max_depth_m', 30.0):g}",
+        res.frames_total,
+        f"{dt:.1f}",
+        f"{res.frames_total / dt:.1f}",
+        f"{res.points_kept:,}",
+        f"{cells:,}",
+        f"{len(obs):,}",
+        f"{np.sqrt(np.mean(d**2)):.3f}",
+        f"{away.sum():,}",
+        f"{np.sqrt(np.mean(d[away] ** 2)):.3f}",
+        f"{np.percentile(np.abs(d[away]), 99):.3f}",
+    ]
+    return row, res
+
+
+def floats(s: str) -> list[float]:
+    return [float(v) for v in s.split(",")]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=1_000_000)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--voxels", type=floats, default=[0.1, 0.25, 0.5])
+    ap.add_argument("--strides", type=lambda s: [int(v) for v in s.split(",")], default=[1, 2, 4])
+    ap.add_argument("--max-depths", type=floats, default=[15.0, 30.0, 60.0])
+    ap.add_argument("--part", choices=("all", "queries", "scan"), default="all")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    rng = np.random.default_rng(args.seed)
+    layout, decoder = load_scene("duel"), DepthDecoder.synthetic()
+    with tempfile.TemporaryDirectory(prefix="bench_terrain_") as tmp:
+        tmp = Path(tmp)
+        t0 = time.perf_counter()
+        synth.generate(tmp / "src", recordings=1, seconds=args.seconds, seed=args.seed, width=320, height=180)
+        ref = discover(tmp / "src")[0]
+        setup_s = time.perf_counter() - t0
+
+        scan_rows = []
+        default_row, default_res = scan_row(ref, layout, decoder, "defaults")
+        if args.part in ("all", "scan"):
+            scan_rows.append(default_row)
+            for v in args.voxels:
+                if v != 0.25:
+                    scan_rows.append(scan_row(ref, layout, decoder, "voxel", voxel_m=v)[0])
+            for s in args.strides:
+                if s != 1:
+                    scan_rows.append(scan_row(ref, layout, decoder, "stride", frame_stride=s)[0])
+            for m in args.max_depths:
+                if m != 30.0:
+                    scan_rows.append(scan_row(ref, layout, decoder, "max depth", max_depth_m=m)[0])
+
+        speed_rows, acc_rows = [], []
+        if args.part in ("all", "queries"):
+            stage = Stage(tmp / "stage")
+            stage.put(f"{ref.part}/{ref.sample_id}", default_res.observations, "bench", default_res.recording_ts)
+            stage.rebuild()
+            fields = [
+                (f"hand-built, {k} layer{'s' if k > 1 else ''}/cell", hand_built_field(k), hand_built_points(args.points, k, rng))
+                for k in (1, 2)
+            ]
+            fields.append(("scanned (defaults)", open_stage(tmp / "stage"), scanned_points(stage, args.points, rng)))
+            speed_rows, acc_rows = bench_queries(fields, args.points, args.repeats)
+
+        print(preamble("Terrain: layered height field queries and the scan"))
+        print(
+            f"1 × {args.seconds:g} s synthetic recording at 320×180 (seed {args.seed}, 30 fps), made in {setup_s:.0f} s "
+            f"(not timed); one thread (BLAS/OpenMP, torch).\n"
+        )
+        if speed_rows:
+            print(f"### Queries: speed ({args.points:,} random points, median of {args.repeats}, one thread)\n")
+            print(f"Target (issue): ≥ {TARGET_QPS / 1e6:g} M bilinear queries/s per core.\n")
+            print(table(["field", "W (slots)", "method", "time ms", "M queries/s", "target", "torch region"], speed_rows))
+            print("\n### Queries: height error against the analytic terrain (mm)\n")
+            print(table(["field", "method", "subset", "points", "RMSE mm", "p99 mm", "max mm", "NaN"], acc_rows))
+        if scan_rows:
+            print("\n### Scan: speed and height error by knob (one run each; error in m at cell centres)\n")
+            print(table(SCAN_HEADER, scan_rows))
+
+
+if __name__ == "__main__":
+    main()
