@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from terrain_scan.layers import Observations
+from terrain_scan.layers import DenseGrid, Observations
 
 AGREE_M = 2.0
 MIN_NEIGHBOURS = 3
@@ -42,23 +42,12 @@ def fill_holes(
 
 
 def _fill_round(layers: Observations, agree_m: float, min_neighbours: int) -> Observations:
-    x0, z0 = layers.gx.min() - 1, layers.gz.min() - 1
-    X, Z = layers.gx.max() - x0 + 2, layers.gz.max() - z0 + 2
-    cx, cz = layers.gx - x0, layers.gz - z0
-    # slot of each layer within its cell (rows arrive sorted by cell, then height)
-    key = cx * Z + cz
-    order = np.lexsort((layers.h, key))
-    key_s = key[order]
-    start = np.r_[0, np.flatnonzero(key_s[1:] != key_s[:-1]) + 1]
-    slot = np.empty(len(key), np.int64)
-    slot[order] = np.arange(len(key)) - np.repeat(start, np.diff(np.r_[start, len(key)]))
-    L = int(slot.max()) + 1
-    H = np.full((X, Z, L), np.nan)
-    N = np.zeros((X, Z, L, 3))
-    T = np.zeros((X, Z, L), np.int64)
-    H[cx, cz, slot] = layers.h
-    N[cx, cz, slot] = layers.n
-    T[cx, cz, slot] = layers.ts
+    g = DenseGrid.of(layers, margin=1)
+    x0, z0 = g.x0, g.z0
+    X, Z, _ = g.shape
+    H = g.scatter(layers.h, np.nan)
+    N = g.scatter(layers.n, 0.0)
+    T = g.scatter(layers.ts, 0)
     has = ~np.isnan(H).all(axis=2)
     # neighbour stacks, (8, X, Z, L)
     pad = lambda A, fill: np.pad(A, [(1, 1), (1, 1)] + [(0, 0)] * (A.ndim - 2), constant_values=fill)  # noqa: E731

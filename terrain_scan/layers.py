@@ -104,3 +104,36 @@ def _cap(layers: Observations, max_layers: int) -> Observations:
     rank = np.arange(len(l2)) - start
     kept = l2.take(np.flatnonzero(rank < max_layers))
     return kept.take(np.lexsort((kept.h, kept.gz, kept.gx)))
+
+
+@dataclass
+class DenseGrid:
+    """Layers laid out on a dense (X, Z, L) grid over their bounding box plus a ``margin`` of cells:
+    layer i sits at [cx[i], cz[i], slot[i]], slots in height order within a cell."""
+
+    x0: int
+    z0: int
+    shape: tuple[int, int, int]
+    cx: np.ndarray
+    cz: np.ndarray
+    slot: np.ndarray
+
+    @staticmethod
+    def of(layers: Observations, margin: int = 1) -> DenseGrid:
+        x0, z0 = int(layers.gx.min()) - margin, int(layers.gz.min()) - margin
+        X, Z = int(layers.gx.max()) - x0 + 1 + margin, int(layers.gz.max()) - z0 + 1 + margin
+        cx, cz = layers.gx - x0, layers.gz - z0
+        key = cx * Z + cz
+        order = np.lexsort((layers.h, key))
+        ks = key[order]
+        start = np.r_[0, np.flatnonzero(ks[1:] != ks[:-1]) + 1]
+        slot = np.empty(len(key), np.int64)
+        slot[order] = np.arange(len(key)) - np.repeat(start, np.diff(np.r_[start, len(key)]))
+        return DenseGrid(x0, z0, (X, Z, int(slot.max()) + 1), cx, cz, slot)
+
+    def scatter(self, values: np.ndarray, fill) -> np.ndarray:
+        """(X, Z, L, ...) array holding ``values`` (one per layer) and ``fill`` elsewhere."""
+        values = np.asarray(values)
+        out = np.full(self.shape + values.shape[1:], fill, dtype=np.result_type(values, np.asarray(fill)))
+        out[self.cx, self.cz, self.slot] = values
+        return out

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from terrain_scan.layers import Observations
+from terrain_scan.layers import DenseGrid, Observations
 
 JOIN_M = 1.0
 
@@ -23,20 +23,10 @@ def tessellate(layers: Observations, join_m: float = JOIN_M) -> tuple[np.ndarray
     """(vertices (V, 3) float64 world metres, faces (F, 3) int64) of the layers' surface."""
     if not len(layers):
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    x0, z0 = layers.gx.min(), layers.gz.min()
-    X, Z = int(layers.gx.max() - x0 + 2), int(layers.gz.max() - z0 + 2)
-    cx, cz = layers.gx - x0, layers.gz - z0
-    key = cx * Z + cz
-    order = np.lexsort((layers.h, key))
-    ks = key[order]
-    start = np.r_[0, np.flatnonzero(ks[1:] != ks[:-1]) + 1]
-    slot = np.empty(len(key), np.int64)
-    slot[order] = np.arange(len(key)) - np.repeat(start, np.diff(np.r_[start, len(key)]))
-    L = int(slot.max()) + 1
-    H = np.full((X, Z, L), np.nan)
-    V = np.full((X, Z, L), -1, np.int64)
-    H[cx, cz, slot] = layers.h
-    V[cx, cz, slot] = np.arange(len(layers))
+    g = DenseGrid.of(layers, margin=1)  # the margin row/column stays empty: neighbours past the edge
+    cx, cz = g.cx, g.cz
+    H = g.scatter(layers.h, np.nan)
+    V = g.scatter(np.arange(len(layers)), -1)
     verts = np.stack([layers.gx + 0.5, layers.h, layers.gz + 0.5], axis=1).astype(np.float64)
 
     def match(dx: int, dz: int) -> np.ndarray:
