@@ -25,7 +25,7 @@ import numpy as np
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import MAX_LAYERS, Observations, merge
-from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, split_cell
+from terrain_scan.trn2 import FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, split_cell
 
 MANIFEST_FORMAT = "marionette-terrain-stage"
 MANIFEST_VERSION = 1
@@ -166,5 +166,4 @@ def _to_chunks(layers: Observations, filled: np.ndarray, max_layers: int) -> dic
         rec["flags"][i, s] = FLAG_VALID | np.where(filled[sel], FLAG_FILLED, 0)
         rec["ts"][i, s] = np.clip(layers.ts[sel], 0, 2**32 - 1)
         out[key] = ch
-    assert CELLS == 100
     return out

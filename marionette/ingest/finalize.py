@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_moments
+from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
 from marionette.io import text_sha256, write_json, write_parquet
 from marionette.schema import load_scene
 
@@ -49,17 +49,10 @@ def classify(kind: str, instances: list[list[float]]) -> str:
 
 def build_vocab(records: list[dict]) -> dict:
     """Dense tokens per entity type over the corpus (token 0 = no valid action), clip lengths, kinds, classes."""
-    merged: dict[str, dict[int, dict]] = {}
+    by_str: dict[str, dict[str, dict]] = {}
     for r in records:
-        for etype, acts in r.get("actions", {}).items():
-            for cid, d in acts.items():
-                cur = merged.setdefault(etype, {}).setdefault(
-                    int(cid), {"frames": 0, "max_motion_frame": -1, "wraps": False, "instances": []}
-                )
-                cur["frames"] += d["frames"]
-                cur["max_motion_frame"] = max(cur["max_motion_frame"], d["max_motion_frame"])
-                cur["wraps"] = cur["wraps"] or d["wraps"]
-                cur["instances"] += d["instances"]
+        merge_action_stats(by_str, r.get("actions", {}))
+    merged = {etype: {int(cid): d for cid, d in acts.items()} for etype, acts in by_str.items()}
     vocab: dict = {"version": 1, "entity_types": {}}
     for etype in sorted(merged):
         actions = [

@@ -20,7 +20,7 @@ import pyarrow as pa
 from marionette import geometry as geo
 from marionette.ingest.video import VideoSettings, write_video_shard
 from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, SampleSkipped, read_sample
-from marionette.io import file_sha256, read_ipc, text_sha256, write_ipc, write_json
+from marionette.io import file_sha256, text_sha256, write_ipc, write_json
 from marionette.schema import Layout, load_scene, state_schema
 
 INGEST_VERSION = "1"
@@ -189,6 +189,21 @@ def merge_moments(a: dict | None, b: dict) -> dict:
     }
 
 
+def merge_action_stats(into: dict, more: dict) -> dict:
+    """Fold per-entity-type action summaries ``more`` into ``into`` (frames and instances add up,
+    the largest motion_frame and any wrap are kept); returns ``into``."""
+    for etype, acts in more.items():
+        for cid, d in acts.items():
+            cur = into.setdefault(etype, {}).setdefault(
+                str(cid), {"frames": 0, "max_motion_frame": -1, "wraps": False, "instances": []}
+            )
+            cur["frames"] += d["frames"]
+            cur["max_motion_frame"] = max(cur["max_motion_frame"], d["max_motion_frame"])
+            cur["wraps"] = cur["wraps"] or d["wraps"]
+            cur["instances"] = cur["instances"] + d["instances"]
+    return into
+
+
 def action_stats(layout: Layout, state: np.ndarray, sample: RecordedSample, a: int, b: int, fps: float) -> dict:
     """Per articulated entity and composite action: frames, largest motion_frame, whether it wrapped,
     and per played instance the mean horizontal root speed (m/s) and the peak root-frame speed of any
@@ -338,15 +353,7 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
             segs.append(
                 {"segment": seg_id, "start": a, "stop": b, "frames": b - a, "split": split, "hash": seg_hash.hexdigest()[:32]}
             )
-            for rk, acts in action_stats(layout, state, sample, a, b, sample.fps).items():
-                for cid, d in acts.items():
-                    cur = summaries.setdefault(rk, {}).setdefault(
-                        cid, {"frames": 0, "max_motion_frame": -1, "wraps": False, "instances": []}
-                    )
-                    cur["frames"] += d["frames"]
-                    cur["max_motion_frame"] = max(cur["max_motion_frame"], d["max_motion_frame"])
-                    cur["wraps"] = cur["wraps"] or d["wraps"]
-                    cur["instances"] += d["instances"]
+            merge_action_stats(summaries, action_stats(layout, state, sample, a, b, sample.fps))
             feats = {"state": state.astype(np.float64)}
             for e in layout.articulated:
                 feats[f"{e.name}.root_world"] = sample.entities[e.name].joints_world[a:b, 0]
@@ -411,7 +418,3 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
             (stage / f).unlink(missing_ok=True)
     write_json(stage / "record.json", record)
     return result
-
-
-def read_staged_state(stage: Path) -> pa.Table:
-    return read_ipc(stage / "state.arrow")

@@ -26,7 +26,6 @@ import pyarrow.csv as pacsv
 from marionette.schema import Entity, Layout
 
 REQUIRED_FILES = ("rgb.mp4", "state.csv", "skeleton.npz")
-FLOAT_TUPLE_WIDTH = {"camera.K": 4, "camera.pos": 3, "camera.rot": 4, "pos": 3, "rot": 4}
 
 
 class SampleError(ValueError):
