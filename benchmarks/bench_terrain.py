@@ -1,7 +1,7 @@
 """The layered height field: query speed and accuracy (bilinear vs nearest), and the scan's speed and accuracy by knob.
 
     .venv/bin/python benchmarks/bench_terrain.py [--points 1000000] [--repeats 3] [--seconds 10]
-        [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--max-depths 15,30,60] [--part all|queries|scan]
+        [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--max-depths 10,20,30] [--image-normal-ys 0,0.8] [--part all|queries|scan]
 
 Input: one seeded synthetic recording (``marionette.synth.generate``, 320×180, ``--seconds`` long),
 made in a temp dir; every figure is per core (BLAS/OpenMP pools and torch at one thread).
@@ -21,7 +21,7 @@ observed, not hole-filled). "away from steps" leaves out points within ``STEP_MA
 wall's sides or the deck's edges, where a 1 m cell straddles two heights whatever the query does.
 
 Scan. ``scan_recording(ref, load_scene("duel"), DepthDecoder.synthetic(), ...)`` then
-``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, max depth 30 m):
+``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, max depth 20 m, image-normal test 0.8):
 depth frames/s (wall time of the whole scan: sample read, video decode, back-projection, open3d
 pass, contacts, merge; one run each, a scan takes seconds) and height error of the merged layers at
 their cell centres against ``terrain.surface_height`` (as ``tests/test_terrain_accumulate.py``):
@@ -32,6 +32,7 @@ inside the wall's and deck's edges).
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import tempfile
 import time
@@ -51,19 +52,20 @@ from marionette import synth  # noqa: E402
 from marionette.ingest.wildworld import discover  # noqa: E402
 from marionette.schema import load_scene  # noqa: E402
 from marionette.synth import terrain  # noqa: E402
-from terrain_scan.accumulate import scan_recording  # noqa: E402
+from terrain_scan.accumulate import scan_recording, scan_sample  # noqa: E402
 from terrain_scan.depth import DepthDecoder  # noqa: E402
 from terrain_scan.field import DenseRegion, LayeredField, open_stage, query_torch  # noqa: E402
 from terrain_scan.layers import merge  # noqa: E402
 from terrain_scan.store import Stage  # noqa: E402
 from terrain_scan.trn2 import CELLS, FLAG_VALID, Chunk  # noqa: E402
 
+SCAN_DEFAULTS = {k: v.default for k, v in inspect.signature(scan_sample).parameters.items()}
 TARGET_QPS = 5e6  # bilinear queries/s per core (issue)
 ROOF_M = 6.0  # the hand-built second layer lies this far above the ground (> 2 · MATCH_M: never mixed)
 CHUNKS_X, CHUNKS_Z = range(-12, -8), range(6, 10)  # 4 × 4 chunks: x ∈ [−1200, −800), z ∈ [600, 1000)
 STEP_MARGIN_M = 1.5  # a query reads the 2 × 2 cells around it: within 1.5 m of a step they may straddle it
 CELL_STEP_MARGIN_M = 0.6  # the scan test's margin around a cell centre
-SCAN_HEADER = ["varied", "voxel m", "stride", "max depth m", "frames", "time s", "frames/s", "points kept", "cells",
+SCAN_HEADER = ["varied", "voxel m", "stride", "max depth m", "image ny", "frames", "time s", "frames/s", "points kept", "cells",
                "layers", "RMSE all m", "layers away", "RMSE away m", "p99 away m"]  # fmt: skip
 
 
@@ -137,7 +139,9 @@ def bench_queries(fields, n: int, repeats: int):
     for name, field, (x, z, ref, truth) in fields:
         tx, tz, tr = (torch.from_numpy(v.astype(np.float32)) for v in (x, z, ref))
         pts = (x, z, ref)
-        t_bil, h_bil = time_call(lambda f=field, p=pts: f.query(*p), repeats)  # the warm-up loads the chunks
+        t_bil, h_bil = time_call(lambda f=field, p=pts: f.query(*p), repeats)  # the warm-up loads the chunks (and compiles)
+        t_ref, h_ref = time_call(lambda f=field, p=pts: f.query_reference(*p), repeats)
+        assert np.array_equal(h_bil, h_ref, equal_nan=True), "the compiled query differs from the numpy reference"
         t_near, h_near = time_call(lambda f=field, p=pts: f.cell_height(*p), repeats)
         t0 = time.perf_counter()
         region = DenseRegion.from_field(field, float(x.min()), float(x.max()), float(z.min()), float(z.max()), torch.float32)
@@ -145,7 +149,8 @@ def bench_queries(fields, n: int, repeats: int):
         t_tor, h_tor = time_call(lambda r=region, p=(tx, tz, tr): query_torch(r, *p), repeats)
         h_tor = h_tor.numpy().astype(np.float64)
         width = field.width
-        for method, t in (("bilinear `query`", t_bil), ("nearest `cell_height`", t_near), ("bilinear `query_torch` f32", t_tor)):
+        for method, t in (("bilinear `query`", t_bil), ("bilinear `query_reference` (numpy)", t_ref),
+                          ("nearest `cell_height`", t_near), ("bilinear `query_torch` f32", t_tor)):  # fmt: skip
             qps = n / t
             met = ("**met**" if qps >= TARGET_QPS else "**not met**") if method == "bilinear `query`" else ""
             extra = f"{region.nx}×{region.nz} cells, built in {1e3 * t_region:.0f} ms" if "torch" in method else ""
@@ -173,7 +178,8 @@ def scan_row(ref, layout, decoder, label: str, **kw) -> tuple[list[object], obje
         label,
         f"{kw.get('voxel_m', 0.25):g}",
         kw.get("frame_stride", 1),
-        f"{kw.get('max_depth_m', 30.0):g}",
+        f"{kw.get('max_depth_m', SCAN_DEFAULTS['max_depth_m']):g}",
+        f"{kw.get('image_normal_y', SCAN_DEFAULTS['image_normal_y']):g}",
         res.frames_total,
         f"{dt:.1f}",
         f"{res.frames_total / dt:.1f}",
@@ -199,7 +205,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--voxels", type=floats, default=[0.1, 0.25, 0.5])
     ap.add_argument("--strides", type=lambda s: [int(v) for v in s.split(",")], default=[1, 2, 4])
-    ap.add_argument("--max-depths", type=floats, default=[15.0, 30.0, 60.0])
+    ap.add_argument("--max-depths", type=floats, default=[10.0, 20.0, 30.0])
+    ap.add_argument("--image-normal-ys", type=floats, default=[0.0, 0.8])
     ap.add_argument("--part", choices=("all", "queries", "scan"), default="all")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
@@ -223,8 +230,11 @@ def main() -> None:
                 if s != 1:
                     scan_rows.append(scan_row(ref, layout, decoder, "stride", frame_stride=s)[0])
             for m in args.max_depths:
-                if m != 30.0:
+                if m != SCAN_DEFAULTS["max_depth_m"]:
                     scan_rows.append(scan_row(ref, layout, decoder, "max depth", max_depth_m=m)[0])
+            for ny in args.image_normal_ys:
+                if ny != SCAN_DEFAULTS["image_normal_y"]:
+                    scan_rows.append(scan_row(ref, layout, decoder, "image normal", image_normal_y=ny)[0])
 
         speed_rows, acc_rows = [], []
         if args.part in ("all", "queries"):

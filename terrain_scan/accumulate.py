@@ -8,7 +8,8 @@ Two sources of evidence, both in world metres (Y up), binned into 1 m cells by f
    the point at z-depth z is ``p_cam = ((u − cx)/fx · z, −(v − cy)/fy · z, −z)`` and
    ``p_world = pos + R(rot) p_cam`` (``rot`` camera-to-world, xyzw). Points near a recorded
    skeleton (within the rig's capsule radius × ``mask_radius_scale`` + ``mask_margin_m`` of a bone,
-   a bone being a kept joint and its rig parent) are characters, not ground, and are dropped. The
+   a bone being a kept joint and its rig parent) are characters, not ground, and are dropped; so are
+   pixels whose normal in the frame's own pixel grid is steep (``frame_points``). The
    remaining points of all frames are voxel down-sampled (``voxel_m``), outliers removed
    (statistical), normals estimated over a radius of ``normal_radius_voxels`` voxels and oriented
    to +Y; points whose normal has ny ≥ ``min_normal_y`` (walkable, upward-facing) each give one
@@ -53,7 +54,7 @@ class ScanResult:
     frames_total: int = 0  # depth frames read (after the stride)
     frames_used: int = 0
     frames_skipped_camera: int = 0  # frames whose recorded camera is invalid
-    points_valid: int = 0  # back-projected pixels with a valid depth code
+    points_valid: int = 0  # back-projected pixels kept by the depth range, edge and steepness tests
     points_masked: int = 0  # of those, dropped as characters
     points_kept: int = 0  # after down-sampling, outlier removal and the normal test
     contacts_added: int = 0
@@ -238,20 +239,45 @@ def voxel_reduce(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return out
 
 
+def image_normals(G: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of an organised point grid (H, W, 3) by central differences along the row
+    and the column, turned to face the camera at ``eye``; NaN on the border and wherever a neighbour is
+    missing."""
+    a = np.full_like(G, np.nan)
+    b = np.full_like(G, np.nan)
+    a[:, 1:-1] = G[:, 2:] - G[:, :-2]
+    b[1:-1] = G[2:] - G[:-2]
+    n = np.cross(a, b)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return np.where((np.sum(n * (eye - G), axis=-1) < 0)[..., None], -n, n)
+
+
 def frame_points(codes: np.ndarray, sample: RecordedSample, layout: Layout, i: int, decoder: DepthDecoder,
-                 max_depth_m: float = 30.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
-                 mask_radius_scale: float = 3.0, mask_margin_m: float = 0.3) -> tuple[np.ndarray, int]:  # fmt: skip
+                 max_depth_m: float = 20.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
+                 mask_radius_scale: float = 3.0, mask_margin_m: float = 0.3,
+                 image_normal_y: float = 0.8) -> tuple[np.ndarray, int]:  # fmt: skip
     """One frame's non-character world points (P, 3) and how many valid points were masked as characters.
 
     The frame's camera must be valid. Codes are de-quantised (``smooth_codes``), pixels next to a
     depth edge dropped (their depth mixes two surfaces after smoothing), depths beyond ``max_depth_m``
-    dropped (one code spans ~z²/511 m under the synthetic mapping: 1.8 m at 30 m).
+    dropped (one code spans ~z²/511 m under the synthetic mapping: 0.8 m at 20 m). Pixels whose
+    normal in the image (``image_normals`` of the back-projected grid, facing the camera) has
+    ny < ``image_normal_y`` are dropped before any points are pooled: the rows of a distant vertical
+    face, once pooled with other frames, look like horizontal strips to a neighbourhood normal, and
+    the crease at a wall's foot or top mixes both surfaces; in the image they are still recognisably
+    steep. The underside of a deck seen from below faces down and is dropped too.
     """
     z_raw = decoder.decode(codes)
     z = decoder.decode(smooth_codes(codes, smooth_radius, smooth_tol)) if smooth_radius > 0 else z_raw
     z[depth_edges(z_raw, edge_rel)] = np.nan
     z[~(z <= max_depth_m)] = np.nan  # NaN stays NaN
-    P = backproject(z, sample.camera_K[i], sample.camera_pos[i], sample.camera_rot[i]).reshape(-1, 3)
+    G = backproject(z, sample.camera_K[i], sample.camera_pos[i], sample.camera_rot[i])
+    if image_normal_y > 0:
+        eye = np.asarray(sample.camera_pos[i], dtype=np.float64)
+        steep = ~(image_normals(G, eye)[..., 1] >= image_normal_y)  # NaN normals (borders, holes) count as steep
+        G[steep] = np.nan
+    P = G.reshape(-1, 3)
     P = P[np.isfinite(P).all(1)]
     m = character_mask(P, entity_bones(sample, layout, i, mask_radius_scale, mask_margin_m))
     return P[~m], int(m.sum())
@@ -263,8 +289,9 @@ def frame_points(codes: np.ndarray, sample: RecordedSample, layout: Layout, i: i
 
 def scan_sample(sample: RecordedSample, layout: Layout, frames: Iterable[np.ndarray], decoder: DepthDecoder,
                 recording_ts: int = 0, frame_stride: int = 1, voxel_m: float = 0.25, min_normal_y: float = 0.5,
-                max_depth_m: float = 30.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
+                max_depth_m: float = 20.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
                 normal_radius_voxels: float = 2.0, mask_radius_scale: float = 3.0, mask_margin_m: float = 0.3,
+                image_normal_y: float = 0.8,
                 contact_speed: float = 0.2, contact_window: int = 2, contact_tol_m: float = 0.05, contact_hits: int = 1,
                 keep_points: bool = False) -> ScanResult:  # fmt: skip
     """Scan a read sample with its depth frames (codes, (H, W) uint8); see ``scan_recording``."""
@@ -282,7 +309,7 @@ def scan_sample(sample: RecordedSample, layout: Layout, frames: Iterable[np.ndar
             res.frames_skipped_camera += 1
             continue
         P, masked = frame_points(codes, sample, layout, i, decoder, max_depth_m, smooth_radius, smooth_tol, edge_rel,
-                                 mask_radius_scale, mask_margin_m)  # fmt: skip
+                                 mask_radius_scale, mask_margin_m, image_normal_y)  # fmt: skip
         res.frames_used += 1
         res.points_valid += len(P) + masked
         res.points_masked += masked

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from terrain_scan import _kernel
 from terrain_scan.trn2 import CELL_COUNT, CELLS, Chunk, TerrainFormatError, chunk_filename, read_chunk
 
 if TYPE_CHECKING:
@@ -232,7 +233,34 @@ class LayeredField:
 
     def query(self, x: np.ndarray, z: np.ndarray, ref_y: np.ndarray) -> np.ndarray:
         """Surface height (m, float64) at world (x, z) on the layer nearest ``ref_y``: the module's
-        bilinear definition; NaN where no valid layer covers the point. Inputs broadcast."""
+        bilinear definition; NaN where no valid layer covers the point. Inputs broadcast.
+
+        Runs the compiled kernel (``terrain_scan._kernel``); ``query_reference`` is the numpy path it
+        matches bit for bit. Points spread over more than ``_DENSE_TABLE_MAX`` chunks take the numpy path."""
+        x, z, ref = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (x, z, ref_y)))
+        shape = x.shape
+        x, z, ref = (np.ascontiguousarray(v).ravel() for v in (x, z, ref))
+        ok = np.isfinite(x) & np.isfinite(z) & np.isfinite(ref)
+        out = np.full(x.size, np.nan)
+        if not ok.any():
+            return out.reshape(shape)[()]
+        xo, zo = (x, z) if ok.all() else (x[ok], z[ok])
+        cx0 = int(np.floor(xo.min() - 0.5)) // CELLS
+        cz0 = int(np.floor(zo.min() - 0.5)) // CELLS
+        nx = (int(np.floor(xo.max() - 0.5)) + 1) // CELLS - cx0 + 1
+        nz = (int(np.floor(zo.max() - 0.5)) + 1) // CELLS - cz0 + 1
+        if nx * nz > _DENSE_TABLE_MAX:
+            return self.query_reference(x, z, ref).reshape(shape)[()]
+        used = _kernel.mark_chunks(x, z, ok, cx0, cz0, nx, nz)
+        table = np.zeros(nx * nz, np.int64)
+        for k in np.flatnonzero(used).tolist():
+            c = (cx0 + k % nx, cz0 + k // nx)
+            table[k] = self._block[c] if c in self._block else self._add(c)
+        _kernel.bilinear(x, z, ref, ok, table, cx0, cz0, nx, self._h, MATCH_M, MIN_FRACTION, out)
+        return out.reshape(shape)[()]
+
+    def query_reference(self, x: np.ndarray, z: np.ndarray, ref_y: np.ndarray) -> np.ndarray:
+        """``query`` in plain numpy: the reference the compiled kernel is tested against."""
         shape, ok, (_, _, hk, w) = self._query_flat(x, z, ref_y)
         val = _combine(hk, w, xp=np)
         if ok.all():

@@ -18,6 +18,8 @@ import numpy as np
 
 MERGE_M = 0.5
 MAX_LAYERS = 8
+ALIAS_FRACTION = 0.2  # a layer with under this share of its cell's strongest layer's hits ...
+ALIAS_DOMINANCE = 5  # ... that a 4-neighbour holds at the same height with this many times its hits is an alias
 
 
 @dataclass
@@ -104,6 +106,37 @@ def _cap(layers: Observations, max_layers: int) -> Observations:
     rank = np.arange(len(l2)) - start
     kept = l2.take(np.flatnonzero(rank < max_layers))
     return kept.take(np.lexsort((kept.h, kept.gz, kept.gx)))
+
+
+def drop_aliases(layers: Observations, fraction: float = ALIAS_FRACTION, dominance: float = ALIAS_DOMINANCE,
+                 merge_m: float = MERGE_M) -> Observations:  # fmt: skip
+    """Drop the layers that are a neighbouring cell's surface seen a few centimetres across a cell edge.
+
+    A surface that ends on a cell edge (a wall's side, a deck's rim) leaks points a few cm into the
+    next cell, which then holds a weak second layer at the neighbour's height. A layer is dropped when
+    both hold: its hits are below ``fraction`` of the strongest layer of its own cell, and one of the
+    four edge-neighbour cells holds a layer within ``merge_m`` of its height with at least
+    ``dominance`` times its hits. A weakly seen floor under a deck survives unless a neighbour's floor
+    dominates it *and* its own deck holds five times its hits; the rule reads only merged layers, so
+    it is as order-independent as ``merge``. Rows keep their (cell, h) order.
+    """
+    if not len(layers):
+        return layers
+    g = DenseGrid.of(layers)
+    H = g.scatter(layers.h, np.nan)  # (X, Z, L)
+    W = g.scatter(layers.hits.astype(np.float64), 0.0)
+    cell_max = W.max(axis=2)[g.cx, g.cz]
+    weak = layers.hits < fraction * cell_max
+    dominated = np.zeros(len(layers), bool)
+    X, Z, _ = g.shape
+    for dx, dz in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        nx, nz = g.cx + dx, g.cz + dz
+        ok = (nx >= 0) & (nx < X) & (nz >= 0) & (nz < Z)  # DenseGrid.of leaves a margin: always true
+        Hn, Wn = H[nx[ok], nz[ok]], W[nx[ok], nz[ok]]  # (n, L)
+        same = np.abs(Hn - layers.h[ok, None]) <= merge_m  # NaN compares False
+        strong = (same & (Wn >= dominance * layers.hits[ok, None])).any(axis=1)
+        dominated[np.flatnonzero(ok)] |= strong
+    return layers.take(np.flatnonzero(~(weak & dominated)))
 
 
 @dataclass

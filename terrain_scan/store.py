@@ -24,7 +24,7 @@ import numpy as np
 
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
-from terrain_scan.layers import MAX_LAYERS, Observations, merge
+from terrain_scan.layers import MAX_LAYERS, Observations, drop_aliases, merge
 from terrain_scan.trn2 import FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, split_cell
 
 MANIFEST_FORMAT = "marionette-terrain-stage"
@@ -103,9 +103,9 @@ class Stage:
     # -- chunks ---------------------------------------------------------------------------------
 
     def layers(self) -> tuple[Observations, np.ndarray]:
-        """All layers of the stage (merged contributions, then hole fill) and the filled mask."""
+        """All layers of the stage (merged contributions without edge aliases, then hole fill) and the filled mask."""
         parts = [self._load(r) for _, r in sorted(self.manifest["recordings"].items())]
-        merged = merge(Observations.concat(parts), max_layers=self.max_layers)
+        merged = drop_aliases(merge(Observations.concat(parts), max_layers=self.max_layers))
         return fill_holes(merged, rounds=self.fill_rounds)
 
     def rebuild(self) -> RebuildReport:

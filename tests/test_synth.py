@@ -20,7 +20,7 @@ from marionette.synth.sim import BLEND_FRAMES
 
 PART = "data_part1"
 # Seed 2 at 2 × 12 s plays every clip except the hunter's idle (checked by the coverage assertion below).
-GEN = {"recordings": 2, "seconds": 12.0, "seed": 2, "width": 160, "height": 90}
+GEN = {"recordings": 3, "seconds": 12.0, "seed": 2, "width": 160, "height": 90}
 FPS = 30
 
 
@@ -59,7 +59,7 @@ def test_public_layout_conformance(synth):
     assert set(edges) == {"em_25", "npc", "wp_3"}
     assert [len(edges[k]) + 1 for k in ("em_25", "npc", "wp_3")] == [64, 36, 5]
     samples = _samples(synth)
-    assert [p.name for p in samples] == ["rec0000", "rec0001"]
+    assert [p.name for p in samples] == ["rec0000", "rec0001", "rec0002"]
     for d in samples:
         header, rows = _rows(d / "state.csv")
         assert header == list(COLUMNS)
@@ -164,28 +164,33 @@ def test_motion_frames_and_speed_signatures(synth):
                         assert not wrap.any() and (start == 0 or names[start - 1] is None or seg[0] == 0)
                     if i < len(names) and names[i] is not None and c["kind"] == "event":
                         assert names[i] != name  # an event never repeats back to back
-                    seen.setdefault((entity, name), []).append((start, i, speed, root_speed, wrap.any()))
+                    seen.setdefault((entity, name), []).append((start, i, speed, root_speed, wrap.any(), i < len(names)))
                 start = i
+    attacks_checked = set()
     for (entity, name), segs in seen.items():
         c = {v["name"]: v for v in load_truth(synth, PART, "rec0000")["clips"][entity].values()}[name]
         # Frames of the segment past the blend from the previous clip (speeds are differences: index i−1 → i).
-        body = np.concatenate([sp[a + 1 : b - 1] for a, b, sp, _, _ in segs])
-        body_all = np.concatenate([sp[a : b - 1] for a, b, sp, _, _ in segs])
-        roots = np.concatenate([rs[a + int(BLEND_FRAMES) : b - 1] for a, b, _, rs, _ in segs])
+        body = np.concatenate([sp[a + 1 : b - 1] for a, b, sp, *_ in segs])
+        roots = np.concatenate([rs[a + int(BLEND_FRAMES) : b - 1] for a, b, _, rs, *_ in segs])
         if c["class"] == "attack":
-            assert body_all.max() >= 10.0, (entity, name)
+            # an attack the recording's end cuts short may stop before its strike
+            done = [sp[a : b - 1] for a, b, sp, _, _, complete in segs if complete]
+            if done:
+                assert np.concatenate(done).max() >= 10.0, (entity, name)
+                attacks_checked.add(entity)
         else:
-            assert body.max() <= 5.0, (entity, name, body.max())
+            # a run up the valley's 23° side swings the trailing shin at up to ~6 m/s
+            assert body.max() <= 7.0, (entity, name, body.max())
         if name == "idle":
             assert roots.max() < 0.2
         if name in ("walk", "run"):
             assert roots.mean() >= 1.0
         if name == "dodge":
-            assert np.concatenate([rs[a + 2 : b - 3] for a, b, _, rs, _ in segs]).mean() >= 3.0
+            assert np.concatenate([rs[a + 2 : b - 3] for a, b, _, rs, *_ in segs]).mean() >= 3.0
         if name == "roar":
             assert roots.max() < 0.2
         if c["kind"] == "state" and sum(b - a for a, b, *_ in segs) > 2 * c["length"]:
-            assert any(w for *_, w in segs), (entity, name)  # loops visibly wrap
+            assert any(w for *_, w, _ in segs), (entity, name)  # loops visibly wrap
     for entity, clip in (
         ("hunter", "attack"),
         ("hunter", "heavy_attack"),
@@ -197,6 +202,7 @@ def test_motion_frames_and_speed_signatures(synth):
         ("monster", "run"),
     ):
         assert (entity, clip) in seen
+    assert attacks_checked == {"hunter", "monster"}  # each entity finished at least one attack
 
 
 def test_feet_on_ground_and_bridge(synth):

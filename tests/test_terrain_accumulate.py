@@ -21,16 +21,21 @@ from terrain_scan.accumulate import (
     segment_distance,
 )
 from terrain_scan.depth import DepthDecoder
+from terrain_scan.field import open_stage
 from terrain_scan.layers import Observations
+from terrain_scan.store import Stage
 
-# measured on this recording at default settings: 0.028 m away from vertical steps (see docs/formats.md)
+# the issue's target over every observed (not hole-filled) cell of the stage the two recordings make;
+# measured 0.030 m at default settings (docs/formats.md)
+RMSE_TARGET_M = 0.05
 RMSE_AWAY_FROM_STEPS_M = 0.04
 
 
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory):
     root = tmp_path_factory.mktemp("scan")
-    generate(root, recordings=1, seconds=10.0, seed=0, width=320, height=180)
+    # recording 0 crosses the bridge on its deck, recording 1 runs beneath it along the valley floor
+    generate(root, recordings=2, seconds=10.0, seed=0, width=320, height=180)
     ref = discover(root)[0]
     layout = load_scene("duel")
     return root, ref, layout, read_sample(ref, layout), load_truth(root, ref.part, ref.sample_id)
@@ -40,6 +45,18 @@ def rec(tmp_path_factory):
 def scan(rec):
     _, ref, layout, _, _ = rec
     return scan_recording(ref, layout, DepthDecoder.synthetic(), keep_points=True)
+
+
+@pytest.fixture(scope="module")
+def stage(rec, scan, tmp_path_factory):
+    """The stage of both recordings: their contributions merged, edge aliases dropped, holes filled."""
+    root, _, layout, _, _ = rec
+    st = Stage(tmp_path_factory.mktemp("stage"))
+    for ref in discover(root):
+        r = scan if ref.sample_id == rec[1].sample_id else scan_recording(ref, layout, DepthDecoder.synthetic())
+        st.put(ref.sample_id, r.observations, ref.sample_id, r.recording_ts)
+    st.rebuild()
+    return st
 
 
 def test_decoder_matches_synth_exactly():
@@ -120,25 +137,58 @@ def test_scan_counters_ts_and_no_nan(scan, rec):
     assert np.all(o.n[:, 1] >= 0.5 - 1e-6)
 
 
-def test_height_rmse_and_both_bridge_levels(scan):
-    o = scan.observations
-    x, z = o.gx + 0.5, o.gz + 0.5
-    d = o.h - terrain.surface_height(x, z, o.h)
-    # cells touching a vertical step (the wall's sides, the deck's long edges) hold both heights within 1 m
+def _errors(layers):
+    x, z = layers.gx + 0.5, layers.gz + 0.5
+    d = layers.h - terrain.surface_height(x, z, layers.h)
+    # cells touching a vertical step (the wall's sides, the deck's long edges)
     step = (terrain.in_wall(x, z, 0.6) & ~terrain.in_wall(x, z, -0.6)) | (terrain.in_deck(x, z, 0.6) & ~terrain.in_deck(x, z, -0.6))
-    assert (~step).sum() > 1000
+    return d, step
+
+
+def test_height_rmse_over_observed_cells(stage):
+    layers, filled = stage.layers()
+    observed = layers.take(np.flatnonzero(~filled))
+    d, step = _errors(observed)
+    assert len(d) > 2000 and step.sum() > 20
+    rmse_all = float(np.sqrt(np.mean(d**2)))
+    assert rmse_all < RMSE_TARGET_M, rmse_all
     rmse = float(np.sqrt(np.mean(d[~step] ** 2)))
     assert rmse < RMSE_AWAY_FROM_STEPS_M, rmse
-    # the bridge: deck cells are seen at the deck's level, not collapsed onto the valley floor. The
-    # default recording never sees the floor under the 4 m wide deck (it is occluded from the
-    # follow camera), so two-layer cells there are not asserted.
-    ground, deck = terrain.layers(x, z)
+    # no layer of a wall cell sits at the ground's height or the reverse (a 3 m step leaking across a cell edge)
+    assert np.abs(d).max() < 0.5, np.abs(d).max()
+
+
+def test_one_recording_sees_the_deck_without_collapsing_it(scan):
+    o = scan.observations
+    d, step = _errors(o)
+    assert float(np.sqrt(np.mean(d[~step] ** 2))) < RMSE_AWAY_FROM_STEPS_M
+    ground, deck = terrain.layers(o.gx + 0.5, o.gz + 0.5)
     high = np.isfinite(deck) & (deck - ground > 3.0)
-    assert high.sum() >= 10
-    assert np.all(np.abs(o.h[high] - deck[high]) < 0.3) or np.all(
-        np.minimum(np.abs(o.h[high] - deck[high]), np.abs(o.h[high] - ground[high])) < 0.3
-    )
-    assert np.sum(np.abs(o.h[high] - deck[high]) < 0.3) >= 10
+    assert np.sum(np.abs(o.h[high] - deck[high]) < 0.3) >= 10  # seen at the deck's level, not the valley's
+
+
+def test_both_bridge_levels_and_queries_under_the_deck(stage):
+    layers, filled = stage.layers()
+    x, z = layers.gx + 0.5, layers.gz + 0.5
+    ground, deck = terrain.layers(x, z)
+    high = np.isfinite(deck) & (deck - ground > 3.0) & ~filled
+    on_deck = high & (np.abs(layers.h - deck) < 0.3)
+    on_floor = high & (np.abs(layers.h - ground) < 0.3)
+    assert on_deck.sum() >= 10 and on_floor.sum() >= 10
+    cells = lambda m: set(zip(layers.gx[m].tolist(), layers.gz[m].tolist()))  # noqa: E731
+    both = cells(on_deck) & cells(on_floor)
+    assert len(both) >= 8, both  # cells holding the floor and the deck above it
+    field = open_stage(stage.dir)
+    rng = np.random.default_rng(0)
+    gx, gz = np.array(sorted(both)).T
+    # points inside those cells, away from their edges so that all four bilinear neighbours are two-level too
+    px, pz = gx + rng.uniform(0.45, 0.55, len(gx)), gz + rng.uniform(0.45, 0.55, len(gz))
+    g, dk = terrain.layers(px, pz)
+    low = field.query(px, pz, g + 0.9)  # a hunter's pelvis height above the floor, 4 m under the deck
+    high_q = field.query(px, pz, dk + 0.9)
+    assert np.all(np.abs(low - g) < 0.15), np.c_[low, g]
+    assert np.all(np.abs(high_q - dk) < 0.15), np.c_[high_q, dk]
+
 
 def test_invalid_cameras_and_empty_recordings_are_harmless(rec):
     _, ref, layout, sample, _ = rec

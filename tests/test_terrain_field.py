@@ -279,3 +279,31 @@ def test_clearance_is_signed_against_the_layer_nearest_the_root():
     assert MATCH_M < 5.0 / 2
     flat = field_of([(0, 0)], lambda x, z: np.full_like(x, 2.0))
     assert joint_clearances(flat, np.array([[[30.2, 1.7, 60.9]]]), np.array([3.0]))[0, 0] == pytest.approx(-0.3)
+
+
+def test_compiled_query_matches_the_numpy_reference_bit_for_bit():
+    def holes(x, z):
+        return np.where((np.floor(x) % 9 < 3) & (np.floor(z) % 7 < 3), np.nan, smooth(x, z))
+
+    def deck(x, z):  # a second layer over part of the field, within MATCH_M of the ground near its rim
+        return np.where((x > -960) & (x < -940) & (z > 840) & (z < 860), smooth(x, z) + 1.5 + 0.1 * (x + 960), np.nan)
+
+    def roof(x, z):
+        return np.where(np.floor(x) % 5 == 0, smooth(x, z) + 9.0, np.nan)
+
+    field = field_of(NEG, holes, deck, roof)
+    rng = np.random.default_rng(11)
+    n = 200_000
+    x = rng.uniform(-1105, -795, n)  # past the loaded chunks on both sides, across chunk edges
+    z = rng.uniform(695, 905, n)
+    x[:2000] = np.round(x[:2000])  # on cell edges, and exactly on cell centres
+    z[2000:4000] = np.round(z[2000:4000]) + 0.5
+    ref = smooth(x, z) + rng.choice([0.3, 1.6, 5.2, -1.0, 9.5, 30.0], n)
+    ref[4000:4100] = np.nan
+    x[4100:4200] = np.inf
+    got = field.query(x, z, ref)
+    want = field.query_reference(x, z, ref)
+    np.testing.assert_array_equal(got, want)  # NaN in the same places, equal bits elsewhere
+    assert 0.5 < np.isfinite(got).mean() < 1.0
+    assert field.query(x[:7].reshape(7, 1), z[:3], ref[0]).shape == (7, 3)
+    assert np.isnan(field.query(np.nan, 0.0, 0.0)) and np.ndim(field.query(-1000.0, 800.0, 0.0)) == 0

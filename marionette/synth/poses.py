@@ -106,17 +106,33 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
 
 
+REACH = 0.96
+
+
 def two_bone(root: np.ndarray, target: np.ndarray, a: float, b: float, pole: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two-bone IK (M, 3): (middle joint, end joint) with bone lengths a, b bending toward ``pole``."""
+    """Two-bone IK (M, 3): (middle joint, end joint) with bone lengths a, b bending toward ``pole``.
+
+    The reach stops at ``REACH`` of a + b: near full extension the middle joint's position changes
+    without bound for a small change of the target, so an over-stretched trailing leg would snap its
+    knee straight within a frame; short of it the end joint falls short of the target instead.
+    """
     d = target - root
     L = np.linalg.norm(d, axis=-1, keepdims=True)
     dh = d / np.maximum(L, 1e-9)
-    L = np.clip(L, abs(a - b) + 1e-4, a + b - 1e-4)
+    L = np.clip(L, abs(a - b) + 1e-4, REACH * (a + b))
     cos_a = (a * a + L * L - b * b) / (2 * a * L)
     sin_a = np.sqrt(np.clip(1 - cos_a**2, 0, 1))
     n = _unit(pole - np.sum(pole * dh, -1, keepdims=True) * dh)
     mid = root + a * (cos_a * dh + sin_a * n)
     return mid, root + L * dh
+
+
+def knee_pole(root: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Pole (M, 3) bending a knee forward: the leg's direction turned 90° about the x axis (down → forward,
+    forward → up). For a leg reaching down it equals the fixed pole +z; unlike +z it never lines up with a
+    foot planted high and ahead (running uphill), where a fixed pole flips the knee from frame to frame."""
+    d = np.broadcast_to(target - root, np.broadcast_shapes(np.shape(root), np.shape(target)))
+    return np.stack([np.zeros(d.shape[:-1]), d[..., 2], -d[..., 1]], -1)
 
 
 def _dir(az: np.ndarray, el: np.ndarray) -> np.ndarray:
@@ -166,7 +182,8 @@ def hunter_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> tuple[np.nd
         dz, lift = c[f"foot_{side}_dz"], c[f"foot_{side}_lift"]
         x = np.full(M, sx * 0.11)
         ankle = np.stack([x, surface_local(x, dz) + 0.08 + lift, dz], -1)
-        knee, ankle = two_bone(np.broadcast_to(hip, (M, 3)), ankle, 0.55, 0.55, np.array([0.0, 0.0, 1.0]))
+        hip_m = np.broadcast_to(hip, (M, 3))
+        knee, ankle = two_bone(hip_m, ankle, 0.55, 0.55, knee_pole(hip_m, ankle))
         J[:, idx[f"shin_{side}"]] = knee
         J[:, idx[f"thigh_twist_{side}"]] = (hip + knee) / 2
         J[:, idx[f"foot_{side}"]] = ankle
@@ -298,7 +315,7 @@ def monster_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> np.ndarray
         dz, lift = c[f"foot_{f}_dz"], c[f"foot_{f}_lift"]
         x = np.full(M, sx * 0.5)
         ankle = np.stack([x, surface_local(x, dz) + 0.35 + lift, dz], -1)
-        knee, ankle = two_bone(hip, ankle, 0.85, 0.85, np.array([0.0, 0.0, 1.0]))
+        knee, ankle = two_bone(hip, ankle, 0.85, 0.85, knee_pole(hip, ankle))
         J[:, idx[f"shin_{f}"]] = knee
         J[:, idx[f"thigh_twist_{f}"]] = (hip + knee) / 2
         J[:, idx[f"ankle_{f}"]] = ankle

@@ -1,7 +1,9 @@
 """The synthetic game's behaviour and its continuous-time motion.
 
 ``simulate(seed, index, n_frames, fps)`` plays one recording: the hunter starts on the bridge deck
-and runs (or walks) off its east end, then fights the drake, which roams, charges and attacks.
+and runs (or walks) off its east end (even ``index``), or starts in the valley south of the bridge
+and runs under it to the north (odd ``index``: the follow camera, lower than the deck, then sees the
+valley floor beneath it), then fights the drake, which roams, charges and attacks.
 Decisions are taken at frame boundaries; roots are integrated at ``SUBSTEPS`` per frame and stored,
 so the motion is a function of continuous time: roots interpolate linearly between the stored
 samples, poses are functions of (clip, phase) blended over ``BLEND_FRAMES`` at clip changes.
@@ -28,6 +30,7 @@ YAW_RATE = {"hunter": 1.8, "monster": 0.5, "monster_run": 0.3}  # rad/s while in
 MIN_SEP = 3.5  # the two roots never get closer (m)
 DODGE_SPEED = 4.5  # m/s plateau of the dodge's root speed profile
 DECK_Z = (ter.DECK[2] + ter.DECK[3]) / 2
+UNDER_EXIT_M = 6.0  # an under-bridge crossing ends this far north of the deck
 
 
 @dataclass
@@ -69,7 +72,8 @@ class _Actor:
         self.clips = CLIPS[name]
         self.segments: list[Segment] = []
         self.waypoint = (x, z)
-        self.crossing = on_deck
+        self.crossing = on_deck  # running off the deck (or, with ``under``, through the valley beneath it)
+        self.under = False
 
     @property
     def seg(self) -> Segment:
@@ -101,7 +105,7 @@ def _avoid_dir(a: _Actor, tx: float, tz: float) -> float:
     vx, vz = tx - a.x, tz - a.z
     n = np.hypot(vx, vz) + 1e-9
     vx, vz = vx / n, vz / n
-    rects = [ter.WALL] + ([] if a.on_deck else [_DECK_OBSTACLE])
+    rects = [ter.WALL] + ([] if a.on_deck or a.under else [_DECK_OBSTACLE])
     for r in rects:
         cx, cz = np.clip(a.x, r[0], r[1]), np.clip(a.z, r[2], r[3])
         dx, dz = a.x - cx, a.z - cz
@@ -113,7 +117,8 @@ def _avoid_dir(a: _Actor, tx: float, tz: float) -> float:
     return float(np.arctan2(vx, vz))
 
 
-# The part of the deck that stands high enough above the valley for nobody to walk under it.
+# The part of the deck that stands high above the valley: the drake goes round it; the hunter passes beneath it
+# only on an under-bridge crossing.
 _DECK_OBSTACLE = (ter.DECK[0] + 2.0, ter.DECK[1] - 2.0, ter.DECK[2], ter.DECK[3])
 
 
@@ -186,7 +191,7 @@ def _step(a: _Actor, other: _Actor, target: tuple[float, float], dt: float, f_su
     x, z = a.x + vx * dt, a.z + vz * dt
     if a.on_deck:
         z = float(np.clip(z, ter.DECK[2] + 0.6, ter.DECK[3] - 0.6))
-    else:
+    elif not a.under:
         x, z = _push_out(x, z, _DECK_OBSTACLE, RADIUS[a.name])
     x, z = _push_out(x, z, ter.WALL, RADIUS[a.name])
     cx, cz = ter.ARENA_CENTER
@@ -194,8 +199,8 @@ def _step(a: _Actor, other: _Actor, target: tuple[float, float], dt: float, f_su
     a.x, a.z = float(np.clip(x, cx - lim, cx + lim)), float(np.clip(z, cz - lim, cz + lim))
     if a.on_deck and not ter.in_deck(a.x, a.z):
         a.on_deck = False
-    if a.crossing and a.x > ter.DECK[1] + 3.0:
-        a.crossing = False
+    if a.crossing and (a.z > ter.DECK[3] + UNDER_EXIT_M if a.under else a.x > ter.DECK[1] + 3.0):
+        a.crossing = a.under = False
 
 
 @lru_cache(maxsize=16)
@@ -203,7 +208,12 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
     """Play recording ``index`` of ``seed`` for ``n_frames`` frames: the roots and clip segments."""
     rng = np.random.default_rng([seed, index])
     x0 = ter.DECK[1] - rng.uniform(8.0, 12.0)
-    hunter = _Actor("hunter", x0, DECK_Z + rng.uniform(-0.8, 0.8), np.pi / 2, on_deck=True)
+    z0 = DECK_Z + rng.uniform(-0.8, 0.8)
+    if index % 2:  # under the bridge: up the valley floor from the south
+        hunter = _Actor("hunter", ter.VALLEY_X + (x0 - ter.DECK[1] + 10.0), ter.DECK[2] - 12.0 - (z0 - DECK_Z), 0.0, on_deck=False)
+        hunter.crossing = hunter.under = True
+    else:
+        hunter = _Actor("hunter", x0, z0, np.pi / 2, on_deck=True)
     mx, mz = ter.DECK[1] + rng.uniform(22.0, 30.0), DECK_Z + rng.uniform(-10.0, 6.0)
     monster = _Actor("monster", mx, mz, float(np.arctan2(hunter.x - mx, hunter.z - mz)), on_deck=False)
     hunter.start(0, "run", cycles=1)
@@ -226,7 +236,9 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
             for a, o in ((hunter, monster), (monster, hunter)):
                 target = a.waypoint
                 if a is hunter:
-                    target = (ter.DECK[1] + 6.0, DECK_Z) if a.crossing else (o.x, o.z)
+                    target = (o.x, o.z)
+                    if a.crossing:
+                        target = (a.x, ter.DECK[3] + 2 * UNDER_EXIT_M) if a.under else (ter.DECK[1] + 6.0, DECK_Z)
                 _step(a, o, target, dt, f + s / SUBSTEPS)
     for n, a in actors.items():
         xz, yaw, deck = store[n]
