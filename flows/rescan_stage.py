@@ -1,9 +1,11 @@
 """The ``rescan-stage`` flow: scan new or changed recordings of a stage into its terrain chunks.
 
-    scan (one task per stage: `terrain_scan.scan.scan_stages`) → report artifact
+    scan (one task per stage: `terrain_scan.scan.scan_stages`) → pose targets → report artifact
 
 Incremental by default: recordings whose inputs and scan settings are unchanged are not read, and
-only chunk files whose bytes change are rewritten.
+only chunk files whose bytes change are rewritten. The pose-control targets of the video chunks
+(``marionette.bridge.targets``) are then brought up to date: only chunks whose cameras see a changed
+terrain chunk are rendered again (``render_targets=False`` skips this).
 """
 
 from __future__ import annotations
@@ -23,6 +25,16 @@ def scan_stage(corpus: str, stage: str, incremental: bool, options: ScanOptions)
     """Scan one stage; logs each recording."""
     logger = get_run_logger()
     return scan_stages(Path(corpus), stage, incremental=incremental, options=options, log=logger.info)[stage]
+
+
+@task(cache_policy=NO_CACHE, task_run_name="pose-targets")
+def pose_targets(corpus: str) -> dict:
+    """Render the video chunks' pose targets whose inputs changed; rewrite only the shards that change."""
+    from marionette.bridge.targets import render_pose_targets
+
+    r = render_pose_targets(Path(corpus))
+    get_run_logger().info("pose targets: %d of %d chunks rendered, shards rewritten %s", len(r.rendered), r.chunks, r.shards_rewritten)
+    return {"chunks": r.chunks, "rendered": r.rendered, "shards_rewritten": r.shards_rewritten, "frames_rendered": r.frames_rendered}
 
 
 def report_markdown(corpus: str, report: dict) -> str:
@@ -48,11 +60,17 @@ def rescan_stage(
     frame_stride: int = 1,
     voxel_m: float = 0.25,
     depth_decoder: dict | None = None,
+    render_targets: bool = True,
 ) -> dict:
     """Scan one stage (or every stage) of ``corpus``; returns per stage what was scanned and written."""
     decoder = DepthDecoder.synthetic() if depth_decoder is None else DepthDecoder.from_json(depth_decoder)
     options = ScanOptions(decoder=decoder.to_json(), frame_stride=frame_stride, voxel_m=voxel_m)
     stages = [stage] if stage is not None else list(corpus_stages(Path(corpus)))
     report = {st: scan_stage(corpus, st, incremental, options) for st in stages}
-    create_markdown_artifact(key="rescan-stage-report", markdown=report_markdown(corpus, report))
+    markdown = report_markdown(corpus, report)
+    if render_targets:
+        pose = pose_targets(corpus)
+        markdown += f"\n\npose targets: {len(pose['rendered'])} of {pose['chunks']} video chunks rendered, shards rewritten: {pose['shards_rewritten']}"
+        report = {**report, "_pose_targets": pose}
+    create_markdown_artifact(key="rescan-stage-report", markdown=markdown)
     return report

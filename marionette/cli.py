@@ -62,7 +62,20 @@ def cmd_ingest(a: argparse.Namespace) -> int:
 
         for st, r in scan_stages(a.corpus, incremental=True, log=lambda *_: None).items():
             print(f"terrain {st}: {len(r['scanned'])} recordings scanned, {len(r['unchanged'])} unchanged, {len(r['chunks_written'])} chunks written")
+    if a.pose and info["total_ingested"]:
+        _pose_targets(a.corpus)
     return 0
+
+
+def _pose_targets(corpus: Path) -> None:
+    from marionette.bridge.targets import render_pose_targets
+
+    t0 = time.time()
+    r = render_pose_targets(corpus)
+    print(
+        f"pose targets: {len(r.rendered)} of {r.chunks} video chunks rendered ({r.frames_rendered} frames), "
+        f"{len(r.shards_rewritten)} video shards rewritten in {time.time() - t0:.1f} s"
+    )
 
 
 def inspect_text(corpus_path: Path) -> str:
@@ -129,6 +142,8 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
             f"chunks {len(r['chunks_written'])} written, {len(r['chunks_unchanged'])} unchanged, {len(r['chunks_removed'])} removed; "
             f"{r['layers']} layers ({r['filled']} filled) in {r['dir']}"
         )
+    if a.pose:
+        _pose_targets(a.corpus)
     return 0
 
 
@@ -149,6 +164,42 @@ def cmd_terrain_export(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render(a: argparse.Namespace) -> int:
+    """Render one corpus segment, or a rollout table, to a G-buffer video."""
+    from marionette.bridge.targets import TerrainScene, render_rows, source_size
+    from marionette.corpus import Corpus
+    from marionette.io import read_ipc
+    from marionette.schema import layout_of_schema
+    from terrain_scan.scan import stage_dir
+
+    src = Path(a.source)
+    t0 = time.time()
+    a.camera = a.camera or ("recorded" if src.is_dir() else "follow")
+    if src.is_dir():
+        if a.segment is None:
+            raise ValueError(f"{src}: a corpus needs --segment ID")
+        c = Corpus(src)
+        rows = c.read_segment(a.segment)
+        layout, stage = c.layout, c.segment_row(a.segment)["stage"]
+        terrain = TerrainScene.of_stage(a.terrain or stage_dir(src, stage))
+        size_src = source_size(c, a.segment) if a.camera == "recorded" else None
+    else:
+        rows = read_ipc(src)
+        layout = layout_of_schema(rows.schema, str(src))
+        if a.segment is not None:
+            import pyarrow.compute as pc
+
+            rows = rows.filter(pc.equal(rows["segment"], a.segment))
+        terrain = TerrainScene.of_stage(a.terrain) if a.terrain else TerrainScene.empty()
+        if a.camera == "recorded":
+            raise ValueError(f"{src}: a rollout has no recorded camera to follow; use --camera follow")
+        size_src = None
+    meta = render_rows(layout, rows, a.out, terrain, a.camera, a.size, a.fps, size_src)
+    print(f"wrote {a.out}: {meta.width}×{meta.height} at {meta.fps:g} fps, heights {meta.h_min:g}..{meta.h_max:g} m, "
+          f"{time.time() - t0:.1f} s")  # fmt: skip
+    return 0
+
+
 def cmd_demo(a: argparse.Namespace) -> int:
     """Synthetic recordings → corpus → inspect → the 20 fps dynamics view, end to end."""
     from marionette.corpus import Corpus
@@ -158,17 +209,22 @@ def cmd_demo(a: argparse.Namespace) -> int:
     out = Path(a.out)
     src, corpus = out / "recordings", out / "corpus"
     t0 = time.time()
-    print(f"[1/4] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
+    print(f"[1/5] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
     generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
-    print(f"[2/4] building the corpus {corpus} with {a.workers} workers")
+    print(f"[2/5] building the corpus {corpus} with {a.workers} workers")
     build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
     c = Corpus(corpus)
     rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
-    print(f"[3/4] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
+    print(f"[3/5] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
     from terrain_scan.scan import scan_stages
 
     for st, r in scan_stages(corpus, incremental=True, log=lambda *_: None).items():
-        print(f"[4/4] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
+        print(f"[4/5] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
+    print("[5/5] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
+    _pose_targets(corpus)
+    seg = c.segment_ids()[0]
+    follow = out / f"{seg}-follow.mkv"
+    cmd_render(argparse.Namespace(source=corpus, segment=seg, camera="follow", out=follow, size=(352, 640), fps=None, terrain=None))
     print(inspect_text(corpus))
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
     return 0
@@ -202,6 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd")
     s.add_argument("--quiet", action="store_true")
     s.add_argument("--no-terrain", dest="terrain", action="store_false", help="skip the incremental terrain scan after ingest")
+    s.add_argument("--no-pose", dest="pose", action="store_false", help="skip rendering the pose-control targets after ingest")
     s.set_defaults(fn=cmd_ingest)
 
     s = sub.add_parser("inspect", help="summarise a corpus")
@@ -218,12 +275,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frame-stride", type=int, default=1, help="use every Nth depth frame")
     s.add_argument("--voxel", type=float, default=0.25, help="voxel size of the point down-sampling, metres")
     s.add_argument("--depth-decoder", type=Path, default=None, help="JSON of the 8-bit depth mapping (default: the synthetic game's)")
+    s.add_argument("--no-pose", dest="pose", action="store_false", help="do not bring the pose-control targets up to date")
     s.set_defaults(fn=cmd_terrain_scan)
     s = tsub.add_parser("export", help="export a stage's terrain as a PLY or GLB mesh")
     s.add_argument("corpus", type=Path)
     s.add_argument("--stage", default="default")
     s.add_argument("--out", type=Path, required=True)
     s.set_defaults(fn=cmd_terrain_export)
+
+    s = sub.add_parser("render", help="render a corpus segment or a rollout table to a lossless G-buffer video")
+    s.add_argument("source", type=Path, help="a corpus directory or a STATES.arrow rollout")
+    s.add_argument("--segment", default=None, help="segment id (required for a corpus)")
+    s.add_argument("--camera", choices=["recorded", "follow"], default=None, help="default: recorded for a corpus, follow for a rollout")
+    s.add_argument("--out", type=Path, required=True, help="output .mkv")
+    s.add_argument("--size", type=_size, default=(704, 1280), help="HxW (default 704x1280)")
+    s.add_argument("--fps", type=float, default=None, help="output rate (default: the state's)")
+    s.add_argument("--terrain", type=Path, default=None, help="a stage directory (default: the segment's stage)")
+    s.set_defaults(fn=cmd_render)
 
     s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")
     s.add_argument("--out", type=Path, default=Path("demo-run"))

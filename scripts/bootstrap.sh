@@ -4,16 +4,18 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# open3d needs libusb and libgomp; the bridge's renderer needs EGL with Mesa (llvmpipe) or a GPU driver
+packages="libusb-1.0-0 libgomp1 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1"
 need_apt=()
-for lib in libusb-1.0.so.0 libgomp.so.1; do
+for lib in libusb-1.0.so.0 libgomp.so.1 libEGL.so.1 libEGL_mesa.so.0 libgbm.so.1; do
   ldconfig -p 2>/dev/null | grep -q "$lib" || need_apt+=("$lib")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then
     apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null
   else
-    echo "bootstrap: missing ${need_apt[*]}; run: sudo apt-get install libusb-1.0-0 libgomp1" >&2
+    echo "bootstrap: missing ${need_apt[*]}; run: sudo apt-get install $packages" >&2
     exit 1
   fi
 fi
@@ -26,7 +28,7 @@ if [ ! -f "$stamp" ]; then
   log=.venv/bootstrap.log
   .venv/bin/pip install "torch==2.13.0" >"$log" 2>&1 || { cat "$log"; exit 1; }
   .venv/bin/pip install -e ".[dev]" >>"$log" 2>&1 || { cat "$log"; exit 1; }
-  .venv/bin/python -c "import marionette, open3d, av, prefect, torch" 
+  .venv/bin/python -c "import marionette, open3d, av, prefect, torch, moderngl, numba"
   rm -f .venv/.bootstrap-*
   touch "$stamp"
 fi

@@ -11,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tarfile
 import time
 from pathlib import Path
 
@@ -172,6 +173,14 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     ]
     chunks = terrain_files(corpus)
     assert chunks
+    # then every video chunk's pose-control target was rendered into the video shards
+    pose = report["terrain"]["_pose_targets"]
+    assert pose["chunks"] > 0 and len(pose["rendered"]) == pose["chunks"]
+    for tar_path in sorted((corpus / "video").glob("*.tar")):
+        with tarfile.open(tar_path) as tar:
+            names = tar.getnames()
+        assert sum(n.endswith(".pose.mkv") for n in names) == sum(n.endswith(".rgb.mp4") for n in names) > 0
+    shards = shard_files(corpus)
 
     run_id2 = run_deployment(local_prefect, source=synth_small, corpus=corpus, **SMALL_VIDEO)
     report2 = json.loads((corpus / "meta" / "builds" / f"{run_id2}.json").read_text())
@@ -180,6 +189,7 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     assert shard_files(corpus) == shards  # same bytes, same mtimes
     assert json.loads((corpus / "meta" / "info.json").read_text())["total_ingested"] == 3
     assert len(report2["terrain"]["default"]["unchanged"]) == 3 and report2["terrain"]["default"]["chunks_written"] == []
+    assert report2["terrain"]["_pose_targets"]["rendered"] == [] and report2["terrain"]["_pose_targets"]["shards_rewritten"] == []
 
     # the rescan-stage deployment over the unchanged corpus reads nothing and rewrites no chunk
     run_deployment(local_prefect, deployment="rescan-stage/incremental", corpus=corpus)

@@ -43,6 +43,7 @@ class Rig:
     contact_joints: tuple[str, ...]
     capsule_radius_m: float
     description: str = ""
+    id_band: tuple[int, int] | None = None  # [first, last] render ids of its bones (the bridge's G channel)
 
     @property
     def keep_source_index(self) -> tuple[int, ...]:
@@ -70,6 +71,23 @@ class Rig:
     def n_keep(self) -> int:
         return len(self.keep)
 
+    @property
+    def bones(self) -> tuple[tuple[int, int], ...]:
+        """(child, parent) kept-joint indices of every bone, children in breadth-first order from the top."""
+        par = self.parents
+        order, frontier = [], [i for i, p in enumerate(par) if p == -1]
+        while frontier:
+            nxt = [c for f in frontier for c in range(len(par)) if par[c] == f]
+            order += nxt
+            frontier = nxt
+        return tuple((c, par[c]) for c in order)
+
+    def bone_ids(self) -> tuple[int, ...]:
+        """Render id of each bone of ``bones``: id_band[0] + its breadth-first rank."""
+        if self.id_band is None:
+            raise SchemaError(f"rig {self.name!r} has no id_band: it cannot be rendered")
+        return tuple(self.id_band[0] + k for k in range(len(self.bones)))
+
     def to_json(self) -> dict:
         return {
             "name": self.name,
@@ -83,6 +101,7 @@ class Rig:
             "forward_axis": list(self.forward_axis),
             "contact_joints": list(self.contact_joints),
             "capsule_radius_m": self.capsule_radius_m,
+            **({"id_band": list(self.id_band)} if self.id_band is not None else {}),
         }
 
 
@@ -212,6 +231,7 @@ def rig_from_json(d: dict, where: str = "<rig>") -> Rig:
         contact_joints=tuple(d.get("contact_joints", ())),
         capsule_radius_m=float(d["capsule_radius_m"]),
         description=d.get("description", ""),
+        id_band=tuple(int(v) for v in d["id_band"]) if d.get("id_band") is not None else None,
     )
     if rig.kind not in ("articulated", "attachment"):
         raise SchemaError(f"{where}: kind must be 'articulated' or 'attachment', not {rig.kind!r}")
@@ -222,6 +242,10 @@ def rig_from_json(d: dict, where: str = "<rig>") -> Rig:
         raise SchemaError(f"{where}: the root {rig.root!r} must be the first kept joint")
     if len(set(rig.keep)) != len(rig.keep):
         raise SchemaError(f"{where}: duplicate kept joints")
+    if rig.id_band is not None:
+        a, b = rig.id_band
+        if not (1 <= a <= b <= 254) or b - a + 1 < len(rig.bones):
+            raise SchemaError(f"{where}: id_band {list(rig.id_band)} must lie in [1, 254] and hold its {len(rig.bones)} bones")
     return rig
 
 

@@ -1,0 +1,142 @@
+"""Cameras of the bridge: the recorded camera of corpus rows, and a deterministic follow camera.
+
+A camera is a pinhole in the OpenGL convention the recordings use: ``rot`` is camera-to-world, the
+camera looks down its −Z axis with +Y up and +X right; intrinsics (fx, fy, cx, cy) are in output
+pixels with pixel (row i, column j) centred at (u, v) = (j + ½, i + ½), v growing downwards. A camera
+point p_cam = Rᵀ (p_world − pos) projects to u = cx + fx · x / (−z), v = cy − fy · y / (−z).
+
+**Follow camera** (``follow_cameras``), a closed-form function of the roots, causal. Per frame t with
+the first articulated entity A at a_t and the other B at b_t (horizontal unit vector f_t from A to B;
+with one entity or coincident roots, A's forward axis):
+
+- distance back D_t = max(6, 0.6·s_t + 4) m with s_t the horizontal A–B distance (0 with one entity);
+- wanted eye e*_t = a_t − D_t·f_t + (0, 0.35·D_t + 2, 0); wanted target g*_t = (a_t + b_t)/2 + (0, 0.5, 0)
+  (a_t + 2 f_t + (0, 0.5, 0) with one entity);
+- smoothing, using no future frame: e_0 = e*_0, e_t = e_{t−1} + α (e*_t − e_{t−1}) with
+  α = 1 − exp(−Δt / τ), τ = ``FOLLOW_TAU_S`` (0.4 s), Δt the frame interval; the same for g;
+- rotation: look from e_t at g_t with world +Y up (``look_at``); vertical field of view 60°, square
+  pixels, principal point at the image centre.
+
+Invalid (absent) entities hold their last valid root; before the first valid root the other
+entity alone is framed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FOLLOW_TAU_S = 0.4
+FOLLOW_VFOV_DEG = 60.0
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """Per-frame cameras: K (N, 4) fx, fy, cx, cy in pixels; pos (N, 3) world metres; rot (N, 3, 3) camera-to-world;
+    valid (N,); the output size and the depth range of the render."""
+
+    K: np.ndarray
+    pos: np.ndarray
+    rot: np.ndarray
+    valid: np.ndarray
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return len(self.pos)
+
+    def project(self, points_world: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel (u, v) (P, 2) and view depth (P,) (metres along −Z) of world points at frame ``i``."""
+        p = (np.asarray(points_world, np.float64) - self.pos[i]) @ self.rot[i]  # Rᵀ (p − pos), row form
+        depth = -p[:, 2]
+        fx, fy, cx, cy = self.K[i]
+        return np.stack([cx + fx * p[:, 0] / depth, cy - fy * p[:, 1] / depth], -1), depth
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """Camera-to-world rotation (…, 3, 3) looking from ``eye`` at ``target`` (−Z forward, +Y up-ish)."""
+    up = np.array([0.0, 1.0, 0.0]) if up is None else np.asarray(up, np.float64)
+    fwd = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
+    fwd = fwd / np.maximum(np.linalg.norm(fwd, axis=-1, keepdims=True), 1e-12)
+    right = np.cross(fwd, up)
+    n = np.linalg.norm(right, axis=-1, keepdims=True)
+    # looking straight up or down: any right vector perpendicular to fwd
+    right = np.where(n > 1e-9, right / np.maximum(n, 1e-12), np.array([1.0, 0.0, 0.0]))
+    cam_up = np.cross(right, fwd)
+    return np.stack([right, cam_up, -fwd], axis=-1)
+
+
+def intrinsics_for(width: int, height: int, vfov_deg: float = FOLLOW_VFOV_DEG) -> np.ndarray:
+    """(4,) fx, fy, cx, cy of a centred pinhole with square pixels and the given vertical field of view."""
+    fy = 0.5 * height / np.tan(np.radians(vfov_deg) / 2)
+    return np.array([fy, fy, width / 2, height / 2])
+
+
+def recorded_cameras(K: np.ndarray, pos: np.ndarray, rot_xyzw: np.ndarray, valid: np.ndarray, width: int, height: int,
+                     crop=None) -> Cameras:  # fmt: skip
+    """Cameras from recorded rows: K (N, 4) source pixels, pos (N, 3), rot (N, 4) xyzw camera-to-world.
+
+    ``crop`` (a ``marionette.ingest.video.CropResize``) maps the source intrinsics to the output the
+    video chunk applied; its output size must be (height, width).
+    """
+    from marionette.geometry import quat_to_matrix
+
+    K = np.asarray(K, np.float64)
+    if crop is not None:
+        if (crop.out_h, crop.out_w) != (height, width):
+            raise ValueError(f"crop outputs {crop.out_h}×{crop.out_w}, the render is {height}×{width}")
+        K = crop.intrinsics(K)
+    rot = np.asarray(rot_xyzw, np.float64)
+    ok = np.asarray(valid, bool) & np.isfinite(K).all(-1) & np.isfinite(pos).all(-1) & np.isfinite(rot).all(-1)
+    ok &= (K[:, 0] > 0) & (K[:, 1] > 0) & (np.linalg.norm(np.nan_to_num(rot), axis=-1) > 1e-6)
+    R = np.where(ok[:, None, None], quat_to_matrix(np.where(ok[:, None], rot, [0.0, 0.0, 0.0, 1.0])), np.eye(3))
+    return Cameras(K, np.asarray(pos, np.float64), R, ok, int(width), int(height))
+
+
+def _hold(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Each row replaced by the last valid row at or before it (rows before the first valid one stay NaN)."""
+    idx = np.where(ok, np.arange(len(ok)), -1)
+    idx = np.maximum.accumulate(idx) if len(idx) else idx
+    out = np.full_like(x, np.nan)
+    have = idx >= 0
+    out[have] = x[idx[have]]
+    return out
+
+
+def follow_cameras(roots: list[np.ndarray], forward: np.ndarray, valid: list[np.ndarray], fps: float, width: int,
+                   height: int) -> Cameras:  # fmt: skip
+    """The follow camera of the module docstring: roots [(N, 3)] of the articulated entities (A first),
+    A's world forward vectors (N, 3), their validity [(N,)], the frame rate and the output size."""
+    n = len(roots[0])
+    a = _hold(np.asarray(roots[0], np.float64), np.asarray(valid[0], bool))
+    b = _hold(np.asarray(roots[1], np.float64), np.asarray(valid[1], bool)) if len(roots) > 1 else np.full((n, 3), np.nan)
+    fwd_a = _hold(np.asarray(forward, np.float64), np.asarray(valid[0], bool))
+    only_b = ~np.isfinite(a).all(-1) & np.isfinite(b).all(-1)
+    a = np.where(only_b[:, None], b, a)  # before A first appears, frame B alone
+    have_b = np.isfinite(b).all(-1) & ~only_b
+    d = np.where(have_b[:, None], b - a, 0.0)
+    d[:, 1] = 0.0
+    s = np.linalg.norm(d, axis=-1)
+    f_h = np.nan_to_num(fwd_a * np.array([1.0, 0.0, 1.0]))
+    nf = np.linalg.norm(f_h, axis=-1)
+    f_own = np.where(nf[:, None] > 1e-9, f_h / np.maximum(nf, 1e-12)[:, None], np.array([0.0, 0.0, 1.0]))
+    pair = have_b & (s > 1e-6)
+    f = np.where(pair[:, None], d / np.maximum(s, 1e-12)[:, None], f_own)
+    D = np.maximum(6.0, 0.6 * np.where(pair, s, 0.0) + 4.0)
+    up = np.array([0.0, 1.0, 0.0])
+    eye_w = a - D[:, None] * f + (0.35 * D + 2.0)[:, None] * up
+    tgt_w = np.where(pair[:, None], (a + np.nan_to_num(b)) / 2, a + 2.0 * f) + 0.5 * up
+    alpha = 1.0 - np.exp(-1.0 / (fps * FOLLOW_TAU_S))
+    eye, tgt = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    e = g = None
+    for t in range(n):
+        if not np.isfinite(eye_w[t]).all():
+            continue
+        e = eye_w[t] if e is None else e + alpha * (eye_w[t] - e)
+        g = tgt_w[t] if g is None else g + alpha * (tgt_w[t] - g)
+        eye[t], tgt[t] = e, g
+    ok = np.isfinite(eye).all(-1)
+    R = np.where(ok[:, None, None], look_at(np.nan_to_num(eye), np.nan_to_num(tgt) + np.where(ok, 0.0, 1.0)[:, None] * [0, 0, -1]), np.eye(3))
+    K = np.tile(intrinsics_for(width, height), (n, 1))
+    return Cameras(K, eye, R, ok, int(width), int(height))

@@ -1,0 +1,150 @@
+"""The pose-control G-buffer: its channel encoding and its lossless 10-bit video file.
+
+Channels (floats in [0, 1] as rendered, then 10-bit codes c = round(1023 · v)):
+
+- R, height: ĥ = (y − h_min) / (h_max − h_min) clipped to [0, 1], with y the world height of the
+  surface point; R = 0.5 + 0.5 ĥ on terrain, 0.2 ĥ on a bone.
+- G, identity: id / 255 — 0 terrain, a rig's ``id_band`` for its bones (weapon 60–99, monster
+  105–194, hunter 195–254), ids in breadth-first order of the rig's child joints.
+- B, inverse depth: 1 − (z − z_near) / (z_far − z_near), z the view depth (metres along the optical
+  axis), clipped to [0, 1].
+- Background: (0, 0, 0) — no surface. A covered pixel always has G > 0 (a bone) or R ≥ 0.5 (terrain).
+
+File: Matroska, one FFV1 stream (level 3, intra only) in ``gbrp10le`` — planar RGB, 10 bits per channel,
+no chroma subsampling, lossless — with the container tag ``MARIONETTE_GBUFFER`` holding the JSON
+{"version", "h_min", "h_max", "z_near", "z_far", "width", "height", "fps"}: decoding needs nothing else.
+
+Quantisation bounds after decoding (the render target is half float: up to one ulp, 2⁻¹¹ in [0.5, 1),
+since llvmpipe truncates, before the 10-bit rounding of ±1/2046): height ±(h_max − h_min)·2·(1/2046 + 2⁻¹¹)
+on terrain and ±(h_max − h_min)·5·(1/2046 + 2⁻¹¹) on bones (``height_bound``); inverse depth
+±(1/2046 + 2⁻¹¹), i.e. depth ±(z_far − z_near)(1/2046 + 2⁻¹¹) (``depth_bound``); ids exact.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Iterator
+from dataclasses import asdict, dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+
+from marionette.io import atomic_path
+
+GBUFFER_VERSION = 1
+TAG = "MARIONETTE_GBUFFER"
+CODE_MAX = 1023
+HALF_ERR = 2.0**-11  # one ulp of a half float in [0.5, 1): drivers may truncate rather than round
+BACKGROUND_ID = -1
+
+
+@dataclass(frozen=True)
+class GBufferMeta:
+    """What decoding a G-buffer file needs: the height range (m), the depth range (m), size and rate."""
+
+    h_min: float
+    h_max: float
+    z_near: float
+    z_far: float
+    width: int
+    height: int
+    fps: float
+    version: int = GBUFFER_VERSION
+
+    def height_bound(self, terrain: bool = True) -> float:
+        """Largest decoding error (m) of a height on terrain (or on a bone)."""
+        step = (self.h_max - self.h_min) * 2 * (1 / (2 * CODE_MAX) + HALF_ERR)
+        return step if terrain else 2.5 * step
+
+    def depth_bound(self) -> float:
+        """Largest decoding error (m) of a depth."""
+        return (self.z_far - self.z_near) * (1 / (2 * CODE_MAX) + HALF_ERR)
+
+
+@dataclass
+class GBufferFrame:
+    """One decoded frame: height (H, W) metres (NaN on background), id (H, W) int16 (−1 background,
+    0 terrain, else a bone's id), inv_depth (H, W) in [0, 1] (0 background) and depth (H, W) metres (NaN background)."""
+
+    height: np.ndarray
+    id: np.ndarray
+    inv_depth: np.ndarray
+    depth: np.ndarray
+
+
+def to_codes(rgb: np.ndarray) -> np.ndarray:
+    """Rendered floats (H, W, 3) → 10-bit codes (H, W, 3) uint16."""
+    v = np.clip(np.nan_to_num(np.asarray(rgb, np.float32)), 0.0, 1.0)
+    return np.rint(v * CODE_MAX).astype(np.uint16)
+
+
+def decode_codes(codes: np.ndarray, meta: GBufferMeta) -> GBufferFrame:
+    """10-bit codes (H, W, 3) → the frame's height, id and depth (module docstring)."""
+    c = np.asarray(codes).astype(np.float64) / CODE_MAX
+    r, g, b = c[..., 0], c[..., 1], c[..., 2]
+    ids = np.rint(g * 255).astype(np.int16)
+    covered = (codes[..., 0] > 0) | (codes[..., 1] > 0) | (codes[..., 2] > 0)
+    ids[~covered] = BACKGROUND_ID
+    terrain = covered & (ids == 0)
+    h_hat = np.where(terrain, (r - 0.5) / 0.5, r / 0.2)
+    height = np.where(covered, meta.h_min + h_hat * (meta.h_max - meta.h_min), np.nan)
+    inv = np.where(covered, b, 0.0)
+    depth = np.where(covered, meta.z_near + (1 - b) * (meta.z_far - meta.z_near), np.nan)
+    return GBufferFrame(height, ids, inv, depth)
+
+
+def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta) -> int:
+    """Encode rendered frames (H, W, 3) floats or uint16 codes losslessly to ``path`` (atomic); returns the frame count."""
+    path = Path(path)
+    n = 0
+    # bitexact: no random segment UID or encoder string, so a re-render is byte-identical
+    with atomic_path(path) as tmp, av.open(str(tmp), "w", format="matroska", options={"fflags": "+bitexact"}) as c:
+        c.metadata[TAG] = json.dumps(asdict(meta), sort_keys=True)
+        rate = Fraction(meta.fps).limit_denominator(1001)
+        s = c.add_stream("ffv1", rate=rate)
+        s.width, s.height, s.pix_fmt = meta.width, meta.height, "gbrp10le"
+        s.options = {"level": "3", "g": "1", "slicecrc": "1"}
+        s.thread_count = 1
+        for f in frames:
+            codes = f if f.dtype == np.uint16 else to_codes(f)
+            if codes.shape != (meta.height, meta.width, 3):
+                raise ValueError(f"{path}: frame {n} is {codes.shape}, expected {(meta.height, meta.width, 3)}")
+            for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(codes), format="gbrp10le")):
+                c.mux(p)
+            n += 1
+        for p in s.encode():
+            c.mux(p)
+    return n
+
+
+def read_meta(path: Path) -> GBufferMeta:
+    """The metadata of a G-buffer file; a clear error if it is not one."""
+    try:
+        with av.open(str(path)) as c:
+            raw = c.metadata.get(TAG)
+    except (av.error.FFmpegError, OSError) as err:
+        raise ValueError(f"{path}: cannot open as a G-buffer video: {err}") from err
+    if raw is None:
+        raise ValueError(f"{path}: no {TAG} metadata: not a Marionette G-buffer video")
+    d = json.loads(raw)
+    if d.get("version") != GBUFFER_VERSION:
+        raise ValueError(f"{path}: G-buffer version {d.get('version')!r}, this reader knows {GBUFFER_VERSION}")
+    return GBufferMeta(**d)
+
+
+def iter_codes(path: Path) -> Iterator[np.ndarray]:
+    """The raw 10-bit codes (H, W, 3) uint16 of each frame."""
+    with av.open(str(path)) as c:
+        s = c.streams.video[0]
+        if s.codec_context.pix_fmt != "gbrp10le":
+            raise ValueError(f"{path}: pixel format {s.codec_context.pix_fmt}, a G-buffer is gbrp10le")
+        for frame in c.decode(s):
+            yield frame.to_ndarray(format="gbrp10le")
+
+
+def decode_gbuffer(path: Path) -> tuple[list[GBufferFrame], GBufferMeta]:
+    """Decode a G-buffer video: per frame height, id, inv_depth (and depth), and its metadata."""
+    meta = read_meta(path)
+    return [decode_codes(c, meta) for c in iter_codes(path)], meta

@@ -1,0 +1,334 @@
+"""Pose-control targets: every video chunk's ``pose.mkv``, rendered from recorded state with the recorded
+camera, cached as a derived product and placed beside ``rgb.mp4`` in the video shards.
+
+A chunk's target is keyed by what it is computed from (DESIGN "The corpus"): the chunk's state rows
+(their content hash), the sha256 of every terrain chunk its cameras can see (frustum against the
+chunk's bounding box, over all the chunk's frames), the stage's height range, ``BRIDGE_VERSION`` and
+the render settings. Rendered files live in ``<corpus>/derived/pose/<segment>__c<chunk>-<key>.mkv``;
+a pass renders only the chunks whose key has no file yet, then rewrites (atomically) only the video
+shards whose members change: a member ``<segment>__c<chunk>.pose.mkv`` right after the chunk's
+``rgb.mp4`` and ``json``, whose record gains ``"pose": {"key", "terrain_chunks", "frames"}``. So a
+terrain re-scan that changes one chunk re-renders only the video chunks that see it, and a pass with
+nothing new writes nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import tarfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from marionette.corpus import Corpus, _fixed
+from marionette.io import atomic_path, text_sha256
+from marionette.schema import Layout
+
+from .camera import Cameras, recorded_cameras
+from .gbuffer import GBufferMeta, write_gbuffer
+from .kinematics import bone_segments, world_skeletons
+from .render import TERRAIN_CULL_M, Rasterizer
+
+BRIDGE_VERSION = "1"
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Depth range (m) of the render and its terrain culling; heights span the stage's terrain range
+    widened by the margins (m) below and above (characters stand, and jump, above the ground)."""
+
+    z_near: float = 0.3
+    z_far: float = 100.0
+    cull_m: float = TERRAIN_CULL_M
+    margin_below_m: float = 2.0
+    margin_above_m: float = 10.0
+
+    def key(self) -> str:
+        return text_sha256(json.dumps(asdict(self), sort_keys=True))[:16]
+
+
+@dataclass
+class TerrainScene:
+    """A stage's terrain as the bridge uses it: its mesh, its chunks' boxes and hashes, its height range."""
+
+    vertices: np.ndarray  # (V, 3) float64 world
+    faces: np.ndarray  # (F, 3)
+    boxes: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # "cx_cz" → (lo (3,), hi (3,))
+    hashes: dict[str, str] = field(default_factory=dict)  # "cx_cz" → sha256 of the chunk file
+    h_range: tuple[float, float] | None = None  # (lowest, highest) layer height, None without terrain
+
+    @staticmethod
+    def empty() -> TerrainScene:
+        return TerrainScene(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+
+    @staticmethod
+    def of_stage(stage_dir: Path) -> TerrainScene:
+        """Read a stage's TRN2 chunks (as listed by its manifest) into a mesh, boxes and hashes."""
+        from terrain_scan.layers import Observations
+        from terrain_scan.mesh import tessellate
+        from terrain_scan.trn2 import CELLS, read_chunk
+
+        man_path = Path(stage_dir) / "manifest.json"
+        if not man_path.exists():
+            return TerrainScene.empty()
+        man = json.loads(man_path.read_text())
+        parts, boxes, hashes = [], {}, {}
+        for name, rec in sorted(man.get("chunks", {}).items()):
+            ch = read_chunk(Path(stage_dir) / rec["file"])
+            ok = ch.valid() & np.isfinite(ch.cells["h"])
+            cell, slot = np.nonzero(ok)
+            if not len(cell):
+                continue
+            h = ch.cells["h"][cell, slot].astype(np.float64)
+            parts.append(Observations(ch.cx * CELLS + cell % CELLS, ch.cz * CELLS + cell // CELLS, h,
+                                      ch.cells["n"][cell, slot].astype(np.float64), np.ones(len(h), np.int64),
+                                      np.zeros(len(h), np.int64)))  # fmt: skip
+            boxes[name] = (np.array([ch.cx * CELLS, h.min(), ch.cz * CELLS]), np.array([(ch.cx + 1) * CELLS, h.max(), (ch.cz + 1) * CELLS]))
+            hashes[name] = rec["sha256"]
+        if not parts:
+            return TerrainScene.empty()
+        layers = Observations.concat(parts)
+        order = np.lexsort((layers.h, layers.gz, layers.gx))
+        V, F = tessellate(layers.take(order))
+        return TerrainScene(V, F, boxes, hashes, (float(layers.h.min()), float(layers.h.max())))
+
+    def seen_chunks(self, cams: Cameras, z_near: float, z_far: float) -> list[str]:
+        """Terrain chunks whose bounding box meets some valid camera's view frustum (a conservative test)."""
+        if not self.boxes:
+            return []
+        names = sorted(self.boxes)
+        lo = np.array([self.boxes[n][0] for n in names])
+        hi = np.array([self.boxes[n][1] for n in names])
+        corners = np.stack([np.where(np.array(bits, bool), hi, lo) for bits in np.ndindex(2, 2, 2)], 1)  # (C, 8, 3)
+        seen = np.zeros(len(names), bool)
+        for i in np.flatnonzero(cams.valid):
+            p = (corners - cams.pos[i]) @ cams.rot[i]  # camera frame (C, 8, 3)
+            x, y, d = p[..., 0], p[..., 1], -p[..., 2]
+            fx, fy, cx, cy = cams.K[i]
+            W, H = cams.width, cams.height
+            outside = [d < z_near, d > z_far, fx * x + cx * d < 0, fx * x + (cx - W) * d > 0, cy * d - fy * y < 0,
+                       cy * d - fy * y - H * d > 0]  # fmt: skip
+            seen |= ~np.any([o.all(axis=1) for o in outside], axis=0)
+            if seen.all():
+                break
+        return [n for n, s in zip(names, seen) if s]
+
+
+def height_range(terrain: TerrainScene, roots_y: np.ndarray, settings: RenderSettings) -> tuple[float, float]:
+    """(h_min, h_max) of the render: the terrain's range (else the roots'), widened by the margins."""
+    lo, hi = terrain.h_range if terrain.h_range is not None else (float(np.nanmin(roots_y)), float(np.nanmax(roots_y)))
+    return float(np.floor(lo - settings.margin_below_m)), float(np.ceil(hi + settings.margin_above_m))
+
+
+def chunk_inputs(layout: Layout, rows: pa.Table) -> tuple[np.ndarray, dict, dict, np.ndarray]:
+    """State (n, D) float64, anchors (row 0's recorded roots), validity, times (s) of a chunk's rows."""
+    state = _fixed(rows["state"], layout.dim).astype(np.float64)
+    valid = rows["valid"].to_numpy(zero_copy_only=False).astype(bool)
+    anchors = {e.name: _fixed(rows[f"{e.name}.root_world"], 3)[0] for e in layout.articulated}
+    return state, anchors, {e.name: valid for e in layout.articulated}, rows["t"].to_numpy().astype(np.float64)
+
+
+def render_frames(rast: Rasterizer, layout: Layout, skel, cams: Cameras, h: tuple[float, float], settings: RenderSettings):
+    """Yield the G-buffer floats of every frame of ``skel`` seen through ``cams``."""
+    for i in range(len(skel)):
+        yield rast.render(cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m)
+
+
+def _read_tar(path: Path) -> list[tuple[str, bytes]]:
+    """Members (name, bytes) of a tar, in order; only regular files, read into memory (never extracted)."""
+    out = []
+    with tarfile.open(path) as tar:
+        for m in tar:
+            if m.isfile():
+                out.append((m.name, tar.extractfile(m).read()))
+    return out
+
+
+def _write_tar(path: Path, members: list[tuple[str, bytes]]) -> None:
+    with atomic_path(path) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
+        for name, data in members:
+            info = tarfile.TarInfo(name)
+            info.size, info.mtime, info.mode = len(data), 0, 0o644
+            tar.addfile(info, io.BytesIO(data))
+
+
+@dataclass
+class TargetsReport:
+    chunks: int = 0
+    rendered: list[str] = field(default_factory=list)  # chunk names rendered in this pass
+    shards_rewritten: list[int] = field(default_factory=list)
+    frames_rendered: int = 0
+
+
+def render_pose_targets(corpus_path: Path, settings: RenderSettings | None = None) -> TargetsReport:
+    """Bring every video chunk's pose target up to date (module docstring); returns what was done."""
+    from terrain_scan.scan import stage_dir
+
+    settings = settings or RenderSettings()
+    corpus = Corpus(Path(corpus_path))
+    layout = corpus.layout
+    out_dir = corpus.path / "derived" / "pose"
+    report = TargetsReport()
+    segs = {r["segment"]: r for r in corpus.segments.to_pylist()}
+    terrains: dict[str, TerrainScene] = {}
+    rasts: dict[tuple[int, int], Rasterizer] = {}
+    uploaded: dict[tuple[int, int], str] = {}
+    keep_files: set[str] = set()
+    try:
+        for shard in corpus.shard_ids():
+            vpath = corpus.video_path(shard)
+            if not vpath.exists():
+                continue
+            members = _read_tar(vpath)
+            new_members: list[tuple[str, bytes]] = []
+            for name, data in members:
+                if name.endswith(".pose.mkv"):
+                    continue
+                if not name.endswith(".json"):
+                    new_members.append((name, data))
+                    continue
+                chunk = name[: -len(".json")]
+                rec = json.loads(data)
+                rec.pop("pose", None)
+                seg = segs[rec["segment"]]
+                stage = seg["stage"]
+                if stage not in terrains:
+                    terrains[stage] = TerrainScene.of_stage(stage_dir(corpus.path, stage))
+                terrain = terrains[stage]
+                rows = corpus.read_segment(rec["segment"])
+                frames = rows["frame"].to_numpy()
+                a, b = rec["frames"]
+                rows = rows.take(np.flatnonzero((frames >= a) & (frames < b)))
+                if rows.num_rows != b - a:
+                    raise ValueError(f"{vpath}: chunk {chunk} spans frames [{a}, {b}) but its segment has {rows.num_rows} of them")
+                out_h, out_w = rec["resize"]
+                cams = recorded_cameras(np.asarray(rec["K"], np.float64), _fixed(rows["camera.pos"], 3),
+                                        _fixed(rows["camera.rot"], 4), rows["valid"].to_numpy(zero_copy_only=False),
+                                        out_w, out_h)  # fmt: skip
+                roots_y = np.concatenate([_fixed(rows[f"{e.name}.root_world"], 3)[:, 1] for e in layout.articulated])
+                h = height_range(terrain, roots_y, settings)
+                seen = terrain.seen_chunks(cams, settings.z_near, settings.z_far)
+                key = text_sha256(_rows_hash(layout, rows), json.dumps([[s, terrain.hashes[s]] for s in seen]), json.dumps(h),
+                                  json.dumps(rec["K"]), f"{out_h}x{out_w}", BRIDGE_VERSION, settings.key())[:16]  # fmt: skip
+                path = out_dir / f"{chunk}-{key}.mkv"
+                keep_files.add(path.name)
+                report.chunks += 1
+                if not path.exists():
+                    size = (out_w, out_h)
+                    if size not in rasts:
+                        rasts[size] = Rasterizer(out_w, out_h)
+                    rast = rasts[size]
+                    if uploaded.get(size) != stage:
+                        rast.set_terrain(terrain.vertices, terrain.faces)
+                        uploaded[size] = stage
+                    state, anchors, valid, t = chunk_inputs(layout, rows)
+                    skel = world_skeletons(layout, state, anchors, valid, t)
+                    meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, out_w, out_h, float(rec["fps"]))
+                    report.frames_rendered += write_gbuffer(path, render_frames(rast, layout, skel, cams, h, settings), meta)
+                    report.rendered.append(chunk)
+                rec["pose"] = {"key": key, "terrain_chunks": seen, "frames": b - a}
+                new_members.append((name, json.dumps(rec, sort_keys=True).encode()))
+                new_members.append((f"{chunk}.pose.mkv", path.read_bytes()))
+            if new_members != members:
+                _write_tar(vpath, new_members)
+                report.shards_rewritten.append(shard)
+    finally:
+        for r in rasts.values():
+            r.release()
+    if out_dir.exists():
+        for old in out_dir.glob("*.mkv"):
+            if old.name not in keep_files:
+                old.unlink(missing_ok=True)
+    return report
+
+
+def _rows_hash(layout: Layout, rows: pa.Table) -> str:
+    """Content hash of a chunk's state rows: state vectors, recorded roots and rotations, validity, times, cameras."""
+    h = hashlib.sha256()
+    cols = [("state", layout.dim), ("camera.pos", 3), ("camera.rot", 4)]
+    cols += [(f"{e.name}.root_world", 3) for e in layout.articulated] + [(f"{e.name}.rot_world", 4) for e in layout.articulated]
+    for name, width in cols:
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(_fixed(rows[name], width)).tobytes())
+    for name in ("valid", "t", "frame"):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(rows[name].to_numpy(zero_copy_only=False)).tobytes())
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------------------------
+# one segment or one rollout, at any size, rate and camera (`marionette render`)
+
+
+def source_size(corpus: Corpus, segment: str) -> tuple[int, int]:
+    """(height, width) of a segment's source video: from its video chunks' records, else the source's header."""
+    row = corpus.segment_row(segment)
+    vpath = corpus.video_path(row["shard"])
+    if vpath.exists():
+        for name, data in _read_tar(vpath):
+            if name.startswith(f"{segment}__c") and name.endswith(".json"):
+                h, w = json.loads(data)["source_size"]
+                return int(h), int(w)
+    sample = corpus.samples.filter(pa.compute.equal(corpus.samples["sample"], row["sample"])).to_pylist()
+    if sample and sample[0]["source"]:
+        import av
+
+        with av.open(str(Path(sample[0]["source"]) / "rgb.mp4")) as c:
+            cc = c.streams.video[0].codec_context
+            return int(cc.height), int(cc.width)
+    raise ValueError(f"{corpus.path}: cannot tell the source video size of segment {segment!r}")
+
+
+def render_rows(layout: Layout, rows: pa.Table, out: Path, terrain: TerrainScene, camera: str = "recorded",
+                size: tuple[int, int] = (704, 1280), fps: float | None = None, src_size: tuple[int, int] | None = None,
+                settings: RenderSettings | None = None) -> GBufferMeta:  # fmt: skip
+    """Render state rows (one segment or rollout, corpus state schema) to a G-buffer video ``out``.
+
+    ``camera``: "recorded" (the rows' camera, its intrinsics mapped by the centred crop + resize from
+    ``src_size`` to ``size``) or "follow" (``camera.follow_cameras``). ``fps`` defaults to the rows' rate;
+    skeletons and the recorded camera are interpolated in time (slerp for rotations).
+    """
+    from marionette.geometry import resample_positions, resample_quats
+    from marionette.ingest.video import CropResize
+
+    from .camera import follow_cameras
+
+    settings = settings or RenderSettings()
+    if rows.num_rows == 0:
+        raise ValueError(f"{out}: no rows to render")
+    H, W = size
+    state, anchors, valid, t = chunk_inputs(layout, rows)
+    if len(t) > 1 and not np.all(np.diff(t) > 0):
+        raise ValueError(f"{out}: the rows' times are not increasing")
+    src_fps = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else 30.0
+    fps = float(fps or round(src_fps, 6))
+    n_out = max(1, int(np.floor((t[-1] - t[0]) * fps + 1e-6)) + 1)
+    t_out = t[0] + np.arange(n_out) / fps
+    skel = world_skeletons(layout, state, anchors, valid, t, t_out)
+    if camera == "recorded":
+        if src_size is None:
+            raise ValueError("the recorded camera needs the source video size")
+        cr = CropResize.fit(src_size[0], src_size[1], H, W)
+        K = resample_positions(t, _fixed(rows["camera.K"], 4), t_out, "nearest")
+        pos = resample_positions(t, _fixed(rows["camera.pos"], 3), t_out)
+        rot = resample_quats(t, np.nan_to_num(_fixed(rows["camera.rot"], 4)), t_out)
+        # a frame with an invalid recorded camera (NaN position) makes the frames interpolated from it invalid: black
+        cams = recorded_cameras(K, pos, rot, np.ones(n_out, bool), W, H, crop=cr)
+    elif camera == "follow":
+        ents = layout.articulated
+        fwd = [skel.rot[e.name] @ np.asarray(e.rig.forward_axis, np.float64) for e in ents][0]
+        cams = follow_cameras([skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, W, H)
+    else:
+        raise ValueError(f"camera must be 'recorded' or 'follow', not {camera!r}")
+    roots_y = np.concatenate([skel.joints[e.name][:, 0, 1] for e in layout.articulated])
+    h = height_range(terrain, roots_y, settings)
+    meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, W, H, fps)
+    with Rasterizer(W, H) as rast:
+        rast.set_terrain(terrain.vertices, terrain.faces)
+        write_gbuffer(out, render_frames(rast, layout, skel, cams, h, settings), meta)
+    return meta
+

@@ -1,0 +1,277 @@
+"""The bridge's rasterizer and G-buffer codec: exact geometry, occlusion, culling, the lossless round
+trip, far-from-origin scenes, degenerate rotations and empty scenes."""
+
+import numpy as np
+import pytest
+
+from marionette.bridge.camera import Cameras, intrinsics_for, look_at
+from marionette.bridge.gbuffer import BACKGROUND_ID, GBufferMeta, decode_codes, decode_gbuffer, to_codes, write_gbuffer
+from marionette.bridge.kinematics import bone_segments, world_skeletons
+from marionette.bridge.render import Rasterizer
+from marionette.geometry import world_to_state, yaw_quat
+from marionette.schema import load_scene
+
+W, H = 256, 144
+RANGE = dict(h_min=-10.0, h_max=30.0, z_near=0.3, z_far=120.0)
+
+
+def camera(eye, target, origin=(0.0, 0.0, 0.0)) -> Cameras:
+    o = np.asarray(origin, np.float64)
+    eye, target = np.asarray(eye, np.float64) + o, np.asarray(target, np.float64) + o
+    return Cameras(intrinsics_for(W, H)[None], eye[None], look_at(eye, target)[None], np.array([True]), W, H)
+
+
+def grid(x0, x1, z0, z1, y, step=2.0, origin=(0.0, 0.0, 0.0)):
+    """A flat horizontal mesh at height y over [x0, x1] × [z0, z1]."""
+    xs, zs = np.arange(x0, x1 + 1e-9, step), np.arange(z0, z1 + 1e-9, step)
+    X, Z = np.meshgrid(xs, zs)
+    V = np.stack([X.ravel(), np.full(X.size, y), Z.ravel()], -1) + np.asarray(origin)
+    i = np.arange(X.size).reshape(X.shape)
+    a, b, c, d = i[:-1, :-1], i[:-1, 1:], i[1:, :-1], i[1:, 1:]
+    F = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    return V, F
+
+
+def wall(x0, x1, y0, y1, z, origin=(0.0, 0.0, 0.0)):
+    """A vertical rectangle in the plane z = const."""
+    V = np.array([[x0, y0, z], [x1, y0, z], [x0, y1, z], [x1, y1, z]], np.float64) + np.asarray(origin)
+    return V, np.array([[0, 1, 2], [1, 3, 2]])
+
+
+def ball(p, r=0.25, ident=200.0):
+    p = np.asarray(p, np.float64)[None]
+    return p, p + [0.0, 1e-4, 0.0], np.array([r]), np.array([ident])
+
+
+@pytest.fixture(scope="module")
+def rast():
+    with Rasterizer(W, H) as r:
+        yield r
+
+
+def ids_of(img):
+    return np.rint(img[..., 1] * 255).astype(int)
+
+
+def centroid(mask):
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.mean() + 0.5, ys.mean() + 0.5])
+
+
+def test_a_bone_lands_on_its_projected_pixel(rast):
+    cam = camera([0.0, 4.0, 12.0], [0.0, 0.0, 0.0])
+    rast.set_terrain(*grid(-40, 40, -40, 40, 0.0))
+    for p in ([0.0, 1.0, 0.0], [3.0, 2.0, -5.0], [-6.0, 0.5, 4.0]):
+        img = rast.render(cam, 0, ball(p), **RANGE)
+        mask = ids_of(img) == 200
+        assert mask.sum() >= 10
+        uv, _ = cam.project(np.array([p]), 0)
+        assert np.abs(centroid(mask) - uv[0]).max() < 1.0, (centroid(mask), uv)
+
+
+def test_a_plane_at_known_depth_decodes_to_it(rast, tmp_path):
+    cam = camera([0.0, 0.0, 0.0], [0.0, 0.0, -1.0])
+    rng = dict(h_min=-60.0, h_max=60.0, z_near=0.3, z_far=120.0)  # the plane's rows span ±52 m of height at 90 m
+    meta = GBufferMeta(width=W, height=H, fps=30.0, **rng)
+    for d in (5.0, 37.3, 90.0):
+        rast.set_terrain(*wall(-200, 200, -200, 200, -d))
+        img = rast.render(cam, 0, ball([0, 0, 1e3]), **rng)  # the bone is behind the camera: not drawn
+        write_gbuffer(tmp_path / "plane.mkv", [img], meta)
+        frames, meta2 = decode_gbuffer(tmp_path / "plane.mkv")
+        f = frames[0]
+        assert meta2 == meta and (f.id == 0).all()  # terrain everywhere
+        assert np.abs(f.depth - d).max() <= meta.depth_bound(), (d, np.abs(f.depth - d).max(), meta.depth_bound())
+        # heights of the plane's points: y = depth-scaled pixel ray height
+        v = np.arange(H) + 0.5
+        y = -(v - H / 2) / cam.K[0, 1] * d
+        assert np.abs(f.height - y[:, None]).max() <= meta.height_bound() + 1e-9
+
+
+def test_occlusion_and_near_terrain_culling(rast):
+    cam = camera([0.0, 1.0, 10.0], [0.0, 1.0, 0.0])
+    target = ball([0.0, 1.0, 0.0], r=0.4)
+    rast.set_terrain(*wall(-5, 5, -5, 5, 5.0))  # 5 m in front of the camera, between it and the bone
+    assert not (ids_of(rast.render(cam, 0, target, **RANGE)) == 200).any()  # hidden
+    rast.set_terrain(*wall(-5, 5, -5, 5, 8.0))  # 2 m from the camera: culled, the bone shows
+    img = rast.render(cam, 0, target, **RANGE)
+    assert (ids_of(img) == 200).sum() > 50
+    assert (img.sum(-1) == 0).sum() == (ids_of(img) != 200).sum()  # the wall drew nothing
+    # a bone within 3 m is never culled
+    near = rast.render(cam, 0, ball([0.0, 1.0, 8.5], r=0.2), **RANGE)
+    assert (ids_of(near) == 200).sum() > 50
+
+
+def test_codec_round_trip(rast, tmp_path):
+    layout = load_scene("duel")
+    skel = standing_pair(layout, origin=(-950.0, 30.0, 850.0))
+    cam = camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0], origin=(-950.0, 30.0, 850.0))
+    rast.set_terrain(*grid(-30, 30, -30, 30, 0.0, origin=(-950.0, 30.0, 850.0)))
+    rng = dict(h_min=20.0, h_max=45.0, z_near=0.3, z_far=120.0)
+    frames = [rast.render(cam, 0, bone_segments(layout, skel, i), **rng) for i in range(len(skel))]
+    meta = GBufferMeta(width=W, height=H, fps=30.0, **rng)
+    assert write_gbuffer(tmp_path / "pose.mkv", frames, meta) == len(frames)
+    decoded, _ = decode_gbuffer(tmp_path / "pose.mkv")
+    assert len(decoded) == len(frames)
+    for img, f in zip(frames, decoded):
+        want_ids = np.where(img.sum(-1) > 0, ids_of(img), BACKGROUND_ID)
+        covered = want_ids != BACKGROUND_ID
+        assert covered.mean() > 0.3 and (want_ids >= 195).sum() > 50 and (want_ids >= 105).sum() > 200
+        assert (f.id[covered] == want_ids[covered]).mean() >= 0.999
+        assert (f.id[~covered] == BACKGROUND_ID).all()
+        exact = decode_codes(to_codes(img), meta)  # the file is lossless: same as decoding the codes directly
+        np.testing.assert_array_equal(f.id, exact.id)
+        np.testing.assert_array_equal(np.nan_to_num(f.depth, nan=-1), np.nan_to_num(exact.depth, nan=-1))
+        terrain = f.id == 0
+        assert np.abs(f.height[terrain] - 30.0).max() <= meta.height_bound()  # the ground is flat at y = 30
+        bones = f.id > 0
+        assert np.all((f.height[bones] > 30.0 - meta.height_bound(False)) & (f.height[bones] < 34.0))
+
+
+def test_decoding_rejects_other_files(tmp_path):
+    import av
+
+    p = tmp_path / "plain.mkv"
+    with av.open(str(p), "w", format="matroska") as c:
+        s = c.add_stream("ffv1", rate=30)
+        s.width, s.height, s.pix_fmt = 16, 16, "gbrp10le"
+        for pk in s.encode(av.VideoFrame.from_ndarray(np.zeros((16, 16, 3), np.uint16), format="gbrp10le")):
+            c.mux(pk)
+        for pk in s.encode():
+            c.mux(pk)
+    with pytest.raises(ValueError, match="plain.mkv: no MARIONETTE_GBUFFER"):
+        decode_gbuffer(p)
+    (tmp_path / "junk.mkv").write_bytes(b"not a video")
+    with pytest.raises(ValueError, match="junk.mkv"):
+        decode_gbuffer(tmp_path / "junk.mkv")
+
+
+def standing_pair(layout, origin, n=3, rot6d=None):
+    """Skeletons of a drake and a hunter standing 4 m apart on flat ground at ``origin`` (n frames)."""
+    o = np.asarray(origin, np.float64)
+    joints, rots = {}, {}
+    for e, x0 in zip(layout.articulated, (-2.5, 2.0)):
+        K = e.rig.n_keep
+        rng = np.random.default_rng(len(e.name))
+        local = np.zeros((K, 3))
+        local[0] = [0, 1.0 if e.name == "hunter" else 1.5, 0]
+        for c, p in e.rig.bones:  # each child 0.25 m from its parent, spreading out and down
+            d = rng.normal(size=3)
+            d[1] = -abs(d[1]) * 0.5
+            local[c] = local[p] + 0.25 * d / np.linalg.norm(d)
+        local[:, 1] = np.maximum(local[:, 1], 0.05)
+        J = np.repeat((local + o + [x0, 0.0, 0.0])[None], n, 0)
+        J[:, :, 0] += np.arange(n)[:, None] * 0.05
+        joints[e.name] = J
+        rots[e.name] = np.repeat(yaw_quat(np.array([0.3]))[None, 0], n, 0)
+    hunter = joints["hunter"]
+    joints["weapon"] = hunter[:, [1, 2]] + [0.0, 0.3, 0.0]
+    state = world_to_state(layout, joints, rots)
+    if rot6d is not None:
+        state[:, layout.slice("hunter.rot6d")] = rot6d
+    anchors = {e.name: joints[e.name][0, 0] for e in layout.articulated}
+    valid = {e.name: np.ones(n, bool) for e in layout.articulated}
+    return world_skeletons(layout, state, anchors, valid, np.arange(n) / 30.0)
+
+
+def test_far_from_the_origin_renders_like_the_origin(rast):
+    layout = load_scene("duel")
+    masks = []
+    for origin in ((0.0, 0.0, 0.0), (1e5, 0.0, -1e5), (-1e5, 12.0, 1e5)):
+        skel = standing_pair(layout, origin)
+        cam = camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0], origin=origin)
+        rast.set_terrain(*grid(-30, 30, -30, 30, 0.0, origin=origin))
+        oy = origin[1]
+        img = rast.render(cam, 0, bone_segments(layout, skel, 0), h_min=oy - 10, h_max=oy + 30, z_near=0.3, z_far=120.0)
+        masks.append(ids_of(img))
+    for m in masks[1:]:
+        for ident in (195, 105):
+            a, b = masks[0] >= ident, m >= ident
+            assert np.abs(centroid(a) - centroid(b)).max() < 1.0
+            assert (a & b).sum() / (a | b).sum() > 0.97
+        assert (masks[0] == m).mean() > 0.995
+
+
+@pytest.mark.parametrize("d6", [np.zeros(6), np.array([1.0, 0, 0, 2.0, 0, 0]), np.array([1e8, 0, 0, 0, 1e8, 0]),
+                                np.array([np.nan, 0, 0, 0, 1, 0])])  # fmt: skip
+def test_degenerate_rotations_never_give_nan_pixels(rast, d6):
+    layout = load_scene("duel")
+    if not np.isfinite(d6).all():
+        with pytest.raises(ValueError, match="not finite"):
+            standing_pair(layout, (0.0, 0.0, 0.0), rot6d=d6)
+        return
+    skel = standing_pair(layout, (0.0, 0.0, 0.0), rot6d=d6)
+    R = skel.rot["hunter"]
+    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+    cam = camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0])
+    rast.set_terrain(*grid(-30, 30, -30, 30, 0.0))
+    img = rast.render(cam, 0, bone_segments(layout, skel, 0), **RANGE)
+    assert np.isfinite(img).all() and (ids_of(img) >= 195).sum() > 20
+
+
+def test_an_empty_scene_renders_terrain_only(rast):
+    layout = load_scene("duel")
+    skel = standing_pair(layout, (0.0, 0.0, 0.0))
+    for e in layout.entities:
+        skel.valid[e.name][:] = False
+    a, b, r, ids = bone_segments(layout, skel, 0)
+    assert len(a) == 0
+    rast.set_terrain(*grid(-30, 30, -30, 30, 0.0))
+    img = rast.render(camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0]), 0, (a, b, r, ids), **RANGE)
+    assert (img[..., 1] == 0).all() and (img[..., 0] >= 0.5).mean() > 0.3
+    rast.set_terrain(np.zeros((0, 3)), np.zeros((0, 3), int))
+    assert (rast.render(camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0]), 0, (a, b, r, ids), **RANGE) == 0).all()
+
+
+def test_resampling_keeps_bone_lengths_and_source_frames():
+    layout = load_scene("duel")
+    n = 21
+    base = standing_pair(layout, (5.0, 0.0, -3.0), n=n)
+    yaw = np.linspace(0.0, 2.5, n)  # the drake turns 143° over a second
+    from marionette.geometry import quat_to_matrix, to_local, to_world
+
+    joints, rots = {}, {}
+    for e in layout.articulated:
+        J = base.joints[e.name]
+        local = to_local(J, J[:, 0], base.rot[e.name])
+        R = quat_to_matrix(yaw_quat(yaw if e.name == "monster" else np.zeros(n)))
+        joints[e.name] = to_world(local, J[:, 0], R)
+        rots[e.name] = yaw_quat(yaw if e.name == "monster" else np.zeros(n))
+    joints["weapon"] = base.joints["weapon"]
+    state = world_to_state(layout, joints, rots)
+    anchors = {e.name: joints[e.name][0, 0] for e in layout.articulated}
+    valid = {e.name: np.ones(n, bool) for e in layout.articulated}
+    valid["hunter"][10] = False
+    t20 = np.arange(n) / 20.0
+    t30 = np.arange(31) / 30.0
+    src = world_skeletons(layout, state, anchors, valid, t20)
+    out = world_skeletons(layout, state, anchors, valid, t20, t30)
+    m = layout.entity("monster")
+    bones = np.array(m.rig.bones)
+    length = lambda J: np.linalg.norm(J[:, bones[:, 0]] - J[:, bones[:, 1]], axis=-1)  # noqa: E731
+    np.testing.assert_allclose(length(out.joints["monster"]), np.broadcast_to(length(src.joints["monster"])[:1], (31, len(bones))), atol=1e-5)
+    # output times that fall on source frames give the source skeleton
+    np.testing.assert_allclose(out.joints["monster"][::3], src.joints["monster"][::2], atol=1e-9)
+    # the hunter is invalid at 0.5 s (source row 10): the output frames around it are too
+    assert not out.valid["hunter"][15] and not out.valid["hunter"][14] and not out.valid["hunter"][16] and out.valid["hunter"][13]
+    assert out.valid["weapon"].tolist() == out.valid["hunter"].tolist()
+
+
+def test_follow_camera_is_causal_and_frames_the_pair():
+    from marionette.bridge.camera import follow_cameras
+
+    n = 90
+    t = np.arange(n) / 30.0
+    a = np.stack([np.cos(t), np.zeros(n), np.sin(t)], -1) * 10 + [1e5, 20.0, -1e5]
+    b = a + np.stack([8 * np.ones(n), np.zeros(n), 4 * np.sin(3 * t)], -1)
+    fwd = np.tile([0.0, 0.0, 1.0], (n, 1))
+    ok = np.ones(n, bool)
+    full = follow_cameras([a, b], fwd, [ok, ok], 30.0, W, H)
+    for k in (1, 30, 60):
+        part = follow_cameras([a[:k], b[:k]], fwd[:k], [ok[:k], ok[:k]], 30.0, W, H)
+        np.testing.assert_array_equal(part.pos, full.pos[:k])  # no future frame changes the past
+        np.testing.assert_array_equal(part.rot, full.rot[:k])
+    R = full.rot
+    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+    for i in range(n):
+        uv, depth = full.project(np.stack([a[i], b[i]]), i)
+        assert np.all(depth > 0) and np.all((uv >= 0) & (uv <= [W, H])), (i, uv)  # both roots in view
