@@ -275,3 +275,24 @@ def test_follow_camera_is_causal_and_frames_the_pair():
     for i in range(n):
         uv, depth = full.project(np.stack([a[i], b[i]]), i)
         assert np.all(depth > 0) and np.all((uv >= 0) & (uv <= [W, H])), (i, uv)  # both roots in view
+
+
+def test_the_fast_code_path_equals_the_float_path(rast, tmp_path):
+    from marionette.bridge.gbuffer import HALF_TO_CODE, iter_codes
+
+    h = np.arange(1 << 16, dtype=np.uint16).view(np.float16)
+    ok = np.isfinite(h)
+    np.testing.assert_array_equal(HALF_TO_CODE[ok], to_codes(h[ok].astype(np.float32)))
+    layout = load_scene("duel")
+    skel = standing_pair(layout, (0.0, 0.0, 0.0))
+    cam = camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0])
+    rast.set_terrain(*grid(-30, 30, -30, 30, 0.0))
+    bones = bone_segments(layout, skel, 0)
+    codes = to_codes(rast.render(cam, 0, bones, **RANGE))
+    planes = rast.render_planes(cam, 0, bones, **RANGE)
+    np.testing.assert_array_equal(planes, codes.transpose(2, 0, 1)[[1, 2, 0]])
+    meta = GBufferMeta(width=W, height=H, fps=30.0, **RANGE)
+    write_gbuffer(tmp_path / "a.mkv", [planes], meta)
+    write_gbuffer(tmp_path / "b.mkv", [codes], meta)
+    assert (tmp_path / "a.mkv").read_bytes() == (tmp_path / "b.mkv").read_bytes()
+    np.testing.assert_array_equal(next(iter_codes(tmp_path / "a.mkv")), codes)

@@ -80,6 +80,10 @@ def to_codes(rgb: np.ndarray) -> np.ndarray:
     return np.rint(v * CODE_MAX).astype(np.uint16)
 
 
+# the code of every half-float bit pattern: ``HALF_TO_CODE[bits]`` equals ``to_codes`` of that half's value
+HALF_TO_CODE = to_codes(np.arange(1 << 16, dtype=np.uint16).view(np.float16).astype(np.float32))
+
+
 def decode_codes(codes: np.ndarray, meta: GBufferMeta) -> GBufferFrame:
     """10-bit codes (H, W, 3) → the frame's height, id and depth (module docstring)."""
     c = np.asarray(codes).astype(np.float64) / CODE_MAX
@@ -95,8 +99,27 @@ def decode_codes(codes: np.ndarray, meta: GBufferMeta) -> GBufferFrame:
     return GBufferFrame(height, ids, inv, depth)
 
 
+def _planar_frame(frame: np.ndarray, width: int, height: int, where: str) -> av.VideoFrame:
+    """A gbrp10le frame from codes: (H, W, 3) uint16 [R, G, B] interleaved, or (3, H, W) uint16 planes [G, B, R]."""
+    if frame.dtype != np.uint16:
+        frame = to_codes(frame)
+    if frame.shape == (height, width, 3):
+        planes = (frame[..., 1], frame[..., 2], frame[..., 0])
+    elif frame.shape == (3, height, width):
+        planes = tuple(frame)
+    else:
+        raise ValueError(f"{where}: frame is {frame.shape}, expected {(height, width, 3)} or {(3, height, width)}")
+    vf = av.VideoFrame(width, height, "gbrp10le")
+    for plane, data in zip(vf.planes, planes):  # gbrp: planes G, B, R
+        dst = np.frombuffer(plane, np.uint16).reshape(height, plane.line_size // 2)
+        dst[:, :width] = data
+    return vf
+
+
 def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta) -> int:
-    """Encode rendered frames (H, W, 3) floats or uint16 codes losslessly to ``path`` (atomic); returns the frame count."""
+    """Encode frames losslessly to ``path`` (atomic); returns the frame count. A frame is rendered floats
+    (H, W, 3), 10-bit codes (H, W, 3) uint16, or code planes (3, H, W) uint16 in G, B, R order
+    (``Rasterizer.render_planes``, the fast path)."""
     path = Path(path)
     n = 0
     # bitexact: no random segment UID or encoder string, so a re-render is byte-identical
@@ -108,10 +131,7 @@ def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta) -
         s.options = {"level": "3", "g": "1", "slicecrc": "1"}
         s.thread_count = 1
         for f in frames:
-            codes = f if f.dtype == np.uint16 else to_codes(f)
-            if codes.shape != (meta.height, meta.width, 3):
-                raise ValueError(f"{path}: frame {n} is {codes.shape}, expected {(meta.height, meta.width, 3)}")
-            for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(codes), format="gbrp10le")):
+            for p in s.encode(_planar_frame(f, meta.width, meta.height, f"{path}: frame {n}")):
                 c.mux(p)
             n += 1
         for p in s.encode():

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Cameras
+from .gbuffer import HALF_TO_CODE
 
 CAPSULE_SIDES = 12
 CAPSULE_RINGS = 4
@@ -192,18 +193,17 @@ class Rasterizer:
         self._inst.write(data.tobytes())
         return n
 
-    def render(self, cameras: Cameras, i: int, bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], h_min: float,
-               h_max: float, z_near: float, z_far: float, cull_m: float = TERRAIN_CULL_M) -> np.ndarray:  # fmt: skip
-        """Render frame ``i`` of ``cameras`` with bone capsules (a, b world (B, 3), radii (B,), ids (B,)):
-        the (H, W, 3) float32 R, G, B of the G-buffer (row 0 at the top); all zero where the camera is invalid."""
+    def _draw(self, cameras: Cameras, i: int, bones, h_min: float, h_max: float, z_near: float, z_far: float,
+              cull_m: float) -> np.ndarray | None:  # fmt: skip
+        """Draw frame ``i`` and read back the half-float bits (H, W, 4) uint16, rows bottom-up; None if the camera is invalid."""
         if (cameras.width, cameras.height) != (self.width, self.height):
             raise ValueError(f"cameras are {cameras.height}×{cameras.width}, the rasterizer {self.height}×{self.width}")
-        self.fbo.use()
-        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         if not cameras.valid[i]:
-            return np.zeros((self.height, self.width, 3), np.float32)
+            return None
         import moderngl
 
+        self.fbo.use()
+        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         pos, R = cameras.pos[i], cameras.rot[i]
@@ -218,7 +218,7 @@ class Rasterizer:
             prog["u_cull"].value = cull
             prog["u_terrain"].value = terrain
         if self._terrain_vao is not None:
-            self._terrain_prog["u_cam_rel"].value = tuple((pos - self.anchor).astype(np.float32))
+            self._terrain_prog["u_cam_rel"].value = tuple(float(v) for v in (pos - self.anchor).astype(np.float32))
             self._terrain_prog["u_h_off"].value = float(self.anchor[1] - h_min)
             self._terrain_vao.render()
         a, b, r, ids = bones
@@ -226,6 +226,25 @@ class Rasterizer:
             n = self._instances(np.asarray(a) - pos, np.asarray(b) - pos, r, ids)
             self._bone_prog["u_h_off"].value = float(pos[1] - h_min)
             self._bone_vao.render(instances=n)
-        raw = self.fbo.read(components=4, dtype="f2")
-        img = np.frombuffer(raw, np.float16).reshape(self.height, self.width, 4)[::-1, :, :3]
-        return img.astype(np.float32)
+        return np.frombuffer(self.fbo.read(components=4, dtype="f2"), np.uint16).reshape(self.height, self.width, 4)
+
+    def render(self, cameras: Cameras, i: int, bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], h_min: float,
+               h_max: float, z_near: float, z_far: float, cull_m: float = TERRAIN_CULL_M) -> np.ndarray:  # fmt: skip
+        """Render frame ``i`` of ``cameras`` with bone capsules (a, b world (B, 3), radii (B,), ids (B,)):
+        the (H, W, 3) float32 R, G, B of the G-buffer (row 0 at the top); all zero where the camera is invalid."""
+        bits = self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m)
+        if bits is None:
+            return np.zeros((self.height, self.width, 3), np.float32)
+        return bits[::-1, :, :3].view(np.float16).astype(np.float32)
+
+    def render_planes(self, cameras: Cameras, i: int, bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                      h_min: float, h_max: float, z_near: float, z_far: float, cull_m: float = TERRAIN_CULL_M) -> np.ndarray:  # fmt: skip
+        """``render`` straight to 10-bit code planes (3, H, W) uint16 in G, B, R order (the encoder's), through
+        one table lookup per channel: equal to ``to_codes(render(...))`` re-ordered, without the float copies."""
+        bits = self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m)
+        out = np.zeros((3, self.height, self.width), np.uint16)
+        if bits is not None:
+            flipped = bits[::-1]
+            for k, c in enumerate((1, 2, 0)):
+                np.take(HALF_TO_CODE, flipped[:, :, c], out=out[k])
+        return out

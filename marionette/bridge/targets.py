@@ -133,9 +133,9 @@ def chunk_inputs(layout: Layout, rows: pa.Table) -> tuple[np.ndarray, dict, dict
 
 
 def render_frames(rast: Rasterizer, layout: Layout, skel, cams: Cameras, h: tuple[float, float], settings: RenderSettings):
-    """Yield the G-buffer floats of every frame of ``skel`` seen through ``cams``."""
+    """Yield the G-buffer code planes (3, H, W) of every frame of ``skel`` seen through ``cams``."""
     for i in range(len(skel)):
-        yield rast.render(cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m)
+        yield rast.render_planes(cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m)
 
 
 def _read_tar(path: Path) -> list[tuple[str, bytes]]:
