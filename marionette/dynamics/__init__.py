@@ -1,0 +1,43 @@
+"""The dynamics model: ActionGPT and PoseGPT, two causal RoPE transformers over the scene's frames."""
+
+from .model import (
+    ActionGPT,
+    ActionOutputs,
+    DynamicsConfig,
+    DynamicsModel,
+    Frames,
+    KVCache,
+    PoseGPT,
+    TransformerSpec,
+    action_training_pair,
+    body_index,
+    body_slices,
+    join_state,
+    parameter_counts,
+    pose_training_pair,
+    root_index,
+    root_stream_slices,
+    split_state,
+    weapon_range,
+)
+
+__all__ = [
+    "ActionGPT",
+    "ActionOutputs",
+    "DynamicsConfig",
+    "DynamicsModel",
+    "Frames",
+    "KVCache",
+    "PoseGPT",
+    "TransformerSpec",
+    "action_training_pair",
+    "body_index",
+    "body_slices",
+    "join_state",
+    "parameter_counts",
+    "pose_training_pair",
+    "root_index",
+    "root_stream_slices",
+    "split_state",
+    "weapon_range",
+]

@@ -1,0 +1,592 @@
+"""The dynamics model: ActionGPT (root motion and next actions) and PoseGPT (the next body pose).
+
+Both are causal transformers over frames, shaped like nanoGPT: pre-norm blocks (LayerNorm),
+multi-head self-attention with rotary position embeddings (RoPE, base 10000) on queries and keys,
+a 4× GELU MLP. Each frame enters as a concatenation of named features projected to the width, and
+linear heads read the predictions out. Sizes come from the scene layout and the action vocabularies;
+nothing here knows the duel scene.
+
+The state vector splits, from the layout, into
+
+- the **root stream** (``root_dim`` = 9 per articulated entity): for every articulated entity in
+  layout order its root displacement ``E.root`` (3, its local frame), then its ``E.rot6d`` (6);
+- the **body state** (``body_dim``): everything else, in state order: every articulated entity's
+  root-local ``E.joints``, then every attachment's ``points``. The attachments' points (the weapon
+  sub-state ActionGPT reads) are the body's tail, ``body[..., config.weapon[0]:config.weapon[1]]``.
+
+Alignment, for training on a window of frames x[0..T] (``action_training_pair``, ``pose_training_pair``):
+
+- ActionGPT step t reads root[t], tokens[t], progress[t], weapon[t] (from body[t]), terrain[t] and
+  relative[t]; it predicts root[t+1] and the logits of tokens[t+1].
+- PoseGPT step t reads body[t] and the conditions of the frame being animated: tokens[t+1] (the
+  caller's, possibly overridden), root[t+1] (likewise), terrain[t+1] and relative[t+1]; it predicts
+  body[t+1].
+
+Both heads predict a change added to the current frame's value (``residual``): root[t+1] =
+root[t] + Δ, body[t+1] = body[t] + Δ. Inputs are expected normalised by the caller.
+
+Attention window and streaming. ``forward`` over T frames lets frame i attend to frames
+max(0, i − window + 1)..i (plain causal attention when T ≤ window, a band mask beyond). ``step``
+feeds one frame and keeps at most ``window`` keys and values per layer, the keys stored already
+rotated at their absolute positions. A RoPE score depends only on the difference of positions (the
+angles are computed in float64, so far positions lose nothing), so ``step`` at frame t equals
+``forward`` over the whole stream at frame t, up to float rounding. For a one-layer model that is
+also ``forward`` over the last ``window`` frames alone, positions restarting at 0. With more layers it
+is not: a cached key of layer l ≥ 2 was computed when its frame was newest, from that frame's own
+window, so a stream's receptive field reaches L·(window − 1) frames back while a recomputed window
+sees only ``window`` frames. Exact window recomputation costs a full ``forward`` per frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from marionette.schema import Layout, SchemaError
+
+PATCH_SIZE = 11  # egocentric height patch, cells per side
+N_CLEARANCES = 11  # signed clearances of key joints
+TERRAIN_FEATURES = PATCH_SIZE * PATCH_SIZE + N_CLEARANCES
+ROPE_BASE = 10000.0
+
+
+# -- the state split ----------------------------------------------------------------------------------
+
+
+def root_stream_slices(layout: Layout) -> list[tuple[str, slice]]:
+    """The root stream's parts in order: per articulated entity (layout order) ``E.root`` then ``E.rot6d``."""
+    return [(f"{e.name}.{part}", layout.slice(f"{e.name}.{part}")) for e in layout.articulated for part in ("root", "rot6d")]
+
+
+def body_slices(layout: Layout) -> list[tuple[str, slice]]:
+    """The body state's parts in state order: every articulated entity's ``joints``, every attachment's ``points``."""
+    names = [f"{e.name}.joints" for e in layout.articulated] + [f"{e.name}.points" for e in layout.attachments]
+    return sorted(((n, layout.slice(n)) for n in names), key=lambda part: part[1].start)
+
+
+def _indices(parts: list[tuple[str, slice]]) -> list[int]:
+    return [i for _, s in parts for i in range(s.start, s.stop)]
+
+
+def root_index(layout: Layout) -> list[int]:
+    """State indices of the root stream, in root-stream order."""
+    return _indices(root_stream_slices(layout))
+
+
+def body_index(layout: Layout) -> list[int]:
+    """State indices of the body state, in body order."""
+    return _indices(body_slices(layout))
+
+
+def split_state(state: Any, layout: Layout) -> tuple[Any, Any]:
+    """State (..., dim) → root stream (..., root_dim) and body state (..., body_dim); numpy or torch."""
+    return state[..., root_index(layout)], state[..., body_index(layout)]
+
+
+def join_state(root: Any, body: Any, layout: Layout) -> Any:
+    """Root stream (..., root_dim) and body state (..., body_dim) → state (..., dim); numpy or torch."""
+    if isinstance(root, torch.Tensor):
+        out = root.new_zeros(*root.shape[:-1], layout.dim, dtype=torch.promote_types(root.dtype, body.dtype))
+    else:
+        out = np.zeros((*root.shape[:-1], layout.dim), np.result_type(root, body))
+    out[..., root_index(layout)] = root
+    out[..., body_index(layout)] = body
+    return out
+
+
+def weapon_range(layout: Layout) -> tuple[int, int]:
+    """[start, stop) of the attachments' points within the body state (empty at the end when there are none)."""
+    at, found = 0, []
+    for name, s in body_slices(layout):
+        width = s.stop - s.start
+        if name.endswith(".points"):
+            found.append((at, at + width))
+        at += width
+    if not found:
+        return at, at
+    if any(a[1] != b[0] for a, b in zip(found, found[1:])):
+        raise SchemaError(f"layout {layout.scene!r}: the attachments' points are not contiguous in the body state")
+    return found[0][0], found[-1][1]
+
+
+# -- configuration -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TransformerSpec:
+    """Size of one causal transformer and of its per-frame encoders."""
+
+    layers: int
+    width: int
+    heads: int
+    action_embed: int  # learned action embedding per entity
+    terrain_out: int  # terrain MLP output per terrain-on entity
+    terrain_hidden: int = 128
+    mlp_ratio: int = 4
+
+    @property
+    def head_dim(self) -> int:
+        return self.width // self.heads
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {
+        "action_gpt": TransformerSpec(layers=4, width=256, heads=8, action_embed=32, terrain_out=32),
+        "pose_gpt": TransformerSpec(layers=8, width=512, heads=8, action_embed=64, terrain_out=64),
+        "window": 512,
+    },
+    "tiny": {
+        "action_gpt": TransformerSpec(layers=2, width=64, heads=4, action_embed=16, terrain_out=32, terrain_hidden=64),
+        "pose_gpt": TransformerSpec(layers=2, width=96, heads=4, action_embed=16, terrain_out=64, terrain_hidden=64),
+        "window": 64,
+    },
+}
+
+
+@dataclass(frozen=True)
+class DynamicsConfig:
+    """Everything that fixes the dynamics model's parameter set; saved as JSON beside its checkpoints."""
+
+    scene: str
+    layout_hash: str
+    entities: tuple[str, ...]  # articulated entities, layout order
+    root_dim: int
+    body_dim: int
+    weapon: tuple[int, int]  # [start, stop) of the attachments' points within the body state
+    vocab_sizes: tuple[int, ...]  # per articulated entity; token 0 = no valid action
+    action_gpt: TransformerSpec
+    pose_gpt: TransformerSpec
+    window: int  # attention window, frames
+    terrain: tuple[bool, ...]  # per articulated entity: read its terrain features
+    terrain_features: int = TERRAIN_FEATURES
+    relative_position: bool = False  # read the other entity's root in my root frame (3 per entity)
+    residual: bool = True  # heads predict a change added to the current frame's value
+    dropout: float = 0.0
+
+    def __post_init__(self) -> None:
+        n = len(self.entities)
+        if len(self.vocab_sizes) != n or len(self.terrain) != n:
+            raise ValueError(
+                f"dynamics config: {n} articulated entities {self.entities} but {len(self.vocab_sizes)} vocab sizes "
+                f"and {len(self.terrain)} terrain switches"
+            )
+        if any(v < 1 for v in self.vocab_sizes):
+            raise ValueError(f"dynamics config: vocab sizes {self.vocab_sizes} must be ≥ 1 (token 0 = no valid action)")
+        if self.window < 1:
+            raise ValueError(f"dynamics config: window {self.window} must be ≥ 1 frame")
+        for name, spec in (("action_gpt", self.action_gpt), ("pose_gpt", self.pose_gpt)):
+            if spec.width % spec.heads or spec.head_dim % 2:
+                raise ValueError(
+                    f"dynamics config: {name} width {spec.width} must split into {spec.heads} heads of even size (RoPE)"
+                )
+
+    @property
+    def n_entities(self) -> int:
+        return len(self.entities)
+
+    @property
+    def weapon_dim(self) -> int:
+        return self.weapon[1] - self.weapon[0]
+
+    @classmethod
+    def from_layout(cls, layout: Layout, vocab_sizes: tuple[int, ...], **options: Any) -> DynamicsConfig:
+        """A config whose dimensions come from ``layout``; ``options`` are the remaining fields.
+
+        ``terrain`` defaults to on for monsters (entities recorded as WildWorld kind ``m``) only."""
+        root_dim, body_dim = len(root_index(layout)), len(body_index(layout))
+        if root_dim + body_dim != layout.dim:
+            raise SchemaError(f"layout {layout.scene!r}: root stream ({root_dim}) + body ({body_dim}) ≠ state dim {layout.dim}")
+        options.setdefault("terrain", tuple(e.source_kind == "m" for e in layout.articulated))
+        return cls(
+            scene=layout.scene,
+            layout_hash=layout.hash,
+            entities=tuple(e.name for e in layout.articulated),
+            root_dim=root_dim,
+            body_dim=body_dim,
+            weapon=weapon_range(layout),
+            vocab_sizes=tuple(int(v) for v in vocab_sizes),
+            **options,
+        )
+
+    @classmethod
+    def preset(cls, name: str, layout: Layout, vocab_sizes: tuple[int, ...], **overrides: Any) -> DynamicsConfig:
+        """The ``"paper"`` or ``"tiny"`` sizes for ``layout``; ``overrides`` replace any field (e.g. ``window=16``)."""
+        if name not in PRESETS:
+            raise ValueError(f"unknown dynamics preset {name!r}; known: {sorted(PRESETS)}")
+        return cls.from_layout(layout, vocab_sizes, **{**PRESETS[name], **overrides})
+
+    def check_layout(self, layout: Layout) -> None:
+        """Fail, naming both, unless ``layout`` is the one this config was made for."""
+        if layout.hash != self.layout_hash:
+            raise SchemaError(
+                f"dynamics config was made for layout {self.scene!r} (hash {self.layout_hash}), "
+                f"not {layout.scene!r} (hash {layout.hash})"
+            )
+
+    def to_json(self) -> dict:
+        """The config as a plain JSON-ready dict."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, TransformerSpec):
+                v = {g.name: getattr(v, g.name) for g in fields(v)}
+            elif isinstance(v, tuple):
+                v = list(v)
+            out[f.name] = v
+        return out
+
+    @classmethod
+    def from_json(cls, d: dict) -> DynamicsConfig:
+        """Rebuild a config from ``to_json()``."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"dynamics config JSON has unknown fields {unknown}")
+        kw: dict[str, Any] = {}
+        for k, v in d.items():
+            if k in ("action_gpt", "pose_gpt"):
+                v = TransformerSpec(**v)
+            elif isinstance(v, list):
+                v = tuple(bool(x) if k == "terrain" else x for x in v)
+            kw[k] = v
+        return cls(**kw)
+
+
+# -- inputs, outputs, cache --------------------------------------------------------------------------
+
+
+@dataclass
+class Frames:
+    """Per-frame inputs, batch first (B, T, ...), N articulated entities in config order.
+
+    ``root`` (B, T, root_dim) and ``body`` (B, T, body_dim) float; ``tokens`` (B, T, N) int64;
+    ``progress`` (B, T, N) in [0, 1] (ActionGPT only); ``terrain`` (B, T, N, terrain_features), read
+    only for entities whose terrain switch is on; ``relative`` (B, T, N, 3), read only when
+    ``relative_position`` is on."""
+
+    root: Tensor
+    body: Tensor
+    tokens: Tensor
+    progress: Tensor | None = None
+    terrain: Tensor | None = None
+    relative: Tensor | None = None
+
+    def time_slice(self, start: int | None = None, stop: int | None = None) -> Frames:
+        """The frames [start, stop) of every input."""
+        return Frames(**{f.name: None if (v := getattr(self, f.name)) is None else v[:, start:stop] for f in fields(self)})
+
+    @property
+    def length(self) -> int:
+        return self.root.shape[1]
+
+
+@dataclass
+class ActionOutputs:
+    """ActionGPT's predictions per frame: the next root stream (B, T, root_dim) and per entity the
+    logits (B, T, vocab) of its next action token."""
+
+    root: Tensor
+    logits: tuple[Tensor, ...]
+
+
+@dataclass(frozen=True)
+class KVCache:
+    """Keys and values of the last ≤ window frames per layer, (B, heads, n, head_dim), keys rotated
+    at their absolute positions; ``position`` is the absolute index of the next frame."""
+
+    keys: tuple[Tensor, ...]
+    values: tuple[Tensor, ...]
+    position: int
+
+    @property
+    def length(self) -> int:
+        return self.keys[0].shape[2] if self.keys else 0
+
+
+def action_training_pair(frames: Frames) -> tuple[Frames, tuple[Tensor, Tensor]]:
+    """ActionGPT inputs x[0..T−1] and targets (root[1..T], tokens[1..T]) from a window x[0..T]."""
+    return frames.time_slice(None, -1), (frames.root[:, 1:], frames.tokens[:, 1:])
+
+
+def pose_training_pair(frames: Frames) -> tuple[Frames, Tensor]:
+    """PoseGPT inputs and target body[1..T] from a window x[0..T]: step t reads body[t] and the
+    tokens, root, terrain and relative features of frame t+1."""
+    nxt = frames.time_slice(1, None)
+    return replace(nxt, body=frames.body[:, :-1], progress=None), frames.body[:, 1:]
+
+
+# -- the transformer ---------------------------------------------------------------------------------
+
+
+def rope_angles(positions: Tensor, head_dim: int) -> tuple[Tensor, Tensor]:
+    """cos and sin (T, head_dim/2) of the RoPE angles p·base^(−2i/head_dim), computed in float64."""
+    inv_freq = ROPE_BASE ** (-torch.arange(0, head_dim, 2, dtype=torch.float64, device=positions.device) / head_dim)
+    angles = positions.to(torch.float64)[:, None] * inv_freq[None, :]
+    return angles.cos().float(), angles.sin().float()
+
+
+def apply_rope(x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
+    """Rotate (B, H, T, head_dim) by the angles of its T positions; dims i and i + head_dim/2 form a pair."""
+    x1, x2 = x.float().chunk(2, dim=-1)  # (B, H, T, hd/2) each, rotated in float32
+    return torch.cat([x1 * cos - x2 * sin, x1 * sin + x2 * cos], dim=-1).to(x.dtype)
+
+
+class SelfAttention(nn.Module):
+    def __init__(self, spec: TransformerSpec, dropout: float) -> None:
+        super().__init__()
+        self.heads, self.dropout = spec.heads, dropout
+        self.qkv = nn.Linear(spec.width, 3 * spec.width, bias=False)
+        self.out = nn.Linear(spec.width, spec.width, bias=False)
+
+    def forward(
+        self, x: Tensor, cos: Tensor, sin: Tensor, past: tuple[Tensor, Tensor] | None = None, mask: Tensor | None = None
+    ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+        B, T, C = x.shape
+        q, k, v = self.qkv(x).split(C, dim=-1)
+        q, k, v = (t.view(B, T, self.heads, C // self.heads).transpose(1, 2) for t in (q, k, v))  # (B, nh, T, hs)
+        q, k = apply_rope(q, cos, sin), apply_rope(k, cos, sin)
+        if past is not None:  # one new frame after the cached ones: it may see them all
+            k = torch.cat([past[0].to(k.dtype), k], dim=2)  # (B, nh, n + 1, hs)
+            v = torch.cat([past[1].to(v.dtype), v], dim=2)
+        y = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=mask, is_causal=past is None and mask is None, dropout_p=self.dropout if self.training else 0.0
+        )  # (B, nh, T, hs)
+        y = y.transpose(1, 2).reshape(B, T, C)
+        return F.dropout(self.out(y), self.dropout, self.training), (k, v)
+
+
+class MLP(nn.Module):
+    def __init__(self, spec: TransformerSpec, dropout: float) -> None:
+        super().__init__()
+        self.fc = nn.Linear(spec.width, spec.mlp_ratio * spec.width, bias=False)
+        self.proj = nn.Linear(spec.mlp_ratio * spec.width, spec.width, bias=False)
+        self.dropout = dropout
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.dropout(self.proj(F.gelu(self.fc(x))), self.dropout, self.training)
+
+
+class Block(nn.Module):
+    def __init__(self, spec: TransformerSpec, dropout: float) -> None:
+        super().__init__()
+        self.norm1 = nn.LayerNorm(spec.width, bias=False)
+        self.attn = SelfAttention(spec, dropout)
+        self.norm2 = nn.LayerNorm(spec.width, bias=False)
+        self.mlp = MLP(spec, dropout)
+
+    def forward(
+        self, x: Tensor, cos: Tensor, sin: Tensor, past: tuple[Tensor, Tensor] | None = None, mask: Tensor | None = None
+    ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+        a, kv = self.attn(self.norm1(x), cos, sin, past, mask)
+        x = x + a
+        return x + self.mlp(self.norm2(x)), kv
+
+
+class CausalTransformer(nn.Module):
+    """Pre-norm blocks with RoPE self-attention over a sliding window of frames."""
+
+    def __init__(self, spec: TransformerSpec, window: int, dropout: float) -> None:
+        super().__init__()
+        self.spec, self.window = spec, window
+        self.blocks = nn.ModuleList(Block(spec, dropout) for _ in range(spec.layers))
+        self.norm = nn.LayerNorm(spec.width, bias=False)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """(B, T, width) → (B, T, width); frame i sees frames max(0, i − window + 1)..i."""
+        length = x.shape[1]
+        pos = torch.arange(length, device=x.device)
+        cos, sin = rope_angles(pos, self.spec.head_dim)
+        mask = None
+        if length > self.window:
+            lag = pos[:, None] - pos[None, :]  # (T, T) query − key
+            mask = (lag >= 0) & (lag < self.window)
+        for block in self.blocks:
+            x, _ = block(x, cos, sin, mask=mask)
+        return self.norm(x)
+
+    def step(self, x: Tensor, cache: KVCache) -> tuple[Tensor, KVCache]:
+        """One frame (B, 1, width) at ``cache.position`` → (B, 1, width) and the cache with it appended."""
+        if x.shape[1] != 1:
+            raise ValueError(f"step takes one frame at a time, not {x.shape[1]}")
+        cos, sin = rope_angles(torch.tensor([cache.position], device=x.device), self.spec.head_dim)
+        keep = self.window - 1  # past frames the new one may see
+        keys, values = [], []
+        for block, k, v in zip(self.blocks, cache.keys, cache.values, strict=True):
+            drop = max(0, k.shape[2] - keep)
+            x, (k, v) = block(x, cos, sin, past=(k[:, :, drop:], v[:, :, drop:]))
+            keys.append(k)
+            values.append(v)
+        return self.norm(x), KVCache(tuple(keys), tuple(values), cache.position + 1)
+
+    def cache_empty(self, batch: int, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> KVCache:
+        """A cache holding no frames, the next frame at position 0."""
+        empty = torch.zeros(batch, self.spec.heads, 0, self.spec.head_dim, device=device, dtype=dtype)
+        return KVCache((empty,) * self.spec.layers, (empty,) * self.spec.layers, 0)
+
+
+# -- the two models ----------------------------------------------------------------------------------
+
+
+def _terrain_mlp(features: int, hidden: int, out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(features, hidden), nn.GELU(), nn.Linear(hidden, out))
+
+
+def _generator(seed: int | torch.Generator) -> torch.Generator:
+    return seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
+
+
+class _FrameGPT(nn.Module):
+    """A causal transformer fed by per-frame features; subclasses say which features and which heads."""
+
+    config: DynamicsConfig
+    spec: TransformerSpec
+
+    def _materialize(self, seed: int | torch.Generator) -> None:
+        """Allocate the parameters (built on the meta device) and draw them from ``seed``'s generator.
+
+        GPT-2 initialisation: N(0, 0.02) in the transformer and heads, scaled by 1/√(2·layers) on the
+        residual projections; the feature encoders N(0, 1/fan_in) so unit-scale inputs arrive at unit
+        scale; action embeddings N(0, 1), on the scale of the normalised inputs beside them."""
+        self.to_empty(device="cpu")
+        g = _generator(seed)
+        encoders = ("input", "terrain_mlp")
+        with torch.no_grad():
+            for name, m in self.named_modules():
+                if isinstance(m, nn.Linear):
+                    if name.startswith(encoders):
+                        std = m.in_features**-0.5
+                    elif name.endswith(("attn.out", "mlp.proj")):
+                        std = 0.02 / math.sqrt(2 * self.spec.layers)
+                    else:
+                        std = 0.02
+                    m.weight.normal_(0.0, std, generator=g)
+                    if m.bias is not None:
+                        m.bias.zero_()
+                elif isinstance(m, nn.Embedding):
+                    m.weight.normal_(0.0, 1.0, generator=g)
+                elif isinstance(m, nn.LayerNorm):
+                    m.weight.fill_(1.0)
+                    if m.bias is not None:
+                        m.bias.zero_()
+
+    def _build_encoders(self, spec: TransformerSpec, config: DynamicsConfig, own_dims: int) -> None:
+        c = config
+        self.embed = nn.ModuleDict({e: nn.Embedding(v, spec.action_embed) for e, v in zip(c.entities, c.vocab_sizes)})
+        on = [e for e, t in zip(c.entities, c.terrain) if t]
+        self.terrain_mlp = nn.ModuleDict({e: _terrain_mlp(c.terrain_features, spec.terrain_hidden, spec.terrain_out) for e in on})
+        in_dim = own_dims + c.n_entities * spec.action_embed + len(on) * spec.terrain_out
+        in_dim += 3 * c.n_entities if c.relative_position else 0
+        self.input = nn.Linear(in_dim, spec.width)
+        self.transformer = CausalTransformer(spec, c.window, c.dropout)
+
+    def _shared_features(self, frames: Frames) -> list[Tensor]:
+        """Action embeddings, terrain features (entities with terrain on) and relative roots, each (B, T, ·)."""
+        c = self.config
+        B, T = frames.root.shape[:2]
+        if frames.tokens.shape != (B, T, c.n_entities):
+            raise ValueError(f"tokens {tuple(frames.tokens.shape)} should be (B, T, {c.n_entities}) = {(B, T, c.n_entities)}")
+        feats = [self.embed[e](frames.tokens[..., i]) for i, e in enumerate(c.entities)]
+        if len(self.terrain_mlp):
+            if frames.terrain is None:
+                raise ValueError(f"terrain features are on for {list(self.terrain_mlp)} but none were given")
+            for i, e in enumerate(c.entities):
+                if e in self.terrain_mlp:
+                    feats.append(self.terrain_mlp[e](frames.terrain[:, :, i]))
+        if c.relative_position:
+            if frames.relative is None:
+                raise ValueError("relative_position is on but no relative roots were given")
+            feats.append(frames.relative.reshape(B, T, 3 * c.n_entities))
+        return feats
+
+    def features(self, frames: Frames) -> Tensor:  # (B, T, in_dim)
+        raise NotImplementedError
+
+    def read_out(self, frames: Frames, h: Tensor) -> Any:
+        raise NotImplementedError
+
+    def forward(self, frames: Frames) -> Any:
+        """Predictions for every frame of a (B, T) sequence, causally (see the module doc for the window)."""
+        return self.read_out(frames, self.transformer(self.input(self.features(frames))))
+
+    def step(self, frames: Frames, cache: KVCache) -> tuple[Any, KVCache]:
+        """Predictions for one frame (B, 1, ...) after those in ``cache``, and the cache with it appended."""
+        h, cache = self.transformer.step(self.input(self.features(frames)), cache)
+        return self.read_out(frames, h), cache
+
+    def cache_empty(self, batch: int) -> KVCache:
+        """An empty cache for ``batch`` streams, on this model's device and dtype."""
+        p = self.input.weight
+        return self.transformer.cache_empty(batch, p.device, p.dtype)
+
+
+class ActionGPT(_FrameGPT):
+    """Next root stream and next action of every entity, from the root stream, current actions,
+    their progress, the weapon sub-state and optional terrain and relative features."""
+
+    def __init__(self, config: DynamicsConfig, seed: int | torch.Generator = 0) -> None:
+        super().__init__()
+        self.config, self.spec = config, config.action_gpt
+        c, s = config, config.action_gpt
+        with torch.device("meta"):
+            self._build_encoders(s, c, own_dims=c.root_dim + c.n_entities + c.weapon_dim)  # root, progress, weapon
+            self.root_head = nn.Linear(s.width, c.root_dim)
+            self.action_heads = nn.ModuleDict({e: nn.Linear(s.width, v) for e, v in zip(c.entities, c.vocab_sizes)})
+        self._materialize(seed)
+
+    def features(self, frames: Frames) -> Tensor:
+        c = self.config
+        if frames.progress is None:
+            raise ValueError("ActionGPT reads the actions' progress; frames.progress is None")
+        weapon = frames.body[..., c.weapon[0] : c.weapon[1]]
+        return torch.cat([frames.root, frames.progress.to(frames.root.dtype), weapon, *self._shared_features(frames)], dim=-1)
+
+    def read_out(self, frames: Frames, h: Tensor) -> ActionOutputs:
+        root = self.root_head(h)
+        if self.config.residual:
+            root = frames.root + root
+        return ActionOutputs(root=root, logits=tuple(self.action_heads[e](h) for e in self.config.entities))
+
+
+class PoseGPT(_FrameGPT):
+    """The next body state from the current one and the actions, root stream and terrain of the frame
+    being animated (see the module doc for the alignment)."""
+
+    def __init__(self, config: DynamicsConfig, seed: int | torch.Generator = 0) -> None:
+        super().__init__()
+        self.config, self.spec = config, config.pose_gpt
+        c, s = config, config.pose_gpt
+        with torch.device("meta"):
+            self._build_encoders(s, c, own_dims=c.body_dim + c.root_dim)
+            self.body_head = nn.Linear(s.width, c.body_dim)
+        self._materialize(seed)
+
+    def features(self, frames: Frames) -> Tensor:
+        return torch.cat([frames.body, frames.root, *self._shared_features(frames)], dim=-1)
+
+    def read_out(self, frames: Frames, h: Tensor) -> Tensor:
+        body = self.body_head(h)
+        return frames.body + body if self.config.residual else body
+
+
+class DynamicsModel(nn.Module):
+    """ActionGPT and PoseGPT of one config, their parameters drawn from one seeded generator."""
+
+    def __init__(self, config: DynamicsConfig, seed: int = 0) -> None:
+        super().__init__()
+        self.config = config
+        g = _generator(seed)
+        self.action = ActionGPT(config, g)
+        self.pose = PoseGPT(config, g)
+
+
+def parameter_counts(model: DynamicsModel) -> dict[str, int]:
+    """Parameters of ActionGPT, PoseGPT and both."""
+    a = sum(p.numel() for p in model.action.parameters())
+    p = sum(p.numel() for p in model.pose.parameters())
+    return {"ActionGPT": a, "PoseGPT": p, "total": a + p}

@@ -1,0 +1,314 @@
+"""The dynamics model's two transformers: sizes from the layout, causality, the sliding-window KV
+cache, the terrain and relative-position switches, bf16 autocast and seeded determinism."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from marionette.dynamics import (
+    ActionGPT,
+    DynamicsConfig,
+    DynamicsModel,
+    Frames,
+    PoseGPT,
+    action_training_pair,
+    join_state,
+    parameter_counts,
+    pose_training_pair,
+    root_stream_slices,
+    split_state,
+)
+from marionette.dynamics.model import apply_rope, rope_angles
+from marionette.schema import SchemaError, load_scene
+
+VOCAB = (7, 7)  # the synthetic game's: six clips per species + "no valid action"
+WINDOW = 16
+
+
+@pytest.fixture(scope="module")
+def duel():
+    return load_scene("duel")
+
+
+@pytest.fixture(scope="module")
+def tiny(duel):
+    return DynamicsConfig.preset("tiny", duel, VOCAB, window=WINDOW)
+
+
+def random_frames(cfg: DynamicsConfig, batch: int, length: int, seed: int = 0) -> Frames:
+    g = torch.Generator().manual_seed(seed)
+    n = cfg.n_entities
+    return Frames(
+        root=torch.randn(batch, length, cfg.root_dim, generator=g),
+        body=torch.randn(batch, length, cfg.body_dim, generator=g),
+        tokens=torch.stack([torch.randint(0, v, (batch, length), generator=g) for v in cfg.vocab_sizes], dim=-1),
+        progress=torch.rand(batch, length, n, generator=g),
+        terrain=torch.randn(batch, length, n, cfg.terrain_features, generator=g),
+        relative=torch.randn(batch, length, n, 3, generator=g),
+    )
+
+
+def flat(out) -> torch.Tensor:
+    """All of a model's outputs as (B, T, ·), float32."""
+    if isinstance(out, torch.Tensor):
+        return out.float()
+    return torch.cat([out.root.float(), *(lg.float() for lg in out.logits)], dim=-1)
+
+
+def perturbed(frames: Frames, k: int, field: str) -> Frames:
+    v = getattr(frames, field).clone()
+    if field == "tokens":
+        v[:, k] = (v[:, k] + 1) % 7
+    else:
+        v[:, k] = v[:, k] + 1.0
+    return replace(frames, **{field: v})
+
+
+# -- sizes ---------------------------------------------------------------------------------------------
+
+
+def test_sizes_derive_from_the_layout(duel):
+    cfg = DynamicsConfig.preset("tiny", duel, (11, 5))
+    assert (cfg.root_dim, cfg.body_dim, cfg.n_entities) == (18, 258, 2)
+    assert cfg.entities == ("monster", "hunter") and cfg.terrain == (True, False)
+    assert cfg.weapon == (252, 258)  # the weapon's 2 points are the body's tail
+    assert [n for n, _ in root_stream_slices(duel)] == ["monster.root", "monster.rot6d", "hunter.root", "hunter.rot6d"]
+
+    solo = load_scene("hunter_solo")
+    cs = DynamicsConfig.preset("tiny", solo, (9,))
+    assert (cs.root_dim, cs.body_dim, cs.n_entities, cs.terrain) == (9, solo.dim - 9, 1, (False,))
+    assert cs.weapon == (cs.body_dim - 6, cs.body_dim)
+    two = load_scene("two_hunters")
+    ct = DynamicsConfig.preset("tiny", two, (7, 7, 7))
+    assert (ct.root_dim, ct.body_dim, ct.weapon_dim) == (27, two.dim - 27, 12)
+
+    m = DynamicsModel(cfg)
+    assert m.action.action_heads["monster"].out_features == 11 and m.action.action_heads["hunter"].out_features == 5
+    assert m.action.root_head.out_features == 18 and m.pose.body_head.out_features == 258
+    with pytest.raises(ValueError, match="vocab sizes"):
+        DynamicsConfig.preset("tiny", duel, (7,))
+    with pytest.raises(SchemaError, match="hunter_solo"):
+        cfg.check_layout(solo)
+    cfg.check_layout(duel)
+
+
+def test_state_split_round_trips(duel):
+    state = np.arange(duel.dim, dtype=np.float32)[None].repeat(3, 0)
+    root, body = split_state(state, duel)
+    assert root.shape == (3, 18) and body.shape == (3, 258)
+    assert list(root[0, :9]) == list(range(0, 3)) + list(range(264, 270))  # monster root, monster rot6d
+    np.testing.assert_array_equal(join_state(root, body, duel), state)
+    t = torch.as_tensor(state)
+    assert torch.equal(join_state(*split_state(t, duel), duel), t)
+
+
+def test_parameter_counts(duel, tiny):
+    paper = parameter_counts(DynamicsModel(DynamicsConfig.preset("paper", duel, VOCAB)))
+    small = parameter_counts(DynamicsModel(tiny))
+    print(f"\nparameters, paper preset (vocab {VOCAB}): {paper}\nparameters, tiny preset: {small}")
+    assert abs(paper["ActionGPT"] / 2.5e6 - 1) <= 0.30
+    assert abs(paper["PoseGPT"] / 25e6 - 1) <= 0.30
+    assert paper["total"] == paper["ActionGPT"] + paper["PoseGPT"]
+    assert small["total"] < 1e6
+
+
+def test_config_json_round_trip(duel):
+    cfg = DynamicsConfig.preset("tiny", duel, VOCAB, relative_position=True, terrain=(True, True))
+    d = json.loads(json.dumps(cfg.to_json()))
+    assert DynamicsConfig.from_json(d) == cfg
+    with pytest.raises(ValueError, match="unknown fields"):
+        DynamicsConfig.from_json({**d, "widht": 3})
+
+
+# -- causality and the cache ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("which", ["action", "pose"])
+def test_causal(tiny, which):
+    model = getattr(DynamicsModel(tiny), which).eval()
+    frames = random_frames(tiny, 2, 12)
+    k = 5
+    fields = ["root", "body", "tokens", "terrain"] + (["progress"] if which == "action" else [])
+    with torch.no_grad():
+        base = flat(model(frames))
+        for field in fields:
+            out = flat(model(perturbed(frames, k, field)))
+            assert torch.equal(out[:, :k], base[:, :k]), field
+            assert (out[:, k] - base[:, k]).abs().max() > 1e-4, field
+            assert (out[:, -1] - base[:, -1]).abs().max() > 1e-4, field
+
+
+def stream(model, frames: Frames, cache=None) -> torch.Tensor:
+    cache = model.cache_empty(frames.root.shape[0]) if cache is None else cache
+    outs = []
+    for t in range(frames.length):
+        out, cache = model.step(frames.time_slice(t, t + 1), cache)
+        assert cache.length == min(t + 1, model.config.window)
+        outs.append(flat(out))
+    return torch.cat(outs, dim=1)
+
+
+@pytest.mark.parametrize("which", ["action", "pose"])
+def test_cache_matches_window_recompute_one_layer(tiny, which):
+    """One layer: streaming past the window gives, at every frame, the last output of a fresh forward
+    over the last min(t + 1, window) frames (positions from 0): RoPE sees only position differences."""
+    cfg = replace(tiny, action_gpt=replace(tiny.action_gpt, layers=1), pose_gpt=replace(tiny.pose_gpt, layers=1))
+    model = getattr(DynamicsModel(cfg), which).eval()
+    T = 2 * WINDOW + 5
+    frames = random_frames(cfg, 2, T, seed=1)
+    with torch.no_grad():
+        streamed = stream(model, frames)
+        fresh = torch.cat([flat(model(frames.time_slice(max(0, t + 1 - WINDOW), t + 1)))[:, -1:] for t in range(T)], dim=1)
+    err = (streamed - fresh).abs().max().item()
+    print(f"\n{which}: 1 layer, stream vs fresh window recompute over {T} frames: max |Δ| = {err:.2e}")
+    assert err < 1e-5
+
+
+@pytest.mark.parametrize("which", ["action", "pose"])
+def test_cache_matches_forward(tiny, which):
+    """Any depth: streaming equals ``forward`` over the whole stream (a band mask past the window),
+    which for t < window is plain causal attention over frames 0..t."""
+    model = getattr(DynamicsModel(tiny), which).eval()
+    T = 2 * WINDOW + 5
+    frames = random_frames(tiny, 2, T, seed=2)
+    with torch.no_grad():
+        streamed = stream(model, frames)
+        banded = flat(model(frames))
+        causal = flat(model(frames.time_slice(0, WINDOW)))
+        fresh = torch.cat([flat(model(frames.time_slice(t + 1 - WINDOW, t + 1)))[:, -1:] for t in range(WINDOW, T)], dim=1)
+    err, err_causal = (streamed - banded).abs().max().item(), (streamed[:, :WINDOW] - causal).abs().max().item()
+    deep = (streamed[:, WINDOW:] - fresh).abs().max().item()
+    print(
+        f"\n{which}: {tiny.action_gpt.layers if which == 'action' else tiny.pose_gpt.layers} layers, {T} frames: "
+        f"stream vs banded forward {err:.2e}, vs causal forward (t < window) {err_causal:.2e}; "
+        f"vs fresh window recompute past the window {deep:.2e} (a deep stream sees past its window)"
+    )
+    assert err < 1e-5 and err_causal < 1e-5
+    # A deep stream's cached keys of layer 2 saw frames before the window, so the recomputed window
+    # differs by more than rounding (small at initialisation, where attention is nearly uniform).
+    assert deep > 1e-5
+
+
+def test_rope_scores_depend_on_position_differences_only():
+    g = torch.Generator().manual_seed(9)
+    q, k = torch.randn(2, 1, 1, 1, 64, generator=g)
+    base = None
+    for offset in (0, 10_000, 1_000_000, 50_000_000):
+        cos, sin = rope_angles(torch.tensor([offset + 3, offset + 17]), 64)
+        score = (apply_rope(q, cos[:1], sin[:1]) * apply_rope(k, cos[1:], sin[1:])).sum().item()
+        base = score if base is None else base
+        assert abs(score - base) < 1e-5 * max(1.0, abs(base)), offset
+
+
+def test_cache_is_exact_at_far_positions(tiny):
+    """A stream that starts a million frames in gives what one starting at 0 gives (angles in float64)."""
+    model = DynamicsModel(tiny).pose.eval()
+    frames = random_frames(tiny, 1, WINDOW + 3, seed=3)
+    with torch.no_grad():
+        for block in model.transformer.blocks:  # peaked attention, as after training, so scores matter
+            block.attn.qkv.weight.mul_(10.0)
+        near = stream(model, frames)
+        far = stream(model, frames, replace(model.cache_empty(1), position=1_000_000))
+    err = (near - far).abs().max().item()
+    print(f"\nstream at position 0 vs 1e6: max |Δ| = {err:.2e}")
+    assert err < 1e-5
+
+
+# -- switches ------------------------------------------------------------------------------------------
+
+
+def test_terrain_switch(duel):
+    off = DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB, terrain=(False, False)))
+    on = DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB))  # monster only
+    both = DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB, terrain=(True, True)))
+    assert not any("terrain" in n for n, _ in off.named_parameters())
+    assert list(on.action.terrain_mlp) == ["monster"] and list(both.pose.terrain_mlp) == ["monster", "hunter"]
+    assert on.action.terrain_mlp["monster"][-1].out_features == 32 and on.pose.terrain_mlp["monster"][-1].out_features == 64
+
+    frames = random_frames(on.config, 2, 8, seed=4)
+    no_terrain = replace(frames, terrain=None)
+    hunter_changed = frames.terrain.clone()
+    hunter_changed[:, :, 1] += 1.0
+    monster_changed = frames.terrain.clone()
+    monster_changed[:, :, 0] += 1.0
+    with torch.no_grad():
+        for model in (off.action, off.pose):
+            assert torch.equal(flat(model(frames)), flat(model(no_terrain)))  # ignored when off
+        for model in (on.action, on.pose):
+            base = flat(model(frames))
+            assert torch.equal(flat(model(replace(frames, terrain=hunter_changed))), base)  # hunter's terrain is off
+            assert (flat(model(replace(frames, terrain=monster_changed))) - base).abs().max() > 1e-4
+            with pytest.raises(ValueError, match="terrain"):
+                model(no_terrain)
+        base = flat(both.pose(frames))
+        assert (flat(both.pose(replace(frames, terrain=hunter_changed))) - base).abs().max() > 1e-4
+
+
+def test_relative_position_switch(duel, tiny):
+    off = DynamicsModel(tiny)
+    on = DynamicsModel(replace(tiny, relative_position=True))
+    for a, b in ((off.action, on.action), (off.pose, on.pose)):
+        assert b.input.in_features == a.input.in_features + 3 * tiny.n_entities
+    frames = random_frames(tiny, 2, 8, seed=5)
+    moved = replace(frames, relative=frames.relative + 1.0)
+    with torch.no_grad():
+        for model in (off.action, off.pose):
+            assert torch.equal(flat(model(frames)), flat(model(replace(frames, relative=None))))
+            assert torch.equal(flat(model(frames)), flat(model(moved)))
+        for model in (on.action, on.pose):
+            assert (flat(model(moved)) - flat(model(frames))).abs().max() > 1e-4
+            with pytest.raises(ValueError, match="relative"):
+                model(replace(frames, relative=None))
+
+
+# -- alignment, precision, determinism -----------------------------------------------------------------
+
+
+def test_training_pairs_align(tiny):
+    frames = random_frames(tiny, 2, 9, seed=6)
+    a_in, (root_next, tokens_next) = action_training_pair(frames)
+    assert a_in.length == 8 and torch.equal(a_in.root, frames.root[:, :-1]) and torch.equal(root_next, frames.root[:, 1:])
+    assert torch.equal(tokens_next, frames.tokens[:, 1:])
+    p_in, body_next = pose_training_pair(frames)
+    assert torch.equal(p_in.body, frames.body[:, :-1]) and torch.equal(body_next, frames.body[:, 1:])
+    for f in ("root", "tokens", "terrain", "relative"):
+        assert torch.equal(getattr(p_in, f), getattr(frames, f)[:, 1:]), f
+    with torch.no_grad():
+        assert DynamicsModel(tiny).pose(p_in).shape == body_next.shape
+
+
+def test_bf16_autocast(tiny):
+    model = DynamicsModel(tiny).eval()
+    frames = random_frames(tiny, 2, 12, seed=7)
+    with torch.no_grad():
+        ref = {w: flat(getattr(model, w)(frames)) for w in ("action", "pose")}
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = {w: flat(getattr(model, w)(frames)) for w in ("action", "pose")}
+            out, cache = model.pose.step(frames.time_slice(0, 1), model.pose.cache_empty(2))
+            out, cache = model.pose.step(frames.time_slice(1, 2), cache)
+    assert torch.isfinite(out).all()
+    for w in ref:
+        assert torch.isfinite(low[w]).all()
+        err = (low[w] - ref[w]).abs().max().item()
+        print(f"\n{w}: bf16 autocast vs fp32 max |Δ| = {err:.3f} (outputs' max |x| {ref[w].abs().max().item():.2f})")
+        assert err < 0.25
+
+
+def test_deterministic_given_the_seed(tiny):
+    rng = torch.get_rng_state()
+    a, b, c = DynamicsModel(tiny, seed=3), DynamicsModel(tiny, seed=3), DynamicsModel(tiny, seed=4)
+    assert torch.equal(torch.get_rng_state(), rng)  # the global generator is untouched
+    sa, sb, sc = a.state_dict(), b.state_dict(), c.state_dict()
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert not all(torch.equal(sa[k], sc[k]) for k in sa)
+    assert all(p.dtype == torch.float32 for p in a.parameters())
+    frames = random_frames(tiny, 2, 10, seed=8)
+    with torch.no_grad():
+        assert torch.equal(flat(a.action(frames)), flat(b.action(frames)))
+        assert torch.equal(flat(a.pose(frames)), flat(b.pose(frames)))
+    assert isinstance(a.action, ActionGPT) and isinstance(a.pose, PoseGPT)
