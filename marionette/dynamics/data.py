@@ -1,0 +1,621 @@
+"""Training windows for the dynamics model, read from the corpus's dynamics view (20 fps by default).
+
+Everything here is derived from the corpus alone; the definitions, exactly:
+
+**Normalisation** (``Normaliser``). The root stream and the body state are z-scored per dimension,
+z = (x − mean) / max(std, std_floor), with mean and std the ``state`` entry of ``meta/stats.json``
+(population statistics over the train split's source-rate rows; over all rows when the corpus has no
+train split, which ``stats.json`` records as ``"split": "all"``), mapped through the same index lists as
+``model.split_state``. ``std_floor`` (default 1e-3, in the dimension's own unit: metres or 6D
+entries) keeps dimensions that barely vary from blowing up: a joint rigidly attached to its root
+(the synthetic drake's spine, or any 6D entry of a yaw-only rotation) has a std of float32 rounding
+noise (~1e-5 m) or exactly 0, and dividing by that would turn rounding noise into unit-scale signal
+or divide by zero. The arithmetic runs in float64 and returns the input's dtype.
+The statistics are those of the source rate (30 fps): the joints and 6D rotations do not depend on
+the rate, but a root displacement δ is per frame, so at 20 fps it is ~1.5× the 30 fps one and its
+normalised values have a std of ~1.5 rather than 1 (harmless for training; stated so nobody is
+surprised).
+
+**Tokens** (``ActionTokens``). vocab.json numbers the composite action ids densely per entity type
+``<rig>:<type_id>`` (the row's ``<entity>.type_id`` column names the type; ``ingest.sample`` keys the
+vocab the same way), token 0 = composite 0 = "no valid action". The model has one embedding table
+per articulated entity, so an entity's tokens are the concatenation of the vocabularies of every
+type of its rig, in increasing type id: entity token 0 = no valid action; type k's vocab token
+v ≥ 1 becomes offset_k + v with offset_k = Σ_{types j before k} (size_j − 1). With one type per rig
+(the usual case) entity tokens are the vocab tokens. A composite id (or type) the vocab does not
+hold is an error naming the segment, the row and the source frame.
+
+**Progress** = motion_frame / clip_length of the row's action (clip length = the largest motion_frame
+the corpus saw + 1, from vocab.json), clipped to [0, 1]; 0 for token 0 and for an invalid
+motion_frame (−1). It is in source frames: at the source rate it grows by 1/clip_length per frame.
+The dynamics view takes discrete fields from the source frame at or before each 20 fps time, i.e.
+source frame ⌊1.5·k⌋ of a 30 fps segment, so along a 20 fps clip progress grows by 1 and 2
+source frames in turn, 1.5/clip_length per model frame on average (a rollout that advances an
+unchanged token should add (source fps / model fps) / clip_length to match what training saw).
+
+**Terrain features** (``terrain_feature_shard``), per row and articulated entity, 132 float32 = the
+11 × 11 ``terrain_scan.field.egocentric_patch`` at the entity's recorded root and rotation (the
+dynamics view's ``root_world``/``rot_world``, the rig's forward axis; 0.4 m cells, centred 1 m ahead;
+heights relative to the root, flattened row-major: index = 11·row + column, row 0 nearest the body),
+then the 11 ``joint_clearances`` of the rig's key contact joints (``rig.contact_joints`` order; world
+joints from ``corpus.world_of_rows``; ref_y = root height). Unknown values (no terrain there, or a
+stage that was never scanned) are stored as 0 with ``known`` False beside them (same shape), so
+features are finite everywhere and the model reads zeros for unknown terrain; ``known`` travels in
+``Batch.terrain_known``, frame-aligned with ``Frames.terrain``, for losses that need the surface (a rig with fewer than 11 contact joints has
+its tail unknown). Features are computed for every articulated entity (the config's per-entity
+switch only chooses which ones a model reads), so one cache serves every config.
+
+**Cache key** of a shard's terrain features: sha256 over (the dynamics-view key of the shard = its
+content hash, the rate, the resampling method, ``corpus.RESAMPLE_VERSION`` and the layout hash;
+every stage its segments lie on with the sha256 of each of its chunks from the stage's
+``manifest.json`` — none when it has no terrain; ``FEATURE_VERSION``; the patch geometry). File:
+``<corpus>/derived/terrain-features/shard-NNNNNN-<fps>fps-<method>-<key>.arrow``, written atomically;
+files of the same shard and rate with another key are removed after a write.
+
+**Windows.** A window is W = ``length`` + 1 consecutive dynamics frames of one segment (``length``
+model steps plus the next-frame target). Segments shorter than W are skipped (``WindowData.usable``
+says which are kept; no padding, so no time mask). Training (``WindowSampler``, train split only):
+each epoch draws, from ``numpy.random.default_rng([seed, epoch])``, one phase per usable segment,
+uniform in [0, min(W − 1, n − W)], and tiles the segment with non-overlapping windows starting at
+phase + k·W; the corpus-wide list of windows is shuffled with the same generator, cut to a multiple
+of world_size, and rank r takes every world_size-th window from position r, then full batches of
+``batch_size`` (a partial last batch is dropped, so every rank runs the same number of steps).
+Ranks therefore see disjoint windows (no frame of one epoch is read by two ranks), and the batches
+are a function of (seed, rank, world_size, epoch) alone. Held-out evaluation (``HeldOutWindows``):
+every usable segment of the split tiled from frame 0 with stride W, in segment order, rank r taking
+every world_size-th window; batches of up to ``batch_size`` (the last may be smaller); frames after a
+segment's last whole window are not evaluated.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import torch
+from torch import Tensor
+
+from marionette import geometry as geo
+from marionette.corpus import RESAMPLE_VERSION, Corpus, _fixed, world_of_rows
+from marionette.dynamics.model import N_CLEARANCES, PATCH_SIZE, TERRAIN_FEATURES, Frames, body_index, root_index
+from marionette.io import read_ipc, text_sha256, write_ipc
+from marionette.schema import Entity, Layout, SchemaError
+from terrain_scan.field import LayeredField, egocentric_patch, joint_clearances, open_stage
+from terrain_scan.scan import stage_dir
+
+DEFAULT_FPS = 20.0
+DEFAULT_STD_FLOOR = 1e-3
+NORMALISER_VERSION = 1
+FEATURE_VERSION = "1"
+PATCH_CELL_M = 0.4
+PATCH_AHEAD_M = 1.0
+TERRAIN_DIR = "terrain-features"
+
+
+def _as_corpus(corpus: Corpus | Path | str) -> Corpus:
+    return corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
+
+
+# -- normalisation -----------------------------------------------------------------------------------
+
+
+def _affine(x: Any, mean: np.ndarray, std: np.ndarray, inverse: bool) -> Any:
+    """(x − mean)/std, or x·std + mean when ``inverse``, over the last axis; float64 inside, x's dtype out."""
+    if isinstance(x, torch.Tensor):
+        m = torch.as_tensor(mean, dtype=torch.float64, device=x.device)
+        s = torch.as_tensor(std, dtype=torch.float64, device=x.device)
+        y = x.to(torch.float64)
+        out = y * s + m if inverse else (y - m) / s
+        return out.to(x.dtype if x.is_floating_point() else torch.float32)
+    a = np.asarray(x)
+    out = a.astype(np.float64) * std + mean if inverse else (a.astype(np.float64) - mean) / std
+    return out.astype(a.dtype if np.issubdtype(a.dtype, np.floating) else np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class Normaliser:
+    """Per-dimension z-score of the root stream and the body state (module doc: the definition)."""
+
+    root_mean: np.ndarray  # (root_dim,) float64
+    root_std: np.ndarray  # (root_dim,) float64, already floored
+    body_mean: np.ndarray  # (body_dim,)
+    body_std: np.ndarray  # (body_dim,), already floored
+    std_floor: float
+    layout_hash: str
+    stats_split: str  # "train", or "all" when the corpus had no train split
+
+    @classmethod
+    def from_corpus(
+        cls, corpus: Corpus | Path | str, layout: Layout | None = None, std_floor: float = DEFAULT_STD_FLOOR
+    ) -> Normaliser:
+        """The normaliser of a corpus's ``stats.json`` state statistics (train split), std floored at ``std_floor``."""
+        c = _as_corpus(corpus)
+        layout = layout or c.layout
+        if layout.hash != c.layout.hash:
+            raise SchemaError(
+                f"{c.path}: corpus layout {c.layout.scene!r} ({c.layout.hash}) is not {layout.scene!r} ({layout.hash})"
+            )
+        if std_floor <= 0:
+            raise ValueError(f"std_floor {std_floor} must be > 0")
+        st = c.stats.get("state")
+        where = c.path / "meta" / "stats.json"
+        if st is None:
+            raise KeyError(f"{where}: no 'state' entry")
+        mean, std = np.asarray(st["mean"], np.float64), np.asarray(st["std"], np.float64)
+        if mean.shape != (layout.dim,) or std.shape != (layout.dim,):
+            raise SchemaError(
+                f"{where}: state stats have {mean.shape[0]} means and {std.shape[0]} stds; the layout has dim {layout.dim}"
+            )
+        std = np.maximum(std, std_floor)
+        ri, bi = root_index(layout), body_index(layout)
+        return cls(mean[ri], std[ri], mean[bi], std[bi], float(std_floor), layout.hash, str(c.stats.get("split", "train")))
+
+    def normalise_root(self, root: Any) -> Any:
+        """Root stream (..., root_dim) → z-scores; numpy or torch, dtype kept."""
+        return _affine(root, self.root_mean, self.root_std, inverse=False)
+
+    def normalise_body(self, body: Any) -> Any:
+        """Body state (..., body_dim) → z-scores; numpy or torch, dtype kept."""
+        return _affine(body, self.body_mean, self.body_std, inverse=False)
+
+    def denormalise_root(self, root: Any) -> Any:
+        """Z-scored root stream (..., root_dim) → metres and 6D entries."""
+        return _affine(root, self.root_mean, self.root_std, inverse=True)
+
+    def denormalise_body(self, body: Any) -> Any:
+        """Z-scored body state (..., body_dim) → metres."""
+        return _affine(body, self.body_mean, self.body_std, inverse=True)
+
+    def normalise(self, root: Any, body: Any) -> tuple[Any, Any]:
+        """(root, body) → their z-scores."""
+        return self.normalise_root(root), self.normalise_body(body)
+
+    def denormalise(self, root: Any, body: Any) -> tuple[Any, Any]:
+        """Z-scored (root, body) → state units."""
+        return self.denormalise_root(root), self.denormalise_body(body)
+
+    def to_json(self) -> dict:
+        """A JSON-ready dict (saved beside checkpoints); the stds are the floored ones in use."""
+        return {
+            "version": NORMALISER_VERSION,
+            "layout_hash": self.layout_hash,
+            "stats_split": self.stats_split,
+            "std_floor": self.std_floor,
+            "root_mean": self.root_mean.tolist(),
+            "root_std": self.root_std.tolist(),
+            "body_mean": self.body_mean.tolist(),
+            "body_std": self.body_std.tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict) -> Normaliser:
+        """Rebuild from ``to_json()``."""
+        if d.get("version") != NORMALISER_VERSION:
+            raise ValueError(f"normaliser JSON version {d.get('version')!r}; this code reads {NORMALISER_VERSION}")
+        arr = {k: np.asarray(d[k], np.float64) for k in ("root_mean", "root_std", "body_mean", "body_std")}
+        return cls(**arr, std_floor=float(d["std_floor"]), layout_hash=d["layout_hash"], stats_split=d["stats_split"])
+
+
+# -- action tokens and progress ----------------------------------------------------------------------
+
+
+def entity_type_key(entity: Entity, type_id: int) -> str:
+    """The vocab.json key of an entity's type: ``<rig>:<type_id>``."""
+    return f"{entity.rig.name}:{int(type_id)}"
+
+
+@dataclass(frozen=True, eq=False)
+class ActionTokens:
+    """Per articulated entity (layout order): composite action ids → entity tokens, and each token's
+    type, vocab token, composite id and clip length (module doc: the numbering)."""
+
+    entities: tuple[str, ...]
+    sizes: tuple[int, ...]
+    vocab_hash: str
+    lookup: tuple[dict[tuple[int, int], int], ...]  # per entity: (type_id, composite) → entity token
+    type_keys: tuple[tuple[str, ...], ...]  # per entity, per token: "<rig>:<type_id>" ("" for token 0)
+    vocab_tokens: tuple[np.ndarray, ...]  # per entity, per token: the token within its type's vocab
+    composites: tuple[np.ndarray, ...]  # per entity, per token: composite id
+    clip_lengths: tuple[np.ndarray, ...]  # per entity, per token: clip length, source frames (1 for token 0)
+
+    @classmethod
+    def from_vocab(cls, vocab: dict, layout: Layout) -> ActionTokens:
+        """Entity token tables from a corpus's vocab.json contents."""
+        types = vocab.get("entity_types", {})
+        lookup, keys, vtok, comp, clip, sizes = [], [], [], [], [], []
+        for e in layout.articulated:
+            mine = sorted((int(k.split(":", 1)[1]), k) for k in types if k.split(":", 1)[0] == e.rig.name)
+            table: dict[tuple[int, int], int] = {}
+            k_, v_, c_, l_ = [""], [0], [0], [1.0]
+            for type_id, key in mine:
+                for a in sorted(types[key]["actions"], key=lambda a: a["token"]):
+                    if a["token"] == 0:
+                        continue
+                    table[(type_id, int(a["composite"]))] = len(k_)
+                    k_.append(key)
+                    v_.append(int(a["token"]))
+                    c_.append(int(a["composite"]))
+                    l_.append(float(max(int(a["clip_length"]), 1)))
+            lookup.append(table)
+            keys.append(tuple(k_))
+            vtok.append(np.asarray(v_, np.int64))
+            comp.append(np.asarray(c_, np.int64))
+            clip.append(np.asarray(l_, np.float64))
+            sizes.append(len(k_))
+        return cls(
+            tuple(e.name for e in layout.articulated), tuple(sizes), str(vocab.get("hash", "")),
+            tuple(lookup), tuple(keys), tuple(vtok), tuple(comp), tuple(clip),
+        )  # fmt: skip
+
+    @classmethod
+    def from_corpus(cls, corpus: Corpus | Path | str) -> ActionTokens:
+        """Entity token tables of a corpus (its vocab.json and layout)."""
+        c = _as_corpus(corpus)
+        return cls.from_vocab(c.vocab, c.layout)
+
+    def encode(self, layout: Layout, table: pa.Table, where: str = "") -> tuple[np.ndarray, np.ndarray]:
+        """State rows → tokens (n, N) int64 and progress (n, N) float32 in [0, 1]; an id the vocab lacks
+        is a ValueError naming the segment, the row within it and the source frame."""
+        n = table.num_rows
+        tokens = np.zeros((n, len(self.entities)), np.int64)
+        progress = np.zeros((n, len(self.entities)), np.float32)
+        for i, e in enumerate(layout.articulated):
+            types = table[f"{e.name}.type_id"].to_numpy().astype(np.int64)
+            acts = table[f"{e.name}.action"].to_numpy().astype(np.int64)
+            mf = table[f"{e.name}.motion_frame"].to_numpy().astype(np.float64)
+            nz = np.flatnonzero(acts != 0)
+            if len(nz):
+                keys, inverse = np.unique(types[nz] * (1 << 32) + acts[nz], return_inverse=True)
+                lut = np.empty(len(keys), np.int64)
+                for k, key in enumerate(keys):
+                    type_id, cid = int(key >> 32), int(key & 0xFFFFFFFF)
+                    tok = self.lookup[i].get((type_id, cid))
+                    if tok is None:
+                        self._unknown(table, where, e, type_id, cid, int(nz[np.flatnonzero(inverse == k)[0]]))
+                    lut[k] = tok
+                tokens[nz, i] = lut[inverse.reshape(-1)]
+            clip = self.clip_lengths[i][tokens[:, i]]
+            p = np.clip(np.maximum(mf, 0.0) / clip, 0.0, 1.0)
+            progress[:, i] = np.where(tokens[:, i] == 0, 0.0, p)
+        return tokens, progress
+
+    def _unknown(self, table: pa.Table, where: str, e: Entity, type_id: int, cid: int, row: int) -> NoReturn:
+        segs = table["segment"].to_numpy(zero_copy_only=False)
+        seg = segs[row]
+        first = int(np.flatnonzero(segs == seg)[0])
+        frame = int(table["frame"][row].as_py())
+        key = entity_type_key(e, type_id)
+        typed = key in self.type_keys[self.entities.index(e.name)]
+        missing = f"no action {cid} of type {key}" if typed else f"no entity type {key}"
+        raise ValueError(
+            f"{where + ': ' if where else ''}segment {seg}, row {row - first} (source frame {frame}): {e.name} ({key}) "
+            f"has composite action id {cid}, but vocab.json (hash {self.vocab_hash}) holds {missing}; "
+            f"re-run finalize if recordings were added"
+        )
+
+    def type_token(self, entity: int, token: int) -> tuple[str, int]:
+        """The (vocab.json type key, token within that type's vocab) of an entity token; ("", 0) for token 0."""
+        return self.type_keys[entity][token], int(self.vocab_tokens[entity][token])
+
+
+def vocab_sizes(corpus: Corpus | Path | str) -> tuple[int, ...]:
+    """Entity vocabulary sizes per articulated entity in layout order (token 0 included), for ``DynamicsConfig``."""
+    return ActionTokens.from_corpus(corpus).sizes
+
+
+# -- terrain features --------------------------------------------------------------------------------
+
+
+def stage_chunk_hashes(corpus_path: Path, stage: str) -> dict[str, str]:
+    """Chunk name "cx_cz" → sha256 of each chunk of a stage, from its manifest.json; empty when it was never scanned."""
+    manifest = stage_dir(Path(corpus_path), stage) / "manifest.json"
+    if not manifest.exists():
+        return {}
+    chunks = json.loads(manifest.read_text()).get("chunks", {})
+    return {name: rec["sha256"] for name, rec in sorted(chunks.items())}
+
+
+def compute_terrain_features(layout: Layout, table: pa.Table, field: LayeredField | None) -> tuple[np.ndarray, np.ndarray]:
+    """Features (n, N, 132) float32 (unknown → 0) and ``known`` (n, N, 132) bool of rows, N articulated
+    entities in layout order: the 11×11 egocentric patch (m, relative to the root), then 11 clearances (m)."""
+    n, ents = table.num_rows, layout.articulated
+    feats = np.zeros((n, len(ents), TERRAIN_FEATURES), np.float32)
+    known = np.zeros((n, len(ents), TERRAIN_FEATURES), bool)
+    if field is None or n == 0:
+        return feats, known
+    world = world_of_rows(layout, table)
+    for i, e in enumerate(ents):
+        contacts = list(e.rig.contact_index)
+        if len(contacts) > N_CLEARANCES:
+            raise SchemaError(
+                f"rig {e.rig.name!r} declares {len(contacts)} key contact joints; terrain features hold {N_CLEARANCES}"
+            )
+        root = _fixed(table[f"{e.name}.root_world"], 3)
+        R = geo.quat_to_matrix(_fixed(table[f"{e.name}.rot_world"], 4))
+        patch, _ = egocentric_patch(
+            field, root, R, np.asarray(e.rig.forward_axis, np.float64), PATCH_SIZE, PATCH_CELL_M, PATCH_AHEAD_M
+        )
+        clear = joint_clearances(field, world[e.name][:, contacts], root[:, 1])
+        values = np.concatenate([patch.reshape(n, -1), clear], axis=1)  # (n, 121 + contacts)
+        ok = np.isfinite(values)
+        feats[:, i, : values.shape[1]] = np.where(ok, values, 0.0)
+        known[:, i, : values.shape[1]] = ok
+    return feats, known
+
+
+def _dynamics_key(c: Corpus, shard: int, fps: float, method: str) -> str:
+    """The dynamics view's cache key of a shard (what ``Corpus.dynamics_shard`` computes it from)."""
+    return text_sha256(c.shard_hash(shard), f"{fps:g}", method, RESAMPLE_VERSION, c.layout.hash)[:16]
+
+
+def _shard_stages(c: Corpus, shard: int) -> dict[str, str]:
+    seg = c.segments.filter(pc.equal(c.segments["shard"], shard))
+    return dict(zip(seg["segment"].to_pylist(), seg["stage"].to_pylist()))
+
+
+def terrain_feature_path(corpus: Corpus | Path | str, shard: int, fps: float = DEFAULT_FPS, method: str = "linear") -> Path:
+    """Where a shard's terrain features live under its current key (module doc: the key)."""
+    c = _as_corpus(corpus)
+    stages = sorted(set(_shard_stages(c, shard).values()))
+    geometry = json.dumps([PATCH_SIZE, PATCH_CELL_M, PATCH_AHEAD_M, N_CLEARANCES])
+    terrain = json.dumps({st: stage_chunk_hashes(c.path, st) for st in stages}, sort_keys=True)
+    key = text_sha256(_dynamics_key(c, shard, fps, method), terrain, FEATURE_VERSION, geometry)[:16]
+    return c.path / "derived" / TERRAIN_DIR / f"shard-{shard:06d}-{fps:g}fps-{method}-{key}.arrow"
+
+
+def _feature_schema(layout: Layout) -> pa.Schema:
+    fields = [pa.field("segment", pa.string()), pa.field("frame", pa.int32())]
+    for e in layout.articulated:
+        fields += [
+            pa.field(f"{e.name}.terrain", pa.list_(pa.float32(), TERRAIN_FEATURES)),
+            pa.field(f"{e.name}.terrain_known", pa.list_(pa.bool_(), TERRAIN_FEATURES)),
+        ]
+    return pa.schema(
+        fields, metadata={b"marionette.layout_hash": layout.hash.encode(), b"feature_version": FEATURE_VERSION.encode()}
+    )
+
+
+def terrain_feature_shard(
+    corpus: Corpus | Path | str, shard: int, fps: float = DEFAULT_FPS, method: str = "linear"
+) -> tuple[np.ndarray, np.ndarray]:
+    """Terrain features (n, N, 132) float32 and ``known`` (n, N, 132) bool, row-aligned with
+    ``corpus.dynamics_shard(shard, fps, method)``; cached, recomputed only when the key changes."""
+    c = _as_corpus(corpus)
+    layout = c.layout
+    view = c.dynamics_shard(shard, fps, method)
+    path = terrain_feature_path(c, shard, fps, method)
+    if path.exists():
+        cached = read_ipc(path)
+        if (
+            cached.schema.equals(_feature_schema(layout))
+            and cached["segment"].equals(view["segment"])
+            and cached["frame"].equals(view["frame"])
+        ):
+            return _feature_arrays(layout, cached)
+    stage_of = _shard_stages(c, shard)
+    segs = view["segment"].to_numpy(zero_copy_only=False)
+    feats = np.zeros((view.num_rows, len(layout.articulated), TERRAIN_FEATURES), np.float32)
+    known = np.zeros(feats.shape, bool)
+    for st in sorted(set(stage_of.values())):
+        rows = np.flatnonzero(np.isin(segs, [s for s, v in stage_of.items() if v == st]))
+        field = open_stage(stage_dir(c.path, st)) if stage_chunk_hashes(c.path, st) else None
+        feats[rows], known[rows] = compute_terrain_features(layout, view.take(pa.array(rows)), field)
+    cols: dict[str, pa.Array] = {"segment": view["segment"].combine_chunks(), "frame": view["frame"].combine_chunks()}
+    for i, e in enumerate(layout.articulated):
+        cols[f"{e.name}.terrain"] = pa.FixedSizeListArray.from_arrays(pa.array(feats[:, i].reshape(-1)), TERRAIN_FEATURES)
+        cols[f"{e.name}.terrain_known"] = pa.FixedSizeListArray.from_arrays(pa.array(known[:, i].reshape(-1)), TERRAIN_FEATURES)
+    write_ipc(path, pa.Table.from_pydict(cols, schema=_feature_schema(layout)), c.info["ingest"].get("compression", "zstd"))
+    for old in path.parent.glob(f"shard-{shard:06d}-{fps:g}fps-{method}-*.arrow"):  # features under an older key
+        if old != path:
+            old.unlink(missing_ok=True)
+    return feats, known
+
+
+def _feature_arrays(layout: Layout, table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
+    feats = np.stack([_fixed(table[f"{e.name}.terrain"], TERRAIN_FEATURES) for e in layout.articulated], axis=1)
+    known = np.stack([_fixed(table[f"{e.name}.terrain_known"], TERRAIN_FEATURES) for e in layout.articulated], axis=1)
+    return feats.astype(np.float32), known.astype(bool)
+
+
+# -- windows -----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Batch:
+    """A batch of windows: the model's inputs (normalised, float32, batch first, W = length + 1 frames),
+    ``terrain_known`` (B, W, N, 132) bool when terrain was loaded, and which windows these are."""
+
+    frames: Frames
+    terrain_known: Tensor | None
+    segments: tuple[str, ...]
+    starts: tuple[int, ...]  # first dynamics frame of each window within its segment
+
+
+class WindowData:
+    """One split's dynamics view in memory: normalised root and body (float32), tokens, progress and,
+    when asked, terrain features, per segment (segments in ``corpus.segment_ids(split)`` order)."""
+
+    def __init__(
+        self,
+        corpus: Corpus | Path | str,
+        split: str = "train",
+        *,
+        terrain: bool = False,
+        normaliser: Normaliser | None = None,
+        tokens: ActionTokens | None = None,
+        fps: float = DEFAULT_FPS,
+        method: str = "linear",
+    ):
+        c = _as_corpus(corpus)
+        self.corpus, self.split, self.terrain, self.fps, self.method = c, split, terrain, fps, method
+        self.layout = c.layout
+        self.normaliser = normaliser or Normaliser.from_corpus(c)
+        if self.normaliser.layout_hash != c.layout.hash:
+            raise SchemaError(
+                f"{c.path}: the normaliser was made for layout {self.normaliser.layout_hash}, the corpus is {c.layout.hash}"
+            )
+        self.tokens = tokens or ActionTokens.from_corpus(c)
+        self.segments: list[str] = c.segment_ids(split)
+        rows = {r["segment"]: r for r in c.segments.to_pylist()}
+        self.root: list[np.ndarray] = []  # per segment (n, root_dim) float32, normalised
+        self.body: list[np.ndarray] = []  # (n, body_dim)
+        self.action: list[np.ndarray] = []  # (n, N) int64
+        self.progress: list[np.ndarray] = []  # (n, N) float32
+        self.features: list[np.ndarray | None] = []  # (n, N, 132) float32
+        self.known: list[np.ndarray | None] = []  # (n, N, 132) bool
+        by_shard: dict[int, list[str]] = {}
+        for s in self.segments:
+            by_shard.setdefault(int(rows[s]["shard"]), []).append(s)
+        loaded: dict[str, tuple] = {}
+        ri, bi = root_index(self.layout), body_index(self.layout)
+        for shard, segs in sorted(by_shard.items()):
+            view = c.dynamics_shard(shard, fps, method)
+            state = _fixed(view["state"], self.layout.dim)
+            root = self.normaliser.normalise_root(state[:, ri]).astype(np.float32)
+            body = self.normaliser.normalise_body(state[:, bi]).astype(np.float32)
+            tok, prog = self.tokens.encode(self.layout, view, where=str(c.dynamics_dir(fps, method)))
+            feats = known = None
+            if terrain:
+                feats, known = terrain_feature_shard(c, shard, fps, method)
+            names = view["segment"].to_numpy(zero_copy_only=False)
+            for s in segs:
+                idx = np.flatnonzero(names == s)
+                loaded[s] = (
+                    root[idx],
+                    body[idx],
+                    tok[idx],
+                    prog[idx],
+                    None if feats is None else feats[idx],
+                    None if known is None else known[idx],
+                )
+        for s in self.segments:
+            r, b, t, p, f, k = loaded[s]
+            self.root.append(r)
+            self.body.append(b)
+            self.action.append(t)
+            self.progress.append(p)
+            self.features.append(f)
+            self.known.append(k)
+        self.lengths = np.asarray([len(r) for r in self.root], np.int64)
+
+    def usable(self, frames: int) -> list[int]:
+        """Indices of the segments holding at least ``frames`` dynamics frames."""
+        return [i for i, n in enumerate(self.lengths) if n >= frames]
+
+    def check_window(self, frames: int) -> list[int]:
+        """``usable(frames)``, or a ValueError naming the longest segment when none is long enough."""
+        if frames < 2:
+            raise ValueError(f"a window needs at least 2 frames (length ≥ 1 step), not {frames}")
+        ok = self.usable(frames)
+        if not ok:
+            if not self.segments:
+                raise ValueError(f"{self.corpus.path}: split {self.split!r} has no segments")
+            i = int(np.argmax(self.lengths))
+            raise ValueError(
+                f"{self.corpus.path}: a window of {frames} frames (length {frames - 1} + 1) at {self.fps:g} fps is longer "
+                f"than every {self.split!r} segment; the longest, {self.segments[i]}, has {self.lengths[i]} frames"
+            )
+        return ok
+
+    def batch(self, windows: Sequence[tuple[int, int]], frames: int) -> Batch:
+        """Stack windows (segment index, first frame) of ``frames`` frames into a ``Batch``."""
+
+        def stack(parts: list[np.ndarray | None]) -> Tensor:
+            return torch.from_numpy(np.stack([p[s : s + frames] for p, (_, s) in zip(parts, windows)]))  # type: ignore[index]
+
+        for i, s in windows:
+            if s < 0 or s + frames > self.lengths[i]:
+                raise IndexError(f"window [{s}, {s + frames}) outside segment {self.segments[i]} of {self.lengths[i]} frames")
+        pick = [i for i, _ in windows]
+        terrain = known = None
+        if self.terrain:
+            terrain = stack([self.features[i] for i in pick])  # (B, W, N, 132)
+            known = stack([self.known[i] for i in pick])
+        frames_ = Frames(
+            root=stack([self.root[i] for i in pick]),  # (B, W, root_dim)
+            body=stack([self.body[i] for i in pick]),  # (B, W, body_dim)
+            tokens=stack([self.action[i] for i in pick]),  # (B, W, N) int64
+            progress=stack([self.progress[i] for i in pick]),  # (B, W, N)
+            terrain=terrain,
+        )
+        return Batch(frames_, known, tuple(self.segments[i] for i in pick), tuple(int(s) for _, s in windows))
+
+
+class WindowSampler:
+    """Random training windows of ``length`` steps (+1 frame) from the train split, per (seed, rank,
+    world_size, epoch); ranks get disjoint windows and equal batch counts (module doc: the rule)."""
+
+    def __init__(self, data: WindowData, length: int, batch_size: int, *, seed: int = 0, rank: int = 0, world_size: int = 1):
+        if data.split != "train":
+            raise ValueError(f"training windows come from the train split only; this data is split {data.split!r}")
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} outside world size {world_size}")
+        if batch_size < 1:
+            raise ValueError(f"batch_size {batch_size} must be ≥ 1")
+        self.data, self.length, self.batch_size = data, int(length), int(batch_size)
+        self.seed, self.rank, self.world_size = int(seed), int(rank), int(world_size)
+        self.frames = self.length + 1
+        self.usable = data.check_window(self.frames)
+        self.skipped = [data.segments[i] for i in range(len(data.segments)) if i not in set(self.usable)]
+        W = self.frames
+        fewest = sum((int(n) - min(W - 1, int(n) - W)) // W for n in data.lengths[self.usable])  # every phase at its largest
+        if fewest // world_size < batch_size:
+            raise ValueError(
+                f"{data.corpus.path}: an epoch may hold only {fewest} windows of {W} frames, fewer than "
+                f"batch_size {batch_size} × world_size {world_size}; use shorter windows or smaller batches"
+            )
+
+    def windows(self, epoch: int) -> list[tuple[int, int]]:
+        """This rank's windows (segment index, first frame) of ``epoch``, in batch order."""
+        rng = np.random.default_rng([self.seed, int(epoch)])
+        W, every = self.frames, []
+        for i in self.usable:
+            n = int(self.data.lengths[i])
+            phase = int(rng.integers(0, min(W - 1, n - W) + 1))
+            every += [(i, s) for s in range(phase, n - W + 1, W)]
+        order = rng.permutation(len(every))
+        per_rank = len(every) // self.world_size
+        mine = order[: per_rank * self.world_size][self.rank :: self.world_size]
+        return [every[k] for k in mine[: (per_rank // self.batch_size) * self.batch_size]]
+
+    def batches(self, epoch: int) -> int:
+        """Number of batches this rank (and every rank) gets in ``epoch``."""
+        return len(self.windows(epoch)) // self.batch_size
+
+    def epoch(self, epoch: int) -> Iterator[Batch]:
+        """This rank's batches of ``epoch``."""
+        wins = self.windows(epoch)
+        for k in range(0, len(wins), self.batch_size):
+            yield self.data.batch(wins[k : k + self.batch_size], self.frames)
+
+
+class HeldOutWindows:
+    """Every whole window of ``length`` steps (+1 frame) of a held-out split, tiled from each segment's
+    start, in a fixed order (no randomness); rank r of world_size gets every world_size-th window."""
+
+    def __init__(self, data: WindowData, length: int, batch_size: int, *, rank: int = 0, world_size: int = 1):
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} outside world size {world_size}")
+        self.data, self.length, self.batch_size, self.frames = data, int(length), int(batch_size), int(length) + 1
+        W = self.frames
+        self.usable = data.usable(W) if data.segments else []
+        self.skipped = [data.segments[i] for i in range(len(data.segments)) if i not in set(self.usable)]
+        every = [(i, s) for i in self.usable for s in range(0, int(data.lengths[i]) - W + 1, W)]
+        self._windows = every[rank::world_size]
+
+    def windows(self) -> list[tuple[int, int]]:
+        """This rank's windows (segment index, first frame), in order."""
+        return list(self._windows)
+
+    def __len__(self) -> int:
+        return -(-len(self._windows) // self.batch_size)
+
+    def __iter__(self) -> Iterator[Batch]:
+        for k in range(0, len(self._windows), self.batch_size):
+            yield self.data.batch(self._windows[k : k + self.batch_size], self.frames)
