@@ -1,0 +1,169 @@
+"""Rollouts of a tiny trained dynamics model: determinism, forcing, counterfactuals, the table, the rules, rendering."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import numpy as np
+import pytest
+
+from marionette.bridge.targets import TerrainScene, render_rows
+from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.dynamics.rollout import Rollout, main, open_terrain_field, rollout
+from marionette.dynamics.train import TrainConfig, train
+from marionette.io import read_ipc
+from marionette.schema import check_layout
+from terrain_scan.scan import scan_stages, stage_dir
+
+SEED_FRAMES, HORIZON = 16, 24
+
+
+@pytest.fixture(scope="module")
+def scanned(corpus, tmp_path_factory):
+    out = tmp_path_factory.mktemp("rollout") / "corpus"
+    shutil.copytree(corpus, out)
+    scan_stages(out, incremental=True, log=lambda *_: None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def ckpt(scanned, tmp_path_factory):
+    out = tmp_path_factory.mktemp("rollout-ckpt")
+    train(scanned, out, TrainConfig(steps=40, batch_size=4, window=32, warmup=5, lr=1e-3), log=lambda *_: None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def segment(scanned):
+    c = Corpus(scanned)
+    return max(c.segment_ids(), key=lambda s: c.dynamics_segment(s).num_rows)
+
+
+def run(ckpt, scanned, segment, **kw):
+    kw = {"seed_frames": SEED_FRAMES, "horizon": HORIZON, "rules": "none", **kw}
+    return rollout(ckpt, scanned, segment, **kw)
+
+
+def same(a, b) -> bool:
+    """Bit-identical in every column, NaN equal to NaN (the predicted rows' camera is NaN)."""
+    return a.schema == b.schema and all(
+        np.array_equal(np.asarray(a[n].to_pylist(), dtype=object), np.asarray(b[n].to_pylist(), dtype=object))
+        or np.array_equal(_flat(a[n]), _flat(b[n]), equal_nan=True)
+        for n in a.column_names
+    )
+
+
+def _flat(col):
+    arr = col.combine_chunks()
+    while hasattr(arr, "values") and not hasattr(arr, "dictionary"):
+        arr = arr.values
+    return arr.to_numpy(zero_copy_only=False)
+
+
+def predicted(table, column):
+    return table[column].to_numpy()[SEED_FRAMES:]
+
+
+def test_temperature_zero_is_bit_identical_and_seeds_differ_when_sampling(ckpt, scanned, segment):
+    a, b = run(ckpt, scanned, segment), run(ckpt, scanned, segment)
+    assert same(a, b)
+    s0 = run(ckpt, scanned, segment, temperature=3.0, seed=0)
+    s1 = run(ckpt, scanned, segment, temperature=3.0, seed=1)
+    streams = [np.stack([predicted(t, f"{e.name}.action") for e in Corpus(scanned).layout.articulated]) for t in (s0, s1)]
+    assert not np.array_equal(*streams)
+
+
+def test_counterfactual_force_differs_only_from_its_start(ckpt, scanned, segment):
+    c = Corpus(scanned)
+    hunter = c.layout.articulated[0].name
+    F = 10
+    base = run(ckpt, scanned, segment, force=[(hunter, 0, F, 1)])
+    other = run(ckpt, scanned, segment, force=[(hunter, 0, F, 1), (hunter, F, HORIZON, 2)])
+    sa, sb = (_fixed(t["state"], c.layout.dim)[SEED_FRAMES:] for t in (base, other))
+    assert np.array_equal(sa[:F], sb[:F])
+    assert np.array_equal(predicted(base, f"{hunter}.action")[:F], predicted(other, f"{hunter}.action")[:F])
+    assert not np.array_equal(sa[F], sb[F])  # the forced token changes PoseGPT's very first animated frame
+    assert not np.array_equal(sa[F:], sb[F:])
+
+
+def test_forcing_sets_the_token_and_restarts_progress(ckpt, scanned, segment):
+    c = Corpus(scanned)
+    e = c.layout.articulated[0]
+    ro = Rollout(ckpt, c, rules="none")
+    token, start, end = 2, 5, 15
+    table = run(ckpt, scanned, segment, force=[(e.name, start, end, token)])
+    actions = predicted(table, f"{e.name}.action")
+    assert np.all(actions[start:end] == ro.tokens.composites[0][token])
+    mf = predicted(table, f"{e.name}.motion_frame")
+    assert mf[start] == 0
+    assert np.all(np.diff(mf[start : start + 4]) > 0)  # an unchanged (state) token advances ~1.5 clip frames a step
+    # the streaming class gives the same stream as the function
+    ro.start(c.dynamics_segment(segment).slice(0, SEED_FRAMES))
+    first = [ro.step({0: token} if start <= t < end else None, restart=[0] if t == start else ()) for t in range(end)]
+    assert np.array_equal(np.stack(first), _fixed(table["state"], c.layout.dim)[SEED_FRAMES : SEED_FRAMES + end])
+
+
+def test_the_table_is_a_corpus_state_table_continuous_with_its_seed(ckpt, scanned, segment):
+    c = Corpus(scanned)
+    started = time.perf_counter()
+    table = run(ckpt, scanned, segment, horizon=60)
+    rate = 60 / (time.perf_counter() - started)
+    print(f"rollout: {rate:.0f} frames/s (tiny model, incl. seeding and loading)")
+    check_layout(table.schema, c.layout, "rollout")
+    assert table.num_rows == SEED_FRAMES + 60
+    state = _fixed(table["state"], c.layout.dim)
+    assert np.all(np.isfinite(state))
+    assert np.allclose(np.diff(table["t"].to_numpy()), 1 / 20)
+    assert table["valid"].to_numpy(zero_copy_only=False).all()
+    for e in c.layout.articulated:
+        roots = _fixed(table[f"{e.name}.root_world"], 3)
+        step = np.linalg.norm(roots[SEED_FRAMES] - roots[SEED_FRAMES - 1])
+        assert step < 0.5, f"{e.name}: first predicted root {step:.3f} m from the last seed root"
+        assert np.all(np.linalg.norm(np.diff(roots[SEED_FRAMES - 1 :], axis=0), axis=1) < 0.5)  # ≤ 10 m/s
+
+
+def test_bone_lengths_of_the_table(ckpt, scanned, segment):
+    """The table's seed rows are the recorded 20 fps skeletons (the state ↔ world conversion is right);
+    the predicted rows' bone-length spread is printed, not asserted: a 40-step tiny model does not hold
+    bone lengths (the issue's < 5 % is for a trained model; 800 steps bring it to ~0.3)."""
+    c = Corpus(scanned)
+    table = run(ckpt, scanned, segment, horizon=60)
+    hunter = c.layout.entity("hunter")
+    joints = world_of_rows(c.layout, table)[hunter.name]
+    lengths = np.stack([np.linalg.norm(joints[:, a] - joints[:, b], axis=-1) for a, b in hunter.rig.bones], axis=1)
+    seed_cv = lengths[:SEED_FRAMES].std(0) / lengths[:SEED_FRAMES].mean(0)
+    pred_cv = lengths[SEED_FRAMES:].std(0) / lengths[SEED_FRAMES:].mean(0)
+    print(f"hunter bone-length CV (max over bones): seed rows {seed_cv.max():.4f}, predicted rows {pred_cv.max():.3f}")
+    recorded = world_of_rows(c.layout, c.dynamics_segment(segment).slice(0, SEED_FRAMES))[hunter.name]
+    np.testing.assert_allclose(joints[:SEED_FRAMES], recorded, atol=1e-4)
+    assert np.isfinite(pred_cv).all()
+
+
+def test_rules_keep_the_hunter_out_of_the_ground(ckpt, scanned, segment):
+    c = Corpus(scanned)
+    field = open_terrain_field(c, segment)
+    assert field is not None
+    hunter = c.layout.articulated[0].name
+    below = {}
+    for rules in ("none", "auto"):
+        table = run(ckpt, scanned, segment, horizon=60, rules=rules)
+        joints = world_of_rows(c.layout, table)[hunter][SEED_FRAMES:]
+        low = joints[np.arange(len(joints)), joints[:, :, 1].argmin(1)]
+        ground = field.query(low[:, 0], low[:, 2], low[:, 1])
+        below[rules] = np.nan_to_num(ground - low[:, 1])
+    settle = 10  # frames for the collider's lift (0.04 m a frame) to catch up
+    assert below["auto"][settle:].max() < 0.1, below["auto"]
+    assert below["auto"].max() <= below["none"].max() + 1e-9
+
+
+def test_the_rollout_renders_with_the_follow_camera(ckpt, scanned, segment, tmp_path):
+    c = Corpus(scanned)
+    out = tmp_path / "states.arrow"
+    main([str(ckpt), str(scanned), "--segment", segment, "--seed-frames", "4", "--horizon", "4", "--out", str(out),
+          "--force", f"{c.layout.articulated[0].name}:0:2:1"])  # fmt: skip
+    table = read_ipc(out)
+    assert table.num_rows == 8
+    terrain = TerrainScene.of_stage(stage_dir(scanned, c.segment_row(segment)["stage"]))
+    meta = render_rows(c.layout, table, tmp_path / "g.mkv", terrain, camera="follow", size=(72, 128))
+    assert (meta.height, meta.width) == (72, 128)
