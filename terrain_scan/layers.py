@@ -128,14 +128,10 @@ def drop_aliases(layers: Observations, fraction: float = ALIAS_FRACTION, dominan
     cell_max = W.max(axis=2)[g.cx, g.cz]
     weak = layers.hits < fraction * cell_max
     dominated = np.zeros(len(layers), bool)
-    X, Z, _ = g.shape
-    for dx, dz in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        nx, nz = g.cx + dx, g.cz + dz
-        ok = (nx >= 0) & (nx < X) & (nz >= 0) & (nz < Z)  # DenseGrid.of leaves a margin: always true
-        Hn, Wn = H[nx[ok], nz[ok]], W[nx[ok], nz[ok]]  # (n, L)
-        same = np.abs(Hn - layers.h[ok, None]) <= merge_m  # NaN compares False
-        strong = (same & (Wn >= dominance * layers.hits[ok, None])).any(axis=1)
-        dominated[np.flatnonzero(ok)] |= strong
+    for dx, dz in ((1, 0), (-1, 0), (0, 1), (0, -1)):  # DenseGrid.of's one-cell margin keeps neighbours in range
+        Hn, Wn = H[g.cx + dx, g.cz + dz], W[g.cx + dx, g.cz + dz]  # (n, L)
+        same = np.abs(Hn - layers.h[:, None]) <= merge_m  # NaN compares False
+        dominated |= (same & (Wn >= dominance * layers.hits[:, None])).any(axis=1)
     return layers.take(np.flatnonzero(~(weak & dominated)))
 
 

@@ -1,8 +1,9 @@
-"""Shared fixtures: one session-scoped synthetic source and one corpus built from it."""
+"""Shared fixtures: one session-scoped synthetic source, one corpus built from it, and a copy whose terrain is scanned."""
 
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -29,4 +30,24 @@ def synth_source(tmp_path_factory) -> Path:
 def corpus(synth_source, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("corpus") / "corpus"
     build_corpus(synth_source, out, TEST_OPTIONS, workers=2, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def scanned_corpus(corpus, tmp_path_factory) -> Path:
+    """A copy of ``corpus`` with its stage's terrain scanned. Tests read it; a test that changes it copies
+    it first (``scanned_copy``)."""
+    from terrain_scan.scan import scan_stages
+
+    out = tmp_path_factory.mktemp("scanned") / "corpus"
+    shutil.copytree(corpus, out)
+    scan_stages(out, incremental=True, log=lambda *_: None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def scanned_copy(scanned_corpus, tmp_path_factory) -> Path:
+    """A module's own copy of ``scanned_corpus``, free to change."""
+    out = tmp_path_factory.mktemp("scanned-copy") / "corpus"
+    shutil.copytree(scanned_corpus, out)
     return out

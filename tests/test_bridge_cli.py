@@ -1,7 +1,6 @@
 """`marionette render`: one corpus segment or a rollout table, any size, rate and camera."""
 
 import json
-import shutil
 import tarfile
 
 import numpy as np
@@ -12,16 +11,12 @@ from marionette.bridge.targets import render_pose_targets
 from marionette.cli import main
 from marionette.corpus import Corpus
 from marionette.io import write_ipc
-from terrain_scan.scan import scan_stages
 
 
 @pytest.fixture(scope="module")
-def scanned(corpus, tmp_path_factory):
-    out = tmp_path_factory.mktemp("render") / "corpus"
-    shutil.copytree(corpus, out)
-    scan_stages(out, incremental=True, log=lambda *_: None)
-    render_pose_targets(out)
-    return out
+def scanned(scanned_copy):
+    render_pose_targets(scanned_copy)
+    return scanned_copy
 
 
 def first_chunk(corpus):

@@ -3,7 +3,6 @@ where the terrain they see changed."""
 
 import io
 import json
-import shutil
 import tarfile
 
 import av
@@ -13,16 +12,13 @@ import pytest
 from marionette.bridge.gbuffer import decode_gbuffer
 from marionette.bridge.targets import render_pose_targets
 from terrain_scan.layers import Observations
-from terrain_scan.scan import scan_stages, stage_dir
+from terrain_scan.scan import stage_dir
 from terrain_scan.store import Stage
 
 
 @pytest.fixture(scope="module")
-def scanned(corpus, tmp_path_factory):
-    out = tmp_path_factory.mktemp("targets") / "corpus"
-    shutil.copytree(corpus, out)
-    scan_stages(out, incremental=True, log=lambda *_: None)
-    return out
+def scanned(scanned_copy):
+    return scanned_copy
 
 
 def members(tar_path):

@@ -33,17 +33,14 @@ from marionette.dynamics.model import (
     split_state,
 )
 from terrain_scan.field import egocentric_patch, joint_clearances, open_stage
-from terrain_scan.scan import scan_stages, stage_dir
+from terrain_scan.scan import stage_dir
 
 HELD_OUT = "data_part1/rec0001"  # the recording the split tests move to "test"
 
 
 @pytest.fixture(scope="module")
-def scanned(corpus, tmp_path_factory):
-    out = tmp_path_factory.mktemp("dyndata") / "corpus"
-    shutil.copytree(corpus, out)
-    scan_stages(out, incremental=True, log=lambda *_: None)
-    return out
+def scanned(scanned_copy):
+    return scanned_copy
 
 
 @pytest.fixture(scope="module")

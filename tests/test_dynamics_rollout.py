@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import time
 
 import numpy as np
@@ -14,17 +13,14 @@ from marionette.dynamics.rollout import Rollout, main, open_terrain_field, rollo
 from marionette.dynamics.train import TrainConfig, train
 from marionette.io import read_ipc
 from marionette.schema import check_layout
-from terrain_scan.scan import scan_stages, stage_dir
+from terrain_scan.scan import stage_dir
 
 SEED_FRAMES, HORIZON = 16, 24
 
 
 @pytest.fixture(scope="module")
-def scanned(corpus, tmp_path_factory):
-    out = tmp_path_factory.mktemp("rollout") / "corpus"
-    shutil.copytree(corpus, out)
-    scan_stages(out, incremental=True, log=lambda *_: None)
-    return out
+def scanned(scanned_corpus):
+    return scanned_corpus
 
 
 @pytest.fixture(scope="module")

@@ -137,6 +137,7 @@ def follow_cameras(roots: list[np.ndarray], forward: np.ndarray, valid: list[np.
         g = tgt_w[t] if g is None else g + alpha * (tgt_w[t] - g)
         eye[t], tgt[t] = e, g
     ok = np.isfinite(eye).all(-1)
-    R = np.where(ok[:, None, None], look_at(np.nan_to_num(eye), np.nan_to_num(tgt) + np.where(ok, 0.0, 1.0)[:, None] * [0, 0, -1]), np.eye(3))
+    R = np.tile(np.eye(3), (n, 1, 1))
+    R[ok] = look_at(eye[ok], tgt[ok])
     K = np.tile(intrinsics_for(width, height), (n, 1))
     return Cameras(K, eye, R, ok, int(width), int(height))

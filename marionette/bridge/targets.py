@@ -15,7 +15,6 @@ nothing new writes nothing.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import tarfile
 from dataclasses import asdict, dataclass, field
@@ -25,6 +24,7 @@ import numpy as np
 import pyarrow as pa
 
 from marionette.corpus import Corpus, _fixed
+from marionette.ingest.video import tar_add
 from marionette.io import atomic_path, text_sha256
 from marionette.schema import Layout
 
@@ -151,9 +151,7 @@ def _read_tar(path: Path) -> list[tuple[str, bytes]]:
 def _write_tar(path: Path, members: list[tuple[str, bytes]]) -> None:
     with atomic_path(path) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
         for name, data in members:
-            info = tarfile.TarInfo(name)
-            info.size, info.mtime, info.mode = len(data), 0, 0o644
-            tar.addfile(info, io.BytesIO(data))
+            tar_add(tar, name, data)
 
 
 @dataclass
@@ -178,6 +176,7 @@ def render_pose_targets(corpus_path: Path, settings: RenderSettings | None = Non
     rasts: dict[tuple[int, int], Rasterizer] = {}
     uploaded: dict[tuple[int, int], str] = {}
     keep_files: set[str] = set()
+    segment_rows: dict[str, pa.Table] = {}
     try:
         for shard in corpus.shard_ids():
             vpath = corpus.video_path(shard)
@@ -199,7 +198,9 @@ def render_pose_targets(corpus_path: Path, settings: RenderSettings | None = Non
                 if stage not in terrains:
                     terrains[stage] = TerrainScene.of_stage(stage_dir(corpus.path, stage))
                 terrain = terrains[stage]
-                rows = corpus.read_segment(rec["segment"])
+                if rec["segment"] not in segment_rows:
+                    segment_rows[rec["segment"]] = corpus.read_segment(rec["segment"])
+                rows = segment_rows[rec["segment"]]
                 frames = rows["frame"].to_numpy()
                 a, b = rec["frames"]
                 rows = rows.take(np.flatnonzero((frames >= a) & (frames < b)))
@@ -269,10 +270,11 @@ def source_size(corpus: Corpus, segment: str) -> tuple[int, int]:
     row = corpus.segment_row(segment)
     vpath = corpus.video_path(row["shard"])
     if vpath.exists():
-        for name, data in _read_tar(vpath):
-            if name.startswith(f"{segment}__c") and name.endswith(".json"):
-                h, w = json.loads(data)["source_size"]
-                return int(h), int(w)
+        with tarfile.open(vpath) as tar:
+            for m in tar:
+                if m.isfile() and m.name.startswith(f"{segment}__c") and m.name.endswith(".json"):
+                    h, w = json.loads(tar.extractfile(m).read())["source_size"]
+                    return int(h), int(w)
     sample = corpus.samples.filter(pa.compute.equal(corpus.samples["sample"], row["sample"])).to_pylist()
     if sample and sample[0]["source"]:
         import av

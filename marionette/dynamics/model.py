@@ -40,6 +40,7 @@ sees only ``window`` frames. Exact window recomputation costs a full ``forward``
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
@@ -441,7 +442,7 @@ def _generator(seed: int | torch.Generator) -> torch.Generator:
     return seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
 
 
-class _FrameGPT(nn.Module):
+class _FrameGPT(nn.Module, ABC):
     """A causal transformer fed by per-frame features; subclasses say which features and which heads."""
 
     config: DynamicsConfig
@@ -504,11 +505,13 @@ class _FrameGPT(nn.Module):
             feats.append(frames.relative.reshape(B, T, 3 * c.n_entities))
         return feats
 
-    def features(self, frames: Frames) -> Tensor:  # (B, T, in_dim)
-        raise NotImplementedError
+    @abstractmethod
+    def features(self, frames: Frames) -> Tensor:
+        """The per-frame input features (B, T, in_dim) of this model."""
 
+    @abstractmethod
     def read_out(self, frames: Frames, h: Tensor) -> Any:
-        raise NotImplementedError
+        """Predictions from the transformer's output h (B, T, width)."""
 
     def forward(self, frames: Frames) -> Any:
         """Predictions for every frame of a (B, T) sequence, causally (see the module doc for the window)."""

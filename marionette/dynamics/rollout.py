@@ -42,7 +42,7 @@ from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
 from marionette.corpus import Corpus, _fixed, world_of_rows
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
-from marionette.dynamics.data import ActionTokens, Normaliser, compute_terrain_features
+from marionette.dynamics.data import ActionTokens, Normaliser, _as_corpus, compute_terrain_features
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, join_state, split_state
 from marionette.io import write_ipc
 from marionette.schema import state_schema
@@ -75,7 +75,7 @@ class Rollout:
 
     def __init__(self, ckpt: Path | str, corpus: Corpus | Path | str, *, temperature: float = 0.0, seed: int = 0,
                  rules: str | Sequence[str] = "auto", terrain_field: Any = None) -> None:  # fmt: skip
-        self.corpus = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
+        self.corpus = _as_corpus(corpus)
         self.layout = self.corpus.layout
         self.ckpt = _checkpoint_dir(ckpt)
         meta = read_meta(self.ckpt)
@@ -254,7 +254,7 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
 
     ``force``: (entity, start, end, token) with END exclusive, in predicted-frame indices; ``terrain_field``
     defaults to the segment's scanned stage (None when it was never scanned)."""
-    c = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
+    c = _as_corpus(corpus)
     L = c.layout
     if terrain_field is None:
         terrain_field = open_terrain_field(c, segment)

@@ -119,7 +119,7 @@ def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, n
     return out_l if indices is None else out_d
 
 
-def _tar_add(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+def tar_add(tar: tarfile.TarFile, name: str, data: bytes) -> None:
     info = tarfile.TarInfo(name)
     info.size, info.mtime, info.mode = len(data), 0, 0o644  # fixed mtime: reruns give identical bytes
     tar.addfile(info, io.BytesIO(data))
@@ -195,8 +195,8 @@ def write_video_shard(
                             }
                             mp4 = encode_mp4(np.stack(buffers.pop(key)), fps, settings)
                             name = f"{seg}__c{ci:05d}"
-                            _tar_add(tar, f"{name}.rgb.mp4", mp4)
-                            _tar_add(tar, f"{name}.json", json.dumps(rec, sort_keys=True).encode())
+                            tar_add(tar, f"{name}.rgb.mp4", mp4)
+                            tar_add(tar, f"{name}.json", json.dumps(rec, sort_keys=True).encode())
                             records.append(rec)
                 if buffers:
                     (seg, ci), got = next(iter(buffers.items()))
