@@ -200,8 +200,24 @@ def cmd_render(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_dynamics(a: argparse.Namespace) -> int:
+    """Train ActionGPT + PoseGPT on a corpus (resuming from --out when it holds a checkpoint)."""
+    from marionette.dynamics.train import run
+
+    run(a)
+    return 0
+
+
+def cmd_rollout(a: argparse.Namespace) -> int:
+    """Roll a trained dynamics model out from a recorded segment's first frames."""
+    from marionette.dynamics.rollout import run
+
+    run(a)
+    return 0
+
+
 def cmd_demo(a: argparse.Namespace) -> int:
-    """Synthetic recordings → corpus → inspect → the 20 fps dynamics view, end to end."""
+    """Synthetic recordings → corpus → 20 fps view → terrain → pose targets → dynamics training → a rollout, end to end."""
     from marionette.corpus import Corpus
     from marionette.ingest import IngestOptions, build_corpus
     from marionette.synth import generate
@@ -209,25 +225,58 @@ def cmd_demo(a: argparse.Namespace) -> int:
     out = Path(a.out)
     src, corpus = out / "recordings", out / "corpus"
     t0 = time.time()
-    print(f"[1/5] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
+    print(f"[1/7] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
     generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
-    print(f"[2/5] building the corpus {corpus} with {a.workers} workers")
+    print(f"[2/7] building the corpus {corpus} with {a.workers} workers")
     build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
     c = Corpus(corpus)
     rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
-    print(f"[3/5] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
+    print(f"[3/7] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
     from terrain_scan.scan import scan_stages
 
     for st, r in scan_stages(corpus, incremental=True, log=lambda *_: None).items():
-        print(f"[4/5] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
-    print("[5/5] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
+        print(f"[4/7] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
+    print("[5/7] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
     _pose_targets(corpus)
     seg = c.segment_ids()[0]
     follow = out / f"{seg}-follow.mkv"
     cmd_render(argparse.Namespace(source=corpus, segment=seg, camera="follow", out=follow, size=(352, 640), fps=None, terrain=None))
     print(inspect_text(corpus))
+    _demo_dynamics(c, out, a.dynamics_steps)
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
     return 0
+
+
+def _demo_dynamics(c, out: Path, steps: int) -> None:
+    """The demo's dynamics stages: train the tiny preset, then roll it out with an attack forced and render it."""
+    from marionette.dynamics.data import ActionTokens
+    from marionette.dynamics.rollout import add_arguments as rollout_arguments
+    from marionette.dynamics.rollout import run as run_rollout
+    from marionette.dynamics.train import TrainConfig, train
+
+    runs = out / "dynamics"
+    t = time.time()
+    print(f"[6/7] training ActionGPT + PoseGPT (tiny preset, {steps} steps) into {runs}")
+    s = train(c, runs, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50),
+              log=lambda m: print("   ", m) if m.startswith(("window", "baselines", "eval")) else None)  # fmt: skip
+    print(f"    {s['steps']} steps in {time.time() - t:.1f} s; checkpoint {s['checkpoint']}")
+    held = c.segment_ids("test") or c.segment_ids()
+    seg = max(held, key=lambda x: c.dynamics_segment(x).num_rows)
+    tokens = ActionTokens.from_corpus(c)
+    hunter = tokens.entities.index("hunter") if "hunter" in tokens.entities else 0
+    entity = tokens.entities[hunter]
+    type_key = tokens.type_keys[hunter][1] if tokens.sizes[hunter] > 1 else ""
+    classes = {x["composite"]: x.get("class") for x in c.vocab["entity_types"].get(type_key, {}).get("actions", [])}
+    attack = next((k for k in range(1, tokens.sizes[hunter]) if classes.get(int(tokens.composites[hunter][k])) == "attack"), None)
+    states, video = out / f"{seg}-rollout.arrow", out / f"{seg}-rollout.mkv"
+    argv = [str(runs), str(c.path), "--segment", seg, "--seed-frames", "32", "--horizon", "200", "--out", str(states),
+            "--render", str(video), "--size", "352x640"]  # fmt: skip
+    if attack is not None:
+        argv += ["--force", f"{entity}:40:60:{attack}"]
+    print(f"[7/7] rollout of {seg}: 32 seed frames, 200 predicted (10 s), {entity} forced to attack over frames 40–59, rules on")
+    ap = argparse.ArgumentParser()
+    rollout_arguments(ap)
+    run_rollout(ap.parse_args(argv), log=lambda m: print("   ", m))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -293,6 +342,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--terrain", type=Path, default=None, help="a stage directory (default: the segment's stage)")
     s.set_defaults(fn=cmd_render)
 
+    t = sub.add_parser("train", help="train a model on a corpus")
+    tsub = t.add_subparsers(dest="train_cmd", required=True)
+    s = tsub.add_parser("dynamics", help="train ActionGPT + PoseGPT (a rerun with the same --out resumes)")
+    from marionette.dynamics.train import add_arguments as train_arguments
+
+    train_arguments(s)
+    s.set_defaults(fn=cmd_train_dynamics)
+
+    s = sub.add_parser("rollout", help="roll a trained dynamics model out from a recorded segment, with forced tokens and scripted roots")
+    from marionette.dynamics.rollout import add_arguments as rollout_arguments
+
+    rollout_arguments(s)
+    s.set_defaults(fn=cmd_rollout)
+
     s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")
     s.add_argument("--out", type=Path, default=Path("demo-run"))
     s.add_argument("--recordings", type=int, default=4)
@@ -301,6 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--width", type=int, default=320)
     s.add_argument("--height", type=int, default=180)
     s.add_argument("--workers", type=int, default=2)
+    s.add_argument("--dynamics-steps", type=int, default=1000, help="training steps of the demo's tiny dynamics model")
     s.set_defaults(fn=cmd_demo)
     return p
 

@@ -51,3 +51,34 @@ def scanned_copy(scanned_corpus, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("scanned-copy") / "corpus"
     shutil.copytree(scanned_corpus, out)
     return out
+
+
+# The dynamics model needs more play than the session corpus holds (30 s of it): ten 45 s recordings
+# at a small resolution (the video is not what it learns from). No terrain scan: the rules-in-the-loop
+# and terrain tests use the scanned session corpus.
+DYNAMICS_SYNTH = {"recordings": 10, "seconds": 45.0, "seed": 11, "width": 96, "height": 54}
+DYNAMICS_OPTIONS = IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28))
+TINY_DYNAMICS = {"preset": "tiny", "steps": 1500, "batch_size": 8, "window": 64, "lr": 2e-3, "warmup": 50, "seed": 0}
+
+
+@pytest.fixture(scope="session")
+def dynamics_corpus(tmp_path_factory) -> Path:
+    """A corpus of 10 × 45 s synthetic recordings (one recording's segments in the "test" split)."""
+    from marionette.corpus import Corpus
+    from marionette.synth import generate
+
+    root = tmp_path_factory.mktemp("dynamics")
+    generate(root / "recordings", **DYNAMICS_SYNTH, workers=2)
+    build_corpus(root / "recordings", root / "corpus", DYNAMICS_OPTIONS, workers=2, progress=False)
+    assert Corpus(root / "corpus").segment_ids("test"), "the dynamics corpus needs a held-out split"
+    return root / "corpus"
+
+
+@pytest.fixture(scope="session")
+def tiny_dynamics(dynamics_corpus, tmp_path_factory) -> tuple[Path, dict]:
+    """The session's one trained tiny checkpoint: (training directory, training summary)."""
+    from marionette.dynamics.train import TrainConfig, train
+
+    out = tmp_path_factory.mktemp("tiny-dynamics")
+    summary = train(dynamics_corpus, out, TrainConfig(**TINY_DYNAMICS), log=lambda *_: None)
+    return out, summary

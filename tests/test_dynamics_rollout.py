@@ -86,7 +86,7 @@ def test_counterfactual_force_differs_only_from_its_start(ckpt, scanned, segment
 def test_forcing_sets_the_token_and_restarts_progress(ckpt, scanned, segment):
     c = Corpus(scanned)
     e = c.layout.articulated[0]
-    ro = Rollout(ckpt, c, rules="none")
+    ro = Rollout(ckpt, c, rules="none", terrain_field=open_terrain_field(c, segment))  # the monster reads terrain
     token, start, end = 2, 5, 15
     table = run(ckpt, scanned, segment, force=[(e.name, start, end, token)])
     actions = predicted(table, f"{e.name}.action")
@@ -163,3 +163,52 @@ def test_the_rollout_renders_with_the_follow_camera(ckpt, scanned, segment, tmp_
     terrain = TerrainScene.of_stage(stage_dir(scanned, c.segment_row(segment)["stage"]))
     meta = render_rows(c.layout, table, tmp_path / "g.mkv", terrain, camera="follow", size=(72, 128))
     assert (meta.height, meta.width) == (72, 128)
+
+
+def test_cli_trains_then_rolls_out_with_a_scripted_root_and_renders(scanned, segment, tmp_path):
+    from marionette.bridge.gbuffer import decode_gbuffer
+    from marionette.cli import main as cli
+
+    c = Corpus(scanned)
+    runs = tmp_path / "runs"
+    assert cli(["train", "dynamics", str(scanned), "--out", str(runs), "--steps", "3", "--batch-size", "4", "--window", "16",
+                "--warmup", "1"]) == 0  # fmt: skip
+    out, video = tmp_path / "states.arrow", tmp_path / "rollout.mkv"
+    hunter = c.layout.entity("hunter").name
+    assert cli(["rollout", str(runs), str(scanned), "--segment", segment, "--seed-frames", "8", "--horizon", "10",
+                "--script-root", f"{hunter}:2:7:0,0,2.5", "--force", f"{hunter}:0:3:1", "--rules", "none",
+                "--out", str(out), "--render", str(video), "--size", "72x128"]) == 0  # fmt: skip
+    table = read_ipc(out)
+    delta = _fixed(table["state"], c.layout.dim)[8:, c.layout.slice(f"{hunter}.root")]
+    np.testing.assert_allclose(delta[2:7], np.tile([0.0, 0.0, 2.5 / 20], (5, 1)), atol=1e-5)  # 2.5 m/s forward at 20 fps
+    assert not np.allclose(delta[7:], [0.0, 0.0, 0.125], atol=1e-3)  # the script ends at frame 7
+    frames, meta = decode_gbuffer(video)
+    assert len(frames) == 18 and (meta.height, meta.width) == (72, 128)
+    assert any((f.id >= 60).any() for f in frames)  # bone ids (weapon, drake or hunter) are in the picture
+    assert cli(["rollout", str(runs), str(scanned), "--segment", segment, "--horizon", "4", "--seed-frames", "8",
+                "--script-root", "dragon:0:1:0,0,1", "--out", str(tmp_path / "x.arrow")]) == 2  # fmt: skip
+
+
+def test_relative_feature_known_answer_far_from_the_origin():
+    from marionette import geometry as geo
+    from marionette.dynamics.data import RELATIVE_SCALE_M, relative_roots
+
+    a = np.array([1.0e4, 5.0, -1.0e4])
+    roots = np.stack([a, a + [3.0, 0.0, 0.0], a + [-40.0, 0.0, 0.0]])  # the third is farther from both
+    R = geo.quat_to_matrix(geo.yaw_quat(np.array([np.pi / 2, 0.0, 0.0])))
+    rel = relative_roots(roots, R) * RELATIVE_SCALE_M
+    np.testing.assert_allclose(rel[0], R[0].T @ [3.0, 0.0, 0.0], atol=1e-9)  # yaw 90°: world +x is local +z or −z
+    assert abs(abs(rel[0][2]) - 3.0) < 1e-9 and abs(rel[0][0]) < 1e-9
+    np.testing.assert_allclose(rel[1], [-3.0, 0.0, 0.0], atol=1e-9)  # the nearest other is the first
+    np.testing.assert_allclose(rel[2], [40.0, 0.0, 0.0], atol=1e-9)  # nearer the first (40 m) than the second (43 m)
+    assert np.all(relative_roots(roots[:1], R[:1]) == 0)  # one entity: nothing to be near
+
+
+def test_a_relative_position_model_trains_and_rolls_out(scanned, segment, tmp_path):
+    runs = tmp_path / "rel"
+    s = train(scanned, runs, TrainConfig(steps=3, batch_size=4, window=16, warmup=1, relative=True), log=lambda *_: None)
+    assert s["steps"] == 3
+    ro = Rollout(runs, Corpus(scanned), rules="none")
+    assert ro.config.relative_position
+    table = rollout(runs, scanned, segment, seed_frames=8, horizon=6, rules="none")
+    assert np.isfinite(_fixed(table["state"], Corpus(scanned).layout.dim)).all()

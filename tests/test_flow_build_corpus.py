@@ -231,3 +231,26 @@ def test_flow_in_process_reports_quarantined_sample(synth_small, tmp_path):
     assert report["corpus_totals"]["total_ingested"] == 2 and report["corpus_totals"]["total_quarantined"] == 1
     on_disk = json.loads((corpus / "meta" / "builds" / f"{report['flow_run_id']}.json").read_text())
     assert on_disk == report
+
+
+@pytest.mark.timeout(600)
+def test_train_dynamics_deployment_trains_under_ddp_resumes_and_reports(local_prefect, corpus, tmp_path):
+    """The train-dynamics/weekly deployment (schedule declared, off) run by the worker with nproc=2."""
+    dep = httpx.get(f"{local_prefect['api']}/deployments/name/train-dynamics/weekly", timeout=10).json()
+    assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 3 * * 0", False)]
+    out = tmp_path / "dynamics"
+    params = {"corpus": corpus, "out": out, "steps": 4, "batch_size": 4, "window": 16, "checkpoint_every": 2, "nproc": 2}
+    run_id = run_deployment(local_prefect, deployment="train-dynamics/weekly", **params)
+    from marionette.dynamics.checkpoint import latest_checkpoint
+
+    ckpt = latest_checkpoint(out)
+    assert ckpt is not None and ckpt.name == "step-00000004"
+    assert (out / "tensorboard").is_dir() and any((out / "tensorboard").iterdir())
+    artifacts = httpx.post(
+        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-dynamics-report"]}}}
+    ).json()
+    assert any(a["flow_run_id"] == run_id and "step-00000004" in a["data"] for a in artifacts)
+    # a rerun of a finished run trains nothing and leaves the checkpoint as it was
+    written = (ckpt / "model.safetensors").stat().st_mtime_ns
+    run_deployment(local_prefect, deployment="train-dynamics/weekly", **params)
+    assert latest_checkpoint(out) == ckpt and (ckpt / "model.safetensors").stat().st_mtime_ns == written

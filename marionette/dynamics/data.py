@@ -33,6 +33,11 @@ source frame ⌊1.5·k⌋ of a 30 fps segment, so along a 20 fps clip progress g
 source frames in turn, 1.5/clip_length per model frame on average (a rollout that advances an
 unchanged token should add (source fps / model fps) / clip_length to match what training saw).
 
+**Relative feature** (``relative_roots``, read only by models with ``relative_position`` on), per row
+and articulated entity: the nearest other articulated entity's root in the entity's own root frame,
+Rᵀ(r_other − r_me), in units of 5 m (``RELATIVE_SCALE_M``), from the view's ``root_world`` and
+``rot_world``; zeros in a one-entity scene. A rollout re-derives it each frame from the corrected roots.
+
 **Terrain features** (``terrain_feature_shard``), per row and articulated entity, 132 float32 = the
 11 × 11 ``terrain_scan.field.egocentric_patch`` at the entity's recorded root and rotation (the
 dynamics view's ``root_world``/``rot_world``, the rig's forward axis; 0.4 m cells, centred 1 m ahead;
@@ -95,6 +100,7 @@ NORMALISER_VERSION = 1
 FEATURE_VERSION = "1"
 PATCH_CELL_M = 0.4
 PATCH_AHEAD_M = 1.0
+RELATIVE_SCALE_M = 5.0  # the relative feature's unit: fighters stand a few metres apart
 TERRAIN_DIR = "terrain-features"
 
 
@@ -309,6 +315,34 @@ def vocab_sizes(corpus: Corpus | Path | str) -> tuple[int, ...]:
     return ActionTokens.from_corpus(corpus).sizes
 
 
+# -- the relative feature ----------------------------------------------------------------------------
+
+
+def relative_roots(roots_world: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """(..., N, 3) world roots and (..., N, 3, 3) root rotations → (..., N, 3): for each entity, the nearest
+    other entity's root in its own root frame, Rᵢᵀ (r_j − r_i), divided by ``RELATIVE_SCALE_M``; zeros
+    when the scene has one entity. float64 differences, so roots far from the origin lose nothing."""
+    r = np.asarray(roots_world, np.float64)
+    R = np.asarray(rotations, np.float64)
+    n = r.shape[-2]
+    out = np.zeros(r.shape, np.float64)
+    if n < 2:
+        return out
+    d = r[..., None, :, :] - r[..., :, None, :]  # (..., N, N, 3): d[i, j] = r_j − r_i
+    dist = np.linalg.norm(d, axis=-1) + np.where(np.eye(n, dtype=bool), np.inf, 0.0)
+    nearest = np.nan_to_num(dist, nan=np.inf).argmin(-1)  # (..., N)
+    other = np.take_along_axis(d, nearest[..., None, None], axis=-2)[..., 0, :]  # (..., N, 3)
+    return np.einsum("...ji,...j->...i", R, other) / RELATIVE_SCALE_M
+
+
+def relative_of_rows(layout: Layout, table: pa.Table) -> np.ndarray:
+    """``relative_roots`` (n, N, 3) float32 of state rows, from their ``root_world`` and ``rot_world`` columns."""
+    ents = layout.articulated
+    roots = np.stack([_fixed(table[f"{e.name}.root_world"], 3) for e in ents], axis=1)
+    R = np.stack([geo.quat_to_matrix(_fixed(table[f"{e.name}.rot_world"], 4)) for e in ents], axis=1)
+    return relative_roots(roots, R).astype(np.float32)
+
+
 # -- terrain features --------------------------------------------------------------------------------
 
 
@@ -439,7 +473,7 @@ class Batch:
 
 class WindowData:
     """One split's dynamics view in memory: normalised root and body (float32), tokens, progress and,
-    when asked, terrain features, per segment (segments in ``corpus.segment_ids(split)`` order)."""
+    when asked, terrain features and the relative feature, per segment (segments in ``corpus.segment_ids(split)`` order)."""
 
     def __init__(
         self,
@@ -447,6 +481,7 @@ class WindowData:
         split: str = "train",
         *,
         terrain: bool = False,
+        relative: bool = False,
         normaliser: Normaliser | None = None,
         tokens: ActionTokens | None = None,
         fps: float = DEFAULT_FPS,
@@ -454,6 +489,7 @@ class WindowData:
     ):
         c = _as_corpus(corpus)
         self.corpus, self.split, self.terrain, self.fps, self.method = c, split, terrain, fps, method
+        self.relative = relative
         self.layout = c.layout
         self.normaliser = normaliser or Normaliser.from_corpus(c)
         if self.normaliser.layout_hash != c.layout.hash:
@@ -469,6 +505,7 @@ class WindowData:
         self.progress: list[np.ndarray] = []  # (n, N) float32
         self.features: list[np.ndarray | None] = []  # (n, N, 132) float32
         self.known: list[np.ndarray | None] = []  # (n, N, 132) bool
+        self.rel: list[np.ndarray | None] = []  # (n, N, 3) float32, the relative feature
         by_shard: dict[int, list[str]] = {}
         for s in self.segments:
             by_shard.setdefault(int(rows[s]["shard"]), []).append(s)
@@ -483,6 +520,7 @@ class WindowData:
             feats = known = None
             if terrain:
                 feats, known = terrain_feature_shard(c, shard, fps, method)
+            rel = relative_of_rows(self.layout, view) if relative else None
             names = view["segment"].to_numpy(zero_copy_only=False)
             for s in segs:
                 idx = np.flatnonzero(names == s)
@@ -493,15 +531,17 @@ class WindowData:
                     prog[idx],
                     None if feats is None else feats[idx],
                     None if known is None else known[idx],
+                    None if rel is None else rel[idx],
                 )
         for s in self.segments:
-            r, b, t, p, f, k = loaded[s]
+            r, b, t, p, f, k, rl = loaded[s]
             self.root.append(r)
             self.body.append(b)
             self.action.append(t)
             self.progress.append(p)
             self.features.append(f)
             self.known.append(k)
+            self.rel.append(rl)
         self.lengths = np.asarray([len(r) for r in self.root], np.int64)
 
     def usable(self, frames: int) -> list[int]:
@@ -543,6 +583,7 @@ class WindowData:
             tokens=stack([self.action[i] for i in pick]),  # (B, W, N) int64
             progress=stack([self.progress[i] for i in pick]),  # (B, W, N)
             terrain=terrain,
+            relative=stack([self.rel[i] for i in pick]) if self.relative else None,  # (B, W, N, 3)
         )
         return Batch(frames_, known, tuple(self.segments[i] for i in pick), tuple(int(s) for _, s in windows))
 

@@ -23,7 +23,8 @@ Terrain features (for entities whose switch is on) are re-derived each frame wit
 ``data.compute_terrain_features`` from the corrected world state. PoseGPT reads the terrain of the frame
 being animated before that frame's body exists, so its features there are computed from the predicted
 root with the previous frame's root-local body (an approximation; ActionGPT reads exact ones).
-Not supported: ``relative_position`` models (the training data carries no relative feature either).
+The relative feature (``relative_position`` models) is re-derived the same way: from the corrected world
+roots for ActionGPT, from the predicted roots for PoseGPT.
 """
 
 from __future__ import annotations
@@ -42,7 +43,14 @@ from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
 from marionette.corpus import Corpus, _fixed, world_of_rows
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
-from marionette.dynamics.data import ActionTokens, Normaliser, _as_corpus, compute_terrain_features
+from marionette.dynamics.data import (
+    ActionTokens,
+    Normaliser,
+    _as_corpus,
+    compute_terrain_features,
+    relative_of_rows,
+    relative_roots,
+)
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, join_state, split_state
 from marionette.io import write_ipc
 from marionette.schema import state_schema
@@ -70,19 +78,51 @@ def open_terrain_field(corpus: Corpus, segment: str):
     return open_stage(d) if (d / "manifest.json").exists() and any((d / "chunks").glob("*")) else None
 
 
+class ModelStream:
+    """One of the two models fed one frame at a time: through its sliding-window KV cache, or, with
+    ``cached=False``, by recomputing ``forward`` over the frames that can still reach the newest one
+    (the last layers·(window − 1) + 1: a layer-l output sees l·(window − 1) frames back), which gives
+    the cached result up to float rounding at a cost that grows with the window."""
+
+    def __init__(self, model: Any, cached: bool = True) -> None:
+        self.model, self.cached = model, cached
+        self.reach = model.spec.layers * (model.config.window - 1) + 1
+        self.reset(1)
+
+    def reset(self, batch: int) -> None:
+        self.cache = self.model.cache_empty(batch)
+        self.history: list[Frames] = []
+
+    def step(self, frames: Frames) -> Any:
+        if self.cached:
+            out, self.cache = self.model.step(frames, self.cache)
+            return out
+        self.history = [*self.history[-(self.reach - 1) :], frames] if self.reach > 1 else [frames]
+        out = self.model(_concat(self.history))
+        if isinstance(out, torch.Tensor):
+            return out[:, -1:]
+        return type(out)(root=out.root[:, -1:], logits=tuple(lg[:, -1:] for lg in out.logits))
+
+
+def _concat(frames: Sequence[Frames]) -> Frames:
+    """Frames joined along time."""
+    first = frames[0]
+    return Frames(**{k: None if getattr(first, k) is None else torch.cat([getattr(f, k) for f in frames], dim=1)
+                     for k in ("root", "body", "tokens", "progress", "terrain", "relative")})  # fmt: skip
+
+
 class Rollout:
     """A streaming rollout of one checkpoint over one scene: ``start(seed_rows)`` then ``step()`` per frame."""
 
     def __init__(self, ckpt: Path | str, corpus: Corpus | Path | str, *, temperature: float = 0.0, seed: int = 0,
-                 rules: str | Sequence[str] = "auto", terrain_field: Any = None) -> None:  # fmt: skip
+                 rules: str | Sequence[str] = "auto", terrain_field: Any = None, cached: bool = True,
+                 dtype: torch.dtype = torch.float32) -> None:  # fmt: skip
         self.corpus = _as_corpus(corpus)
         self.layout = self.corpus.layout
         self.ckpt = _checkpoint_dir(ckpt)
         meta = read_meta(self.ckpt)
         self.config = DynamicsConfig.from_json(meta["dynamics_config"])
         self.config.check_layout(self.layout)
-        if self.config.relative_position:
-            raise NotImplementedError(f"{self.ckpt}: rollouts of relative_position models are not supported")
         self.normaliser = Normaliser.from_json(meta["normaliser"])
         self.tokens = ActionTokens.from_corpus(self.corpus)
         if meta["vocab"]["hash"] != self.tokens.vocab_hash or tuple(meta["vocab"]["sizes"]) != self.tokens.sizes:
@@ -90,7 +130,10 @@ class Rollout:
         self.fps = float(meta["train_config"].get("fps", 20.0))
         self.model = DynamicsModel(self.config)
         load_checkpoint(self.ckpt, self.model, restore_rng=False)
-        self.model.eval()
+        self.model.eval().to(dtype)
+        self.dtype = dtype
+        self.action_stream = ModelStream(self.model.action, cached)
+        self.pose_stream = ModelStream(self.model.pose, cached)
         self.temperature, self.seed = float(temperature), int(seed)
         self.field = terrain_field
         if rules == "auto":
@@ -120,13 +163,18 @@ class Rollout:
             cols[f"{e.name}.root_world"] = pa.FixedSizeListArray.from_arrays(pa.array(roots[i].astype(np.float64)), 3)
             cols[f"{e.name}.rot_world"] = pa.FixedSizeListArray.from_arrays(pa.array(quats[i].astype(np.float64)), 4)
         feats, _ = compute_terrain_features(self.layout, pa.table(cols), self.field)
-        return torch.from_numpy(feats)[None]
+        return torch.from_numpy(feats).to(self.dtype)[None]
+
+    def _relative(self, roots: np.ndarray, R: np.ndarray) -> np.ndarray | None:
+        """The relative feature (N, 3) at world roots (N, 3) and rotations (N, 3, 3), when the model reads it."""
+        return relative_roots(roots, R).astype(np.float32) if self.config.relative_position else None
 
     def _frames(self, root_n: np.ndarray, body_n: np.ndarray, tokens: np.ndarray, progress: np.ndarray | None,
-                terrain: torch.Tensor | None) -> Frames:  # fmt: skip
-        t = lambda a: torch.as_tensor(np.asarray(a, np.float32))[None, None]  # noqa: E731  (1, 1, ·)
+                terrain: torch.Tensor | None, relative: np.ndarray | None = None) -> Frames:  # fmt: skip
+        t = lambda a: torch.as_tensor(np.asarray(a, np.float32)).to(self.dtype)[None, None]  # noqa: E731  (1, 1, ·)
         return Frames(root=t(root_n), body=t(body_n), tokens=torch.as_tensor(np.asarray(tokens, np.int64))[None, None],
-                      progress=None if progress is None else t(progress), terrain=terrain)  # fmt: skip
+                      progress=None if progress is None else t(progress), terrain=terrain,
+                      relative=None if relative is None else t(relative))  # fmt: skip
 
     # -- the stream ------------------------------------------------------------------------------
 
@@ -143,16 +191,19 @@ class Rollout:
         tokens, progress = self.tokens.encode(L, seed_rows, where=str(self.corpus.path))
         terrain = None
         if any(self.config.terrain):
-            terrain = torch.from_numpy(compute_terrain_features(L, seed_rows, self.field)[0])[None]  # (1, n, N, 132)
+            terrain = torch.from_numpy(compute_terrain_features(L, seed_rows, self.field)[0]).to(self.dtype)[None]  # (1, n, N, 132)
+        rel = relative_of_rows(L, seed_rows) if self.config.relative_position else [None] * n  # (n, N, 3)
         self.generator = torch.Generator().manual_seed(self.seed)
-        self.action_cache = self.model.action.cache_empty(1)
-        self.pose_cache = self.model.pose.cache_empty(1)
+        self.action_stream.reset(1)
+        self.pose_stream.reset(1)
         for k in range(n):
             tk = None if terrain is None else terrain[:, k : k + 1]
-            out, self.action_cache = self.model.action.step(self._frames(root_n[k], body_n[k], tokens[k], progress[k], tk), self.action_cache)
+            frames = self._frames(root_n[k], body_n[k], tokens[k], progress[k], tk, rel[k])
+            out = self.action_stream.step(frames)
             if k + 1 < n:  # PoseGPT step k animates frame k + 1 from body k
                 tn = None if terrain is None else terrain[:, k + 1 : k + 2]
-                _, self.pose_cache = self.model.pose.step(self._frames(root_n[k + 1], body_n[k], tokens[k + 1], None, tn), self.pose_cache)
+                frames = self._frames(root_n[k + 1], body_n[k], tokens[k + 1], None, tn, rel[k + 1])
+                self.pose_stream.step(frames)
         self._out = out
         self.state = state[-1].astype(np.float64)
         self.body_n, self.tok, self.progress = body_n[-1], tokens[-1].copy(), progress[-1].astype(np.float64)
@@ -188,7 +239,7 @@ class Rollout:
         stream (root_dim,) in state units, NaN = the model's value."""
         L, c, nz = self.layout, self.config, self.normaliser
         out = self._out
-        root_n = out.root[0, 0].numpy().astype(np.float64)
+        root_n = out.root[0, 0].float().numpy().astype(np.float64)
         if root_override is not None:
             over = np.asarray(root_override, np.float64)
             root_n = np.where(np.isfinite(over), nz.normalise_root(np.nan_to_num(over)), root_n)
@@ -202,13 +253,16 @@ class Rollout:
                 prog[i] = p % 1.0 if self._wraps[i][tok[i]] else min(p, 1.0)
         # PoseGPT animates the new frame from the current body
         root_raw = nz.denormalise_root(root_n)
-        terrain = None
-        if any(c.terrain):
+        terrain = relative = None
+        if any(c.terrain) or c.relative_position:
             guess = join_state(root_raw, nz.denormalise_body(self.body_n.astype(np.float64)), L)
             gw = geo.state_to_world(L, np.stack([self.state, guess]), dict(zip([e.name for e in L.articulated], self.roots_world)))
-            q = geo.matrix_to_quat(np.stack([gw[e.name]["R"][1] for e in L.articulated]))
-            terrain = self._terrain(guess, np.stack([gw[e.name]["joints"][1, 0] for e in L.articulated]), q)
-        body_n, self.pose_cache = self.model.pose.step(self._frames(root_n, self.body_n, tok, None, terrain), self.pose_cache)
+            g_roots = np.stack([gw[e.name]["joints"][1, 0] for e in L.articulated])
+            g_R = np.stack([gw[e.name]["R"][1] for e in L.articulated])
+            terrain = self._terrain(guess, g_roots, geo.matrix_to_quat(g_R))
+            relative = self._relative(g_roots, g_R)
+        frames = self._frames(root_n, self.body_n, tok, None, terrain, relative)
+        body_n = self.pose_stream.step(frames).float()
         new = join_state(root_raw, nz.denormalise_body(body_n[0, 0].numpy().astype(np.float64)), L)
         # world skeletons, the rules, and the state re-derived from the corrected skeletons
         anchors = {e.name: self.world[e.name][0] for e in L.articulated}
@@ -226,7 +280,9 @@ class Rollout:
         root_c, body_c = split_state(state, L)
         root_cn, self.body_n = nz.normalise(root_c, body_c)
         terrain = self._terrain(state, self.roots_world, quats)
-        self._out, self.action_cache = self.model.action.step(self._frames(root_cn, self.body_n, tok, prog, terrain), self.action_cache)
+        relative = self._relative(self.roots_world, geo.quat_to_matrix(quats))
+        frames = self._frames(root_cn, self.body_n, tok, prog, terrain, relative)
+        self._out = self.action_stream.step(frames)
         self.t += 1
         return state
 
@@ -249,20 +305,25 @@ def _script_roots(script_root: Any, horizon: int, layout, root_dim: int) -> np.n
 
 def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, seed_frames: int = 64, horizon: int = 100,
             temperature: float = 0.0, seed: int = 0, force: Sequence[Force] = (), script_root: Any = None,
-            rules: str | Sequence[str] = "auto", terrain_field: Any = None) -> pa.Table:  # fmt: skip
+            rules: str | Sequence[str] = "auto", terrain_field: Any = None, start: int = 0, cached: bool = True,
+            dtype: torch.dtype = torch.float32) -> pa.Table:  # fmt: skip
     """Seed rows + ``horizon`` predicted rows of ``segment`` (corpus state schema, 20 fps, world roots in m).
 
-    ``force``: (entity, start, end, token) with END exclusive, in predicted-frame indices; ``terrain_field``
-    defaults to the segment's scanned stage (None when it was never scanned)."""
+    The seed is the segment's dynamics frames [start, start + seed_frames). ``force``: (entity, start,
+    end, token) with END exclusive, in predicted-frame indices; ``terrain_field`` defaults to the
+    segment's scanned stage (None when it was never scanned). ``cached=False`` recomputes each frame
+    (``ModelStream``); ``dtype`` is the models' (bfloat16 for the half-precision path)."""
     c = _as_corpus(corpus)
     L = c.layout
     if terrain_field is None:
         terrain_field = open_terrain_field(c, segment)
-    ro = Rollout(ckpt_dir, c, temperature=temperature, seed=seed, rules=rules, terrain_field=terrain_field)
+    ro = Rollout(ckpt_dir, c, temperature=temperature, seed=seed, rules=rules, terrain_field=terrain_field, cached=cached,
+                 dtype=dtype)  # fmt: skip
     view = c.dynamics_segment(segment, ro.fps)
-    if view.num_rows < seed_frames:
-        raise ValueError(f"{c.path}: segment {segment} has {view.num_rows} dynamics frames, fewer than {seed_frames} seed frames")
-    seed_rows = view.slice(0, seed_frames)
+    if seed_frames < 1 or start < 0 or view.num_rows < start + seed_frames:
+        raise ValueError(f"{c.path}: segment {segment} has {view.num_rows} dynamics frames; a seed of {seed_frames} frames "
+                         f"from frame {start} does not fit")  # fmt: skip
+    seed_rows = view.slice(start, seed_frames)
     names = [e.name for e in L.articulated]
     for name, _start, _end, token in force:
         if name not in names:
@@ -274,10 +335,10 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
     states, roots, quats, toks, progs = [], [], [], [], []
     for t in range(horizon):
         forced, restart = {}, []
-        for name, start, end, token in force:
-            if int(start) <= t < int(end):
+        for name, first, end, token in force:
+            if int(first) <= t < int(end):
                 forced[names.index(name)] = int(token)
-                if t == int(start):
+                if t == int(first):
                     restart.append(names.index(name))
         states.append(ro.step(forced, None if scripted is None else scripted[t], restart))
         roots.append(ro.roots_world)
@@ -335,27 +396,87 @@ def _parse_force(s: str) -> Force:
     return parts[0], int(parts[1]), int(parts[2]), int(parts[3])
 
 
+def _parse_script(s: str) -> tuple[str, Any]:
+    """``ENTITY:START:END:VX,VY,VZ`` (a constant root velocity in the entity's own frame, m/s; END
+    exclusive) or ``ENTITY:FILE.npy`` (a (horizon, 9) array of E.root then E.rot6d, NaN = the model's)."""
+    name, _, rest = s.partition(":")
+    if rest.endswith(".npy"):
+        return name, Path(rest)
+    parts = rest.split(":")
+    if len(parts) != 3 or len(parts[2].split(",")) != 3:
+        raise argparse.ArgumentTypeError(f"--script-root {s!r}: expected ENTITY:START:END:VX,VY,VZ or ENTITY:FILE.npy")
+    return name, (int(parts[0]), int(parts[1]), tuple(float(v) for v in parts[2].split(",")))
+
+
+def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: float, layout) -> dict[str, np.ndarray] | None:
+    """Parsed ``--script-root`` values → the dict form of ``rollout``'s ``script_root`` (entity → (horizon, 9))."""
+    if not scripts:
+        return None
+    names = [e.name for e in layout.articulated]
+    out: dict[str, np.ndarray] = {}
+    for name, spec in scripts:
+        if name not in names:
+            raise ValueError(f"--script-root: unknown entity {name!r}; the scene has {names}")
+        arr = out.setdefault(name, np.full((horizon, 9), np.nan))
+        if isinstance(spec, Path):
+            a = np.load(spec, allow_pickle=False)
+            if a.ndim != 2 or a.shape[1] != 9 or len(a) < horizon:
+                raise ValueError(f"{spec}: a root script is ({horizon}, 9) or longer (E.root then E.rot6d), not {a.shape}")
+            arr[:] = np.where(np.isfinite(a[:horizon]), a[:horizon], arr)
+        else:
+            start, end, velocity = spec
+            if not 0 <= start < end:
+                raise ValueError(f"--script-root {name}: frames [{start}, {end}) are empty or negative")
+            arr[start : min(end, horizon), 0:3] = np.asarray(velocity) / fps  # metres per model frame
+    return out
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The rollout command's arguments (shared by ``marionette rollout`` and ``python -m``)."""
+    ap.add_argument("ckpt", type=Path, help="a checkpoint directory or a training output directory")
+    ap.add_argument("corpus", type=Path)
+    ap.add_argument("--segment", required=True, help="the recorded segment whose first frames seed the rollout")
+    ap.add_argument("--seed-frames", type=int, default=64)
+    ap.add_argument("--horizon", type=int, required=True, help="predicted frames")
+    ap.add_argument("--temperature", type=float, default=0.0, help="0: argmax, deterministic")
+    ap.add_argument("--seed", type=int, default=0, help="the sampler's seed")
+    ap.add_argument("--force", type=_parse_force, nargs="*", default=[], help="ENTITY:START:END:TOKEN (predicted frames, END exclusive)")
+    ap.add_argument("--script-root", type=_parse_script, nargs="*", default=[],
+                    help="ENTITY:START:END:VX,VY,VZ (m/s in the entity's frame) or ENTITY:FILE.npy ((horizon, 9) root channels)")  # fmt: skip
+    ap.add_argument("--rules", default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
+    ap.add_argument("--out", type=Path, required=True, help="STATES.arrow (the corpus state schema)")
+    ap.add_argument("--render", type=Path, default=None, help="also render the rollout (follow camera) to this .mkv")
+    ap.add_argument("--size", type=lambda v: tuple(int(x) for x in v.lower().split("x")), default=(352, 640), help="render HxW")
+
+
+def run(args: argparse.Namespace, log=print) -> pa.Table:
+    """Run a parsed rollout command: the rollout, its table, and the optional render."""
+    rules = args.rules if args.rules in ("auto", "none") else tuple(r for r in args.rules.split(",") if r)
+    c = _as_corpus(args.corpus)
+    fps = float(read_meta(_checkpoint_dir(args.ckpt))["train_config"].get("fps", 20.0))
+    script = script_from_args(args.script_root, args.horizon, fps, c.layout)
+    started = time.perf_counter()
+    table = rollout(args.ckpt, c, args.segment, args.seed_frames, args.horizon, args.temperature, args.seed, args.force,
+                    script_root=script, rules=rules)  # fmt: skip
+    took = time.perf_counter() - started
+    write_ipc(args.out, table)
+    log(f"{args.out}: {table.num_rows} rows ({args.horizon} predicted, {args.horizon / took:.0f} frames/s incl. loading)")
+    if args.render is not None:
+        from marionette.bridge.targets import TerrainScene, render_rows
+        from terrain_scan.scan import stage_dir
+
+        d = stage_dir(c.path, c.segment_row(args.segment)["stage"])
+        terrain = TerrainScene.of_stage(d) if (d / "manifest.json").exists() else TerrainScene.empty()
+        meta = render_rows(c.layout, table, args.render, terrain, camera="follow", size=args.size)
+        log(f"{args.render}: {meta.width}×{meta.height} at {meta.fps:g} fps (follow camera)")
+    return table
+
+
 def main(argv: list[str] | None = None) -> pa.Table:
     """``python -m marionette.dynamics.rollout DIR CORPUS --segment ID --horizon N --out STATES.arrow [...]``."""
     ap = argparse.ArgumentParser(prog="python -m marionette.dynamics.rollout", description=__doc__.splitlines()[0])
-    ap.add_argument("ckpt", type=Path, help="a checkpoint directory or a training output directory")
-    ap.add_argument("corpus", type=Path)
-    ap.add_argument("--segment", required=True)
-    ap.add_argument("--seed-frames", type=int, default=64)
-    ap.add_argument("--horizon", type=int, required=True)
-    ap.add_argument("--temperature", type=float, default=0.0)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--force", type=_parse_force, nargs="*", default=[], help="ENTITY:START:END:TOKEN, END exclusive")
-    ap.add_argument("--rules", default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
-    ap.add_argument("--out", type=Path, required=True)
-    args = ap.parse_args(argv)
-    rules = args.rules if args.rules in ("auto", "none") else tuple(r for r in args.rules.split(",") if r)
-    started = time.perf_counter()
-    table = rollout(args.ckpt, args.corpus, args.segment, args.seed_frames, args.horizon, args.temperature, args.seed,
-                    args.force, rules=rules)  # fmt: skip
-    write_ipc(args.out, table)
-    print(f"{args.out}: {table.num_rows} rows ({args.horizon} predicted) in {time.perf_counter() - started:.2f} s")
-    return table
+    add_arguments(ap)
+    return run(ap.parse_args(argv))
 
 
 if __name__ == "__main__":

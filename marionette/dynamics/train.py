@@ -13,9 +13,15 @@ where Δy is the world-vertical root displacement of a frame, R[1, :] · δ with
 local displacement ``E.root`` and R the frame's rotation from ``E.rot6d`` (world up = +y); the
 prediction uses the predicted δ and rotation, the recording the recorded ones (metres).
 
-Left out: DESIGN's penetration hinge ReLU(H_j + 0.15 − y_j)². ``Batch`` carries the signed
-clearances of the recorded key joints, not the terrain height H_j under a *predicted* joint nor
-which body dimensions are those joints, so the term cannot be formed from a batch.
+  + w_hinge  · mean over known (frame, entity, key joint) of ReLU(H_j + margin − y_j)²
+
+the penetration hinge of DESIGN (``PenetrationHinge``), on PoseGPT's predicted body: y_j is the
+predicted height of key contact joint j above the root, R[1, :] · p_j with p_j its root-local position
+and R the rotation of the frame being animated (the recorded one, which PoseGPT reads); H_j is the
+terrain height under joint j relative to the root, taken from the batch's terrain features as the
+recorded joint's height above the root minus its recorded signed clearance (so H_j is the surface under
+the *recorded* joint, which a teacher-forced prediction stays within centimetres of). It needs the
+terrain features (``TrainConfig.terrain``) and is 0 where the surface is unknown.
 
 Optimisation: AdamW (betas 0.9, 0.95; weight decay on matrices and embeddings only), linear warmup
 then cosine decay to ``min_lr_ratio`` of the peak (a ``LambdaLR``), gradient clipping. bf16 autocast
@@ -31,6 +37,10 @@ DDP: when ``torch.distributed`` is initialised, ActionGPT and PoseGPT are each w
 ``DistributedDataParallel``, rank r samples its own windows (``WindowSampler(rank=r)``), the logged
 losses are averaged over ranks, and only rank 0 evaluates, logs and writes checkpoints.
 
+Metrics: every step's terms, learning rate and gradient norm, and every evaluation, go to TensorBoard
+event files under ``<out>/tensorboard`` (rank 0); the ``train-dynamics`` flow also publishes the final
+figures as a Prefect artifact.
+
 Evaluation, on every whole held-out window (split "test"; skipped when the corpus has none): the
 model's next-action accuracy over frames whose next token is not 0, and the MSE of its next body state
 and next root stream (normalised units), beside three baselines on the same targets: copy the last
@@ -44,9 +54,11 @@ import argparse
 import json
 import math
 import os
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -61,17 +73,24 @@ from marionette.corpus import Corpus
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.dynamics.data import ActionTokens, Batch, HeldOutWindows, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import (
+    PATCH_SIZE,
     PRESETS,
     DynamicsConfig,
     DynamicsModel,
     Frames,
     action_training_pair,
+    body_slices,
     parameter_counts,
     pose_training_pair,
 )
+from marionette.io import write_json
+from marionette.schema import Layout
 
 HELD_OUT_SPLIT = "test"
 ROOT_PER_ENTITY = 9  # E.root (3) then E.rot6d (6)
+N_PATCH = PATCH_SIZE * PATCH_SIZE  # terrain feature slots before the key joints' clearances
+TENSORBOARD = "tensorboard"  # event files under the training directory (rank 0)
+SUMMARY = "summary.json"  # the last run's summary (losses left out), written by rank 0
 CADENCE_FIELDS = ("eval_every", "checkpoint_every")  # may change between a run and its resume
 
 
@@ -90,11 +109,19 @@ class TrainConfig:
     min_lr_ratio: float = 0.1  # cosine decays to this fraction of lr
     grad_clip: float = 1.0
     seed: int = 0
-    terrain: bool = False  # read terrain features (monsters by default, DynamicsConfig.from_layout)
+    terrain: bool = True  # load terrain features: monsters read them (DynamicsConfig.from_layout), the hinge uses them
+    relative: bool = False  # the relative-position feature (DESIGN: beyond the paper)
+    dropout: float = 0.0  # in both transformers
+    # Long rollouts (docs/tradeoffs.md): residual heads trained on clean inputs integrate their errors and
+    # leave the data within ~200 frames; absolute heads reading noised inputs stay stable over 10,000.
+    residual: bool = False  # heads predict a change added to the current frame (DynamicsConfig.residual)
+    input_noise: float = 0.1  # std (normalised units) of Gaussian noise on the models' root and body inputs
     w_action: float = 1.0
     w_root: float = 1.0
     w_body: float = 1.0
     w_drift: float = 0.1
+    w_hinge: float = 0.1
+    hinge_margin: float = 0.15  # metres, DESIGN's ReLU(H_j + 0.15 − y_j)²
     eval_every: int = 0  # 0: evaluate only at the end
     eval_batch_size: int = 64
     checkpoint_every: int = 0  # 0: checkpoint only at the end
@@ -226,12 +253,61 @@ def action_loss(logits: tuple[Tensor, ...], target: Tensor) -> Tensor:
     return total / max(count, 1)
 
 
+class PenetrationHinge:
+    """DESIGN's penetration hinge on predicted bodies (module doc: the definition of H_j and y_j)."""
+
+    def __init__(self, layout: Layout, normaliser: Normaliser, margin: float) -> None:
+        self.normaliser, self.margin = normaliser, float(margin)
+        offsets = {name: 0 for name, _ in body_slices(layout)}
+        at = 0
+        for name, sl in body_slices(layout):
+            offsets[name] = at
+            at += sl.stop - sl.start
+        # per entity: (entity index, body indices of the contact joints' xyz (J, 3), their feature slots)
+        self.parts: list[tuple[int, Tensor, Tensor]] = []
+        for i, e in enumerate(layout.articulated):
+            local = [k - 1 for k in e.rig.contact_index if k > 0]  # keep index 0 is the root itself
+            slots = [N_PATCH + j for j, k in enumerate(e.rig.contact_index) if k > 0]
+            if local:
+                base = offsets[f"{e.name}.joints"]
+                idx = torch.tensor([[base + 3 * k + a for a in range(3)] for k in local])
+                self.parts.append((i, idx, torch.tensor(slots)))
+
+    def __call__(self, body_pred: Tensor, body_rec: Tensor, root_rec: Tensor, terrain: Tensor, known: Tensor) -> Tensor:
+        """Mean hinge over known entries; ``body_*`` (B, T, body_dim) and ``root_rec`` (B, T, root_dim) normalised,
+        ``terrain``/``known`` (B, T, N, 132) of the frames being animated."""
+        pred = self.normaliser.denormalise_body(body_pred.float())
+        rec = self.normaliser.denormalise_body(body_rec.float())
+        root = self.normaliser.denormalise_root(root_rec.float())
+        total, count = pred.new_zeros(()), 0
+        for i, idx, slots in self.parts:
+            up = geo.rot6d_to_matrix(root[..., ROOT_PER_ENTITY * i + 3 : ROOT_PER_ENTITY * (i + 1)])[..., 1, :]  # (B, T, 3)
+            y_pred = (pred[..., idx] * up[..., None, :]).sum(-1)  # (B, T, J) height above the root
+            y_rec = (rec[..., idx] * up[..., None, :]).sum(-1)
+            ok = known[:, :, i, slots]
+            ground = y_rec - terrain[:, :, i, slots].float()  # H_j relative to the root
+            gap = F.relu(ground + self.margin - y_pred) ** 2
+            total = total + torch.where(ok, gap, 0.0).sum()
+            count += int(ok.sum())
+        return total / max(count, 1)
+
+
 def losses(model: nn.Module, action: nn.Module, pose: nn.Module, batch: Batch, normaliser: Normaliser,
-           config: TrainConfig) -> dict[str, Tensor]:  # fmt: skip
-    """The weighted terms and their sum for one batch; ``action``/``pose`` may be DDP wrappers."""
+           config: TrainConfig, hinge: PenetrationHinge | None = None,
+           noise: torch.Generator | None = None) -> dict[str, Tensor]:  # fmt: skip
+    """The weighted terms and their sum for one batch; ``action``/``pose`` may be DDP wrappers.
+
+    With ``config.input_noise`` > 0 and a ``noise`` generator, the models read root and body inputs
+    with Gaussian noise added and predict the clean next frame (targets are never noised)."""
     a_in, (root_next, tok_next) = action_training_pair(batch.frames)
-    out = action(a_in)
     p_in, body_next = pose_training_pair(batch.frames)
+    if config.input_noise and noise is not None:
+        def jitter(x: Tensor) -> Tensor:
+            return x + config.input_noise * torch.randn(x.shape, generator=noise).to(x.device, x.dtype)
+
+        a_in = replace(a_in, root=jitter(a_in.root), body=jitter(a_in.body))
+        p_in = replace(p_in, root=jitter(p_in.root), body=jitter(p_in.body))
+    out = action(a_in)
     body = pose(p_in)
     terms = {
         "action": action_loss(out.logits, tok_next),
@@ -242,7 +318,11 @@ def losses(model: nn.Module, action: nn.Module, pose: nn.Module, batch: Batch, n
         pred = vertical_displacement(out.root.float(), normaliser).sum(1)  # (B, N), metres over the window
         rec = vertical_displacement(root_next, normaliser).sum(1)
         terms["drift"] = ((pred - rec) ** 2).mean()
-    weights = {"action": config.w_action, "root": config.w_root, "body": config.w_body, "drift": config.w_drift}
+    if config.w_hinge and hinge is not None and batch.terrain_known is not None:
+        nxt = batch.frames.time_slice(1, None)
+        terms["hinge"] = hinge(body, body_next, nxt.root, nxt.terrain, batch.terrain_known[:, 1:])
+    weights = {"action": config.w_action, "root": config.w_root, "body": config.w_body, "drift": config.w_drift,
+               "hinge": config.w_hinge}  # fmt: skip
     terms["total"] = sum(weights[k] * v for k, v in terms.items())
     return terms
 
@@ -334,7 +414,8 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
 
     normaliser = Normaliser.from_corpus(corpus)
     tokens = ActionTokens.from_corpus(corpus)
-    data = WindowData(corpus, "train", terrain=config.terrain, normaliser=normaliser, tokens=tokens, fps=config.fps)
+    data = WindowData(corpus, "train", terrain=config.terrain, relative=config.relative, normaliser=normaliser, tokens=tokens,
+                      fps=config.fps)  # fmt: skip
     length = resolve_window(data, config, world)
     sampler = WindowSampler(data, length, config.batch_size, seed=config.seed, rank=rank, world_size=world)
     if sampler.skipped:
@@ -343,7 +424,8 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
     held = None
     if rank == 0:
         if corpus.segment_ids(HELD_OUT_SPLIT):
-            hdata = WindowData(corpus, HELD_OUT_SPLIT, terrain=config.terrain, normaliser=normaliser, tokens=tokens, fps=config.fps)
+            hdata = WindowData(corpus, HELD_OUT_SPLIT, terrain=config.terrain, relative=config.relative, normaliser=normaliser,
+                               tokens=tokens, fps=config.fps)  # fmt: skip
             held = HeldOutWindows(hdata, length, config.eval_batch_size)
             if not held.windows():
                 log(f"no {HELD_OUT_SPLIT!r} segment holds a window of {length + 1} frames: evaluation skipped")
@@ -352,7 +434,10 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
             log(f"{corpus.path}: no {HELD_OUT_SPLIT!r} segments: evaluation skipped")
 
     terrain_switch = {} if config.terrain else {"terrain": (False,) * len(tokens.sizes)}
-    dyn = DynamicsConfig.preset(config.preset, corpus.layout, tokens.sizes, window=length, **terrain_switch)
+    dyn = DynamicsConfig.preset(config.preset, corpus.layout, tokens.sizes, window=length, relative_position=config.relative,
+                                dropout=config.dropout, residual=config.residual,
+                                **terrain_switch)  # fmt: skip
+    hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None
     model = DynamicsModel(dyn, seed=config.seed).to(device)
     opt, sched = make_optimizer(model, config)
     history: list[dict] = []
@@ -393,11 +478,21 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
         }
         return save_checkpoint(out_dir, at, model, opt, sched, meta)
 
+    board = None
+    if rank == 0:
+        from torch.utils.tensorboard import SummaryWriter
+
+        board = SummaryWriter(str(out_dir / TENSORBOARD))
+
     def run_eval(at: int) -> None:
         if held is None:
             return
         metrics = {"step": at, **evaluate(model, held, device)}
         evals.append(metrics)
+        if board is not None:
+            for k, v in metrics.items():
+                if k not in ("step", "windows"):
+                    board.add_scalar(f"eval/{k}", v, at)
         log(f"eval step {at} " + json.dumps({k: round(v, 4) for k, v in metrics.items()}))
 
     end = config.steps if stop_at is None else min(stop_at, config.steps)
@@ -408,7 +503,9 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
         batch = next(batches)
         frames = _to(batch.frames, device)
         with autocast:
-            terms = losses(model, action, pose, Batch(frames, batch.terrain_known, batch.segments, batch.starts), normaliser, config)
+            known = None if batch.terrain_known is None else batch.terrain_known.to(device)
+            noise = torch.Generator().manual_seed(config.seed * 1_000_003 + step * 101 + rank)  # a function of the step: exact resume
+            terms = losses(model, action, pose, Batch(frames, known, batch.segments, batch.starts), normaliser, config, hinge, noise)
         opt.zero_grad(set_to_none=True)
         terms["total"].backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
@@ -422,6 +519,10 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
             values /= world
         record = {"step": step, **dict(zip([*terms, "grad_norm"], values.tolist(), strict=True)), "lr": lr}
         history.append(record)
+        if board is not None:
+            for k, v in record.items():
+                if k != "step":
+                    board.add_scalar(f"train/{k}", v, step)
         log(" ".join(f"{k} {v:.5g}" if isinstance(v, float) else f"{k} {v}" for k, v in record.items()))
         if config.eval_every and step % config.eval_every == 0 and step < end:
             run_eval(step)
@@ -429,7 +530,10 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
             last_saved = checkpoint(step)
     if not evals or evals[-1]["step"] != step:
         run_eval(step)
-    last_saved = checkpoint(step) if rank == 0 else None
+    resumed_done = ckpt is not None and history and step == int(meta["step"])  # nothing trained in this call
+    last_saved = ckpt if resumed_done else (checkpoint(step) if rank == 0 else None)
+    if board is not None:
+        board.close()
     if world > 1:
         dist.barrier()  # nobody returns (and tears the group down) before rank 0 has written
     return {
@@ -448,29 +552,56 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
 # -- CLI ---------------------------------------------------------------------------------------------
 
 
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m marionette.dynamics.train CORPUS --out DIR [--preset tiny] [--steps N] ...``; under
-    torchrun (RANK / WORLD_SIZE / MASTER_ADDR in the environment) one process per rank."""
-    ap = argparse.ArgumentParser(prog="python -m marionette.dynamics.train", description=__doc__.splitlines()[0])
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The training command's arguments: one flag per ``TrainConfig`` field (shared by ``marionette train
+    dynamics`` and ``python -m marionette.dynamics.train``)."""
     ap.add_argument("corpus", type=Path)
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True, help="training directory (checkpoints; a rerun resumes from it)")
     ap.add_argument("--config", type=Path, help="a TrainConfig JSON; the flags below override it")
     defaults = TrainConfig()
     for f in fields(TrainConfig):
-        if f.name in ("betas", "bf16"):
+        if f.name == "betas":
             continue
         flag = "--" + f.name.replace("_", "-")
-        if f.type in ("bool", bool):
+        if f.type in ("bool", bool, "bool | None"):
             ap.add_argument(flag, action=argparse.BooleanOptionalAction, default=None)
         else:
             kind = {"int": int, "float": float, "str": str, "int | None": int}[str(f.type)]
             ap.add_argument(flag, type=kind, default=None, help=f"default {getattr(defaults, f.name)}")
-    ap.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None)
-    args = ap.parse_args(argv)
+    ap.add_argument("--nproc", type=int, default=1, help="processes: > 1 relaunches this command under torchrun (DDP)")
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The ``TrainConfig`` of parsed arguments: ``--config`` JSON, then the flags that were given."""
     base = TrainConfig.from_json(json.loads(args.config.read_text())).to_json() if args.config else {}
     over = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if f.name != "betas" and getattr(args, f.name) is not None}
-    config = TrainConfig.from_json({**base, **over})
-    started, rank = False, 0
+    return TrainConfig.from_json({**base, **over})
+
+
+def train_in_processes(corpus: Path | str, out_dir: Path | str, config: TrainConfig, nproc: int) -> dict:
+    """Train under torchrun with ``nproc`` processes on this machine (``--standalone``: a loopback
+    rendezvous; gloo on CPU, NCCL on GPU) and return the summary rank 0 wrote (losses left out)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "train-config.json", config.to_json())
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
+           "-m", "marionette.dynamics.train", str(corpus), "--out", str(out), "--config", str(out / "train-config.json")]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"torchrun with {nproc} processes failed ({done.returncode}):\n{done.stderr[-4000:]}")
+    return json.loads((out / SUMMARY).read_text())
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Run a parsed training command in this process, or, with ``--nproc`` > 1 outside a process group,
+    under torchrun (``train_in_processes``)."""
+    config = config_from_args(args)
+    if args.nproc > 1 and "WORLD_SIZE" not in os.environ:
+        summary = train_in_processes(args.corpus, args.out, config, args.nproc)
+        print(json.dumps(summary, indent=1))
+        return summary
+    started = False
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
         backend = "nccl" if torch.cuda.is_available() else "gloo"
         if torch.cuda.is_available():
@@ -484,8 +615,18 @@ def main(argv: list[str] | None = None) -> dict:
         if started:
             dist.destroy_process_group()
     if rank == 0:
-        print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
+        brief = {k: v for k, v in summary.items() if k != "losses"}
+        write_json(Path(args.out) / SUMMARY, brief)
+        print(json.dumps(brief, indent=1))
     return summary
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """``python -m marionette.dynamics.train CORPUS --out DIR [--preset tiny] [--steps N] ...``; under
+    torchrun (RANK / WORLD_SIZE / MASTER_ADDR in the environment) one process per rank."""
+    ap = argparse.ArgumentParser(prog="python -m marionette.dynamics.train", description=__doc__.splitlines()[0])
+    add_arguments(ap)
+    return run(ap.parse_args(argv))
 
 
 if __name__ == "__main__":
