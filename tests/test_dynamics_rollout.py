@@ -212,3 +212,23 @@ def test_a_relative_position_model_trains_and_rolls_out(scanned, segment, tmp_pa
     assert ro.config.relative_position
     table = rollout(runs, scanned, segment, seed_frames=8, horizon=6, rules="none")
     assert np.isfinite(_fixed(table["state"], Corpus(scanned).layout.dim)).all()
+
+
+def test_a_batch_of_streams_equals_the_streams_run_alone(ckpt, scanned):
+    """``start_batch``/``step_batch`` over three segments give each stream's own rollout (its rules, its
+    terrain, seed + b) up to float rounding of the batched matmuls."""
+    c = Corpus(scanned)
+    segs = sorted(c.segment_ids(), key=lambda s: -c.dynamics_segment(s).num_rows)[:3]
+    field = open_terrain_field(c, segs[0])
+    seeds = [c.dynamics_segment(s).slice(0, SEED_FRAMES) for s in segs]
+    batched = Rollout(ckpt, c, rules="auto", terrain_field=field, temperature=0.0)
+    batched.start_batch(seeds)
+    force = [{0: 2}, None, {1: 1}]
+    together = np.stack([batched.step_batch(force if t < 5 else None) for t in range(12)], axis=1)  # (3, 12, dim)
+    for b, rows in enumerate(seeds):
+        alone = Rollout(ckpt, c, rules="auto", terrain_field=field, temperature=0.0)
+        alone.start(rows)
+        states = np.stack([alone.step(force[b] if t < 5 else None) for t in range(12)])
+        np.testing.assert_allclose(together[b], states, atol=1e-4)
+    with pytest.raises(ValueError, match="equal lengths"):
+        batched.start_batch([seeds[0], seeds[1].slice(0, 4)])

@@ -358,24 +358,33 @@ def stage_chunk_hashes(corpus_path: Path, stage: str) -> dict[str, str]:
 def compute_terrain_features(layout: Layout, table: pa.Table, field: LayeredField | None) -> tuple[np.ndarray, np.ndarray]:
     """Features (n, N, 132) float32 (unknown → 0) and ``known`` (n, N, 132) bool of rows, N articulated
     entities in layout order: the 11×11 egocentric patch (m, relative to the root), then 11 clearances (m)."""
-    n, ents = table.num_rows, layout.articulated
+    if field is None or table.num_rows == 0:
+        return terrain_features_of(layout, {}, np.zeros((table.num_rows, 0, 3, 3)), None)
+    R = np.stack([geo.quat_to_matrix(_fixed(table[f"{e.name}.rot_world"], 4)) for e in layout.articulated], axis=1)
+    return terrain_features_of(layout, world_of_rows(layout, table), R, field)
+
+
+def terrain_features_of(layout: Layout, joints_world: dict[str, np.ndarray], R: np.ndarray,
+                        field: LayeredField | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """``compute_terrain_features`` from world skeletons: ``joints_world[name]`` (n, K, 3), root first, and
+    root rotations ``R`` (n, N, 3, 3) of the articulated entities (what a rollout already holds)."""
+    n, ents = R.shape[0], layout.articulated
     feats = np.zeros((n, len(ents), TERRAIN_FEATURES), np.float32)
     known = np.zeros((n, len(ents), TERRAIN_FEATURES), bool)
     if field is None or n == 0:
         return feats, known
-    world = world_of_rows(layout, table)
     for i, e in enumerate(ents):
         contacts = list(e.rig.contact_index)
         if len(contacts) > N_CLEARANCES:
             raise SchemaError(
                 f"rig {e.rig.name!r} declares {len(contacts)} key contact joints; terrain features hold {N_CLEARANCES}"
             )
-        root = _fixed(table[f"{e.name}.root_world"], 3)
-        R = geo.quat_to_matrix(_fixed(table[f"{e.name}.rot_world"], 4))
+        joints = np.asarray(joints_world[e.name], np.float64)
+        root = joints[:, 0]
         patch, _ = egocentric_patch(
-            field, root, R, np.asarray(e.rig.forward_axis, np.float64), PATCH_SIZE, PATCH_CELL_M, PATCH_AHEAD_M
+            field, root, R[:, i], np.asarray(e.rig.forward_axis, np.float64), PATCH_SIZE, PATCH_CELL_M, PATCH_AHEAD_M
         )
-        clear = joint_clearances(field, world[e.name][:, contacts], root[:, 1])
+        clear = joint_clearances(field, joints[:, contacts], root[:, 1])
         values = np.concatenate([patch.reshape(n, -1), clear], axis=1)  # (n, 121 + contacts)
         ok = np.isfinite(values)
         feats[:, i, : values.shape[1]] = np.where(ok, values, 0.0)

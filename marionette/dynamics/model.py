@@ -28,8 +28,9 @@ root[t] + Δ, body[t+1] = body[t] + Δ. Inputs are expected normalised by the ca
 Attention window and streaming. ``forward`` over T frames lets frame i attend to frames
 max(0, i − window + 1)..i (plain causal attention when T ≤ window, a band mask beyond). ``step``
 feeds one frame and keeps at most ``window`` keys and values per layer, the keys stored already
-rotated at their absolute positions. A RoPE score depends only on the difference of positions (the
-angles are computed in float64, so far positions lose nothing), so ``step`` at frame t equals
+rotated at their absolute positions, in ring buffers (no copy of the window per frame). A RoPE score
+depends only on the difference of positions (the angles are computed in float64, so far positions
+lose nothing), so ``step`` at frame t equals
 ``forward`` over the whole stream at frame t, up to float rounding. For a one-layer model that is
 also ``forward`` over the last ``window`` frames alone, positions restarting at 0. With more layers it
 is not: a cached key of layer l ≥ 2 was computed when its frame was newest, from that frame's own
@@ -298,16 +299,27 @@ class ActionOutputs:
 
 @dataclass(frozen=True)
 class KVCache:
-    """Keys and values of the last ≤ window frames per layer, (B, heads, n, head_dim), keys rotated
-    at their absolute positions; ``position`` is the absolute index of the next frame."""
+    """Per layer, ring buffers (B, heads, window, head_dim) of the keys and values of the last ≤ window
+    frames, keys rotated at their absolute positions; ``position`` is the absolute index of the next
+    frame and ``count`` the frames written so far (frame k sits in slot k mod window).
+
+    ``step`` writes into the buffers in place and returns a cache sharing them: an older cache object
+    of the same stream sees the new frames. Fork a stream with ``clone()``. Attention is a sum over
+    keys, so their slot order does not matter; a ring buffer avoids copying the window every frame."""
 
     keys: tuple[Tensor, ...]
     values: tuple[Tensor, ...]
     position: int
+    count: int = 0
 
     @property
     def length(self) -> int:
-        return self.keys[0].shape[2] if self.keys else 0
+        """Frames held: min(count, window)."""
+        return min(self.count, self.keys[0].shape[2]) if self.keys else 0
+
+    def clone(self) -> KVCache:
+        """A copy with its own buffers."""
+        return KVCache(tuple(k.clone() for k in self.keys), tuple(v.clone() for v in self.values), self.position, self.count)
 
 
 def action_training_pair(frames: Frames) -> tuple[Frames, tuple[Tensor, Tensor]]:
@@ -346,20 +358,25 @@ class SelfAttention(nn.Module):
         self.out = nn.Linear(spec.width, spec.width, bias=False)
 
     def forward(
-        self, x: Tensor, cos: Tensor, sin: Tensor, past: tuple[Tensor, Tensor] | None = None, mask: Tensor | None = None
-    ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+        self, x: Tensor, cos: Tensor, sin: Tensor, ring: tuple[Tensor, Tensor, int, int] | None = None,
+        mask: Tensor | None = None,
+    ) -> Tensor:  # fmt: skip
+        """``ring`` = (key buffer, value buffer, slot, filled): one new frame is written at ``slot`` and
+        attends to the ``filled`` frames the buffers then hold (itself included)."""
         B, T, C = x.shape
         q, k, v = self.qkv(x).split(C, dim=-1)
         q, k, v = (t.view(B, T, self.heads, C // self.heads).transpose(1, 2) for t in (q, k, v))  # (B, nh, T, hs)
         q, k = apply_rope(q, cos, sin), apply_rope(k, cos, sin)
-        if past is not None:  # one new frame after the cached ones: it may see them all
-            k = torch.cat([past[0].to(k.dtype), k], dim=2)  # (B, nh, n + 1, hs)
-            v = torch.cat([past[1].to(v.dtype), v], dim=2)
+        if ring is not None:  # one new frame after the cached ones: it may see them all
+            kbuf, vbuf, slot, filled = ring
+            kbuf[:, :, slot] = k[:, :, 0].to(kbuf.dtype)
+            vbuf[:, :, slot] = v[:, :, 0].to(vbuf.dtype)
+            k, v = kbuf[:, :, :filled].to(q.dtype), vbuf[:, :, :filled].to(q.dtype)  # (B, nh, filled, hs)
         y = F.scaled_dot_product_attention(
-            q, k, v, attn_mask=mask, is_causal=past is None and mask is None, dropout_p=self.dropout if self.training else 0.0
+            q, k, v, attn_mask=mask, is_causal=ring is None and mask is None, dropout_p=self.dropout if self.training else 0.0
         )  # (B, nh, T, hs)
         y = y.transpose(1, 2).reshape(B, T, C)
-        return F.dropout(self.out(y), self.dropout, self.training), (k, v)
+        return F.dropout(self.out(y), self.dropout, self.training)
 
 
 class MLP(nn.Module):
@@ -382,11 +399,11 @@ class Block(nn.Module):
         self.mlp = MLP(spec, dropout)
 
     def forward(
-        self, x: Tensor, cos: Tensor, sin: Tensor, past: tuple[Tensor, Tensor] | None = None, mask: Tensor | None = None
-    ) -> tuple[Tensor, tuple[Tensor, Tensor]]:
-        a, kv = self.attn(self.norm1(x), cos, sin, past, mask)
-        x = x + a
-        return x + self.mlp(self.norm2(x)), kv
+        self, x: Tensor, cos: Tensor, sin: Tensor, ring: tuple[Tensor, Tensor, int, int] | None = None,
+        mask: Tensor | None = None,
+    ) -> Tensor:  # fmt: skip
+        x = x + self.attn(self.norm1(x), cos, sin, ring, mask)
+        return x + self.mlp(self.norm2(x))
 
 
 class CausalTransformer(nn.Module):
@@ -408,27 +425,28 @@ class CausalTransformer(nn.Module):
             lag = pos[:, None] - pos[None, :]  # (T, T) query − key
             mask = (lag >= 0) & (lag < self.window)
         for block in self.blocks:
-            x, _ = block(x, cos, sin, mask=mask)
+            x = block(x, cos, sin, mask=mask)
         return self.norm(x)
 
     def step(self, x: Tensor, cache: KVCache) -> tuple[Tensor, KVCache]:
-        """One frame (B, 1, width) at ``cache.position`` → (B, 1, width) and the cache with it appended."""
+        """One frame (B, 1, width) at ``cache.position`` → (B, 1, width) and the cache with it written
+        (in place: the ring buffers hold the last ``window`` frames, this one included)."""
         if x.shape[1] != 1:
             raise ValueError(f"step takes one frame at a time, not {x.shape[1]}")
+        if cache.keys[0].shape[0] != x.shape[0] or cache.keys[0].shape[2] != self.window:
+            raise ValueError(f"a cache of {tuple(cache.keys[0].shape)} does not fit batch {x.shape[0]}, window {self.window}")
         cos, sin = rope_angles(torch.tensor([cache.position], device=x.device), self.spec.head_dim)
-        keep = self.window - 1  # past frames the new one may see
-        keys, values = [], []
+        slot, filled = cache.count % self.window, min(cache.count + 1, self.window)
         for block, k, v in zip(self.blocks, cache.keys, cache.values, strict=True):
-            drop = max(0, k.shape[2] - keep)
-            x, (k, v) = block(x, cos, sin, past=(k[:, :, drop:], v[:, :, drop:]))
-            keys.append(k)
-            values.append(v)
-        return self.norm(x), KVCache(tuple(keys), tuple(values), cache.position + 1)
+            x = block(x, cos, sin, ring=(k, v, slot, filled))
+        return self.norm(x), KVCache(cache.keys, cache.values, cache.position + 1, cache.count + 1)
 
     def cache_empty(self, batch: int, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> KVCache:
-        """A cache holding no frames, the next frame at position 0."""
-        empty = torch.zeros(batch, self.spec.heads, 0, self.spec.head_dim, device=device, dtype=dtype)
-        return KVCache((empty,) * self.spec.layers, (empty,) * self.spec.layers, 0)
+        """A cache holding no frames (ring buffers of ``window`` slots), the next frame at position 0."""
+        shape = (batch, self.spec.heads, self.window, self.spec.head_dim)
+        keys = tuple(torch.zeros(shape, device=device, dtype=dtype) for _ in range(self.spec.layers))
+        values = tuple(torch.zeros(shape, device=device, dtype=dtype) for _ in range(self.spec.layers))
+        return KVCache(keys, values, 0, 0)
 
 
 # -- the two models ----------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +51,7 @@ from marionette.dynamics.data import (
     compute_terrain_features,
     relative_of_rows,
     relative_roots,
+    terrain_features_of,
 )
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, join_state, split_state
 from marionette.io import write_ipc
@@ -111,8 +113,25 @@ def _concat(frames: Sequence[Frames]) -> Frames:
                      for k in ("root", "body", "tokens", "progress", "terrain", "relative")})  # fmt: skip
 
 
+@dataclass
+class _Scene:
+    """One stream's current frame: state (float64), world joints, root rotations, tokens, progress, its
+    rules (stateful: the collider's lift) and its sampler."""
+
+    state: np.ndarray  # (dim,)
+    world: dict[str, np.ndarray]  # name → (K, 3) world joints
+    quats: np.ndarray  # (N, 4)
+    body_n: np.ndarray  # (body_dim,) normalised body the models read
+    tok: np.ndarray  # (N,) int64
+    progress: np.ndarray  # (N,)
+    rules: Rules | None
+    generator: torch.Generator
+
+
 class Rollout:
-    """A streaming rollout of one checkpoint over one scene: ``start(seed_rows)`` then ``step()`` per frame."""
+    """A streaming rollout of one checkpoint over one scene: ``start(seed_rows)`` then ``step()`` per frame;
+    ``start_batch``/``step_batch`` run B streams through the models as one batch (stream b samples with
+    seed + b and has its own rules), which is how the rollout benchmark's batch 16 runs."""
 
     def __init__(self, ckpt: Path | str, corpus: Corpus | Path | str, *, temperature: float = 0.0, seed: int = 0,
                  rules: str | Sequence[str] = "auto", terrain_field: Any = None, cached: bool = True,
@@ -137,12 +156,11 @@ class Rollout:
         self.temperature, self.seed = float(temperature), int(seed)
         self.field = terrain_field
         if rules == "auto":
-            enabled: tuple[str, ...] = enabled_rules(self.layout, terrain_field)
+            self.enabled: tuple[str, ...] = enabled_rules(self.layout, terrain_field)
         elif rules == "none" or rules is None:
-            enabled = ()
+            self.enabled = ()
         else:
-            enabled = tuple(rules)
-        self.rules = Rules(self.layout, terrain_field, RuleParams(fps=self.fps), enabled) if enabled else None
+            self.enabled = tuple(rules)
         # per entity, per token: clip frames advanced per model step, and whether the action wraps ("state")
         ratio = self.corpus.fps / self.fps
         self._advance = [ratio / c for c in self.tokens.clip_lengths]
@@ -151,85 +169,107 @@ class Rollout:
         for i in range(len(self.tokens.entities)):
             kinds = {(k, a["token"]): a.get("kind") for k in types for a in types[k]["actions"]}
             self._wraps.append(np.array([kinds.get(self.tokens.type_token(i, t)) == "state" for t in range(self.tokens.sizes[i])]))
+        self.scenes: list[_Scene] = []
+        self.t = 0
 
     # -- features --------------------------------------------------------------------------------
 
-    def _terrain(self, state: np.ndarray, roots: np.ndarray, quats: np.ndarray) -> torch.Tensor | None:
-        """Terrain features (1, 1, N, 132) of one state row at world roots (N, 3) and rotations (N, 4)."""
+    def _terrain(self, joints_world: dict[str, np.ndarray], R: np.ndarray) -> list[np.ndarray] | list[None]:
+        """Terrain features, per stream (N, 132), of world skeletons (name → (B, K, 3)) with root rotations
+        (B, N, 3, 3): the whole batch in one call."""
         if not any(self.config.terrain):
-            return None
-        cols: dict[str, Any] = {"state": pa.FixedSizeListArray.from_arrays(pa.array(state.astype(np.float32)), self.layout.dim)}
-        for i, e in enumerate(self.layout.articulated):
-            cols[f"{e.name}.root_world"] = pa.FixedSizeListArray.from_arrays(pa.array(roots[i].astype(np.float64)), 3)
-            cols[f"{e.name}.rot_world"] = pa.FixedSizeListArray.from_arrays(pa.array(quats[i].astype(np.float64)), 4)
-        feats, _ = compute_terrain_features(self.layout, pa.table(cols), self.field)
-        return torch.from_numpy(feats).to(self.dtype)[None]
+            return [None] * len(R)
+        return list(terrain_features_of(self.layout, joints_world, R, self.field)[0])
 
     def _relative(self, roots: np.ndarray, R: np.ndarray) -> np.ndarray | None:
         """The relative feature (N, 3) at world roots (N, 3) and rotations (N, 3, 3), when the model reads it."""
         return relative_roots(roots, R).astype(np.float32) if self.config.relative_position else None
 
-    def _frames(self, root_n: np.ndarray, body_n: np.ndarray, tokens: np.ndarray, progress: np.ndarray | None,
-                terrain: torch.Tensor | None, relative: np.ndarray | None = None) -> Frames:  # fmt: skip
-        t = lambda a: torch.as_tensor(np.asarray(a, np.float32)).to(self.dtype)[None, None]  # noqa: E731  (1, 1, ·)
-        return Frames(root=t(root_n), body=t(body_n), tokens=torch.as_tensor(np.asarray(tokens, np.int64))[None, None],
-                      progress=None if progress is None else t(progress), terrain=terrain,
-                      relative=None if relative is None else t(relative))  # fmt: skip
+    def _frames(self, root_n: Sequence, body_n: Sequence, tokens: Sequence, progress: Sequence | None,
+                terrain: Sequence | None, relative: Sequence | None) -> Frames:  # fmt: skip
+        """One frame of B streams (per-stream arrays, or None for an input the model does not read) as Frames (B, 1, ·)."""
+        def t(parts: Sequence | None) -> torch.Tensor | None:
+            if parts is None or parts[0] is None:
+                return None
+            return torch.as_tensor(np.stack([np.asarray(p, np.float32) for p in parts])).to(self.dtype)[:, None]
+
+        toks = torch.as_tensor(np.stack([np.asarray(k, np.int64) for k in tokens]))[:, None]
+        return Frames(root=t(root_n), body=t(body_n), tokens=toks, progress=t(progress), terrain=t(terrain), relative=t(relative))
 
     # -- the stream ------------------------------------------------------------------------------
 
-    @torch.no_grad()
     def start(self, seed_rows: pa.Table) -> None:
         """Fill both caches from dynamics-view rows (corpus state schema) and reset the rules and the sampler."""
-        n = seed_rows.num_rows
+        self.start_batch([seed_rows])
+
+    @torch.inference_mode()
+    def start_batch(self, seeds: Sequence[pa.Table]) -> None:
+        """``start`` for B streams at once; every seed has the same number of rows (the caches share positions)."""
+        if not seeds:
+            raise ValueError("start_batch needs at least one seed")
+        n = seeds[0].num_rows
         if n < 1:
             raise ValueError("a rollout needs at least one seed frame")
-        L = self.layout
-        state = _fixed(seed_rows["state"], L.dim).astype(np.float32)
-        root, body = split_state(state, L)
-        root_n, body_n = self.normaliser.normalise(root, body)
-        tokens, progress = self.tokens.encode(L, seed_rows, where=str(self.corpus.path))
-        terrain = None
-        if any(self.config.terrain):
-            terrain = torch.from_numpy(compute_terrain_features(L, seed_rows, self.field)[0]).to(self.dtype)[None]  # (1, n, N, 132)
-        rel = relative_of_rows(L, seed_rows) if self.config.relative_position else [None] * n  # (n, N, 3)
-        self.generator = torch.Generator().manual_seed(self.seed)
-        self.action_stream.reset(1)
-        self.pose_stream.reset(1)
+        if any(t.num_rows != n for t in seeds):
+            raise ValueError(f"batched seeds need equal lengths, not {[t.num_rows for t in seeds]}")
+        L, nz = self.layout, self.normaliser
+        per = []  # per stream: (root_n, body_n, tokens, progress, terrain, relative), each (n, ...)
+        for rows in seeds:
+            state = _fixed(rows["state"], L.dim).astype(np.float32)
+            root, body = split_state(state, L)
+            root_n, body_n = nz.normalise(root, body)
+            tokens, progress = self.tokens.encode(L, rows, where=str(self.corpus.path))
+            terrain = compute_terrain_features(L, rows, self.field)[0] if any(self.config.terrain) else [None] * n
+            rel = relative_of_rows(L, rows) if self.config.relative_position else [None] * n
+            per.append((root_n, body_n, tokens, progress, terrain, rel, state))
+        B = len(seeds)
+        self.action_stream.reset(B)
+        self.pose_stream.reset(B)
+        col = lambda j, k: [p[j][k] for p in per]  # noqa: E731  field j of frame k, per stream
         for k in range(n):
-            tk = None if terrain is None else terrain[:, k : k + 1]
-            frames = self._frames(root_n[k], body_n[k], tokens[k], progress[k], tk, rel[k])
-            out = self.action_stream.step(frames)
+            out = self.action_stream.step(self._frames(col(0, k), col(1, k), col(2, k), col(3, k), col(4, k), col(5, k)))
             if k + 1 < n:  # PoseGPT step k animates frame k + 1 from body k
-                tn = None if terrain is None else terrain[:, k + 1 : k + 2]
-                frames = self._frames(root_n[k + 1], body_n[k], tokens[k + 1], None, tn, rel[k + 1])
-                self.pose_stream.step(frames)
+                self.pose_stream.step(self._frames(col(0, k + 1), col(1, k), col(2, k + 1), None, col(4, k + 1), col(5, k + 1)))
         self._out = out
-        self.state = state[-1].astype(np.float64)
-        self.body_n, self.tok, self.progress = body_n[-1], tokens[-1].copy(), progress[-1].astype(np.float64)
-        last = seed_rows.slice(n - 1, 1)
-        self.world = {k: v[0] for k, v in world_of_rows(L, last).items()}  # name → (K, 3) world joints
-        self.quats = np.stack([_fixed(last[f"{e.name}.rot_world"], 4)[0] for e in L.articulated])
+        self.scenes = []
+        for b, (rows, p) in enumerate(zip(seeds, per)):
+            last = rows.slice(n - 1, 1)
+            world = {k: v[0] for k, v in world_of_rows(L, last).items()}
+            rules = Rules(L, self.field, RuleParams(fps=self.fps), self.enabled) if self.enabled else None
+            if rules is not None:
+                world = rules.step(world)  # frame 0 of the rules: taken as given
+            self.scenes.append(_Scene(
+                state=p[6][-1].astype(np.float64), world=world,
+                quats=np.stack([_fixed(last[f"{e.name}.rot_world"], 4)[0] for e in L.articulated]),
+                body_n=p[1][-1], tok=p[2][-1].copy(), progress=p[3][-1].astype(np.float64), rules=rules,
+                generator=torch.Generator().manual_seed(self.seed + b),
+            ))  # fmt: skip
         self.t = 0
-        if self.rules is not None:
-            self.rules.reset()
-            self.world = self.rules.step(self.world)  # frame 0 of the rules: taken as given
+
+    # batch-1 views of the first stream
+    state = property(lambda self: self.scenes[0].state)
+    world = property(lambda self: self.scenes[0].world)
+    quats = property(lambda self: self.scenes[0].quats)
+    tok = property(lambda self: self.scenes[0].tok)
+    progress = property(lambda self: self.scenes[0].progress)
+
+    def _roots(self, scene: _Scene) -> np.ndarray:
+        return np.stack([scene.world[e.name][0] for e in self.layout.articulated])
 
     @property
     def roots_world(self) -> np.ndarray:
-        """World roots (N, 3) float64 of the current frame."""
-        return np.stack([self.world[e.name][0] for e in self.layout.articulated])
+        """World roots (N, 3) float64 of the first stream's current frame."""
+        return self._roots(self.scenes[0])
 
-    def _sample(self, logits: torch.Tensor) -> int:
+    def _sample(self, logits: torch.Tensor, generator: torch.Generator) -> int:
         lg = logits.reshape(-1).double().clone()
         if lg.numel() > 1:
             lg[0] = -torch.inf
         if self.temperature <= 0:
             return int(lg.argmax())
         p = torch.softmax(lg / self.temperature, dim=-1)
-        return int(torch.multinomial(p, 1, generator=self.generator))
+        return int(torch.multinomial(p, 1, generator=generator))
 
-    @torch.no_grad()
     def step(self, force_tokens: dict[int, int] | None = None, root_override: np.ndarray | None = None,
              restart: Sequence[int] = ()) -> np.ndarray:  # fmt: skip
         """Predict, correct and return the next state row (dim,) float32.
@@ -237,54 +277,113 @@ class Rollout:
         ``force_tokens``: entity index → token for this frame; ``restart``: entity indices whose progress
         restarts even if the token is unchanged (a force window's first frame); ``root_override``: root
         stream (root_dim,) in state units, NaN = the model's value."""
+        return self.step_batch([force_tokens], [root_override], [restart])[0]
+
+    @torch.inference_mode()
+    def step_batch(self, force_tokens: Sequence[dict[int, int] | None] | None = None,
+                   root_override: Sequence[np.ndarray | None] | None = None,
+                   restart: Sequence[Sequence[int]] | None = None) -> np.ndarray:  # fmt: skip
+        """``step`` for every stream: per-stream controls (or None), the next state rows (B, dim) float32."""
         L, c, nz = self.layout, self.config, self.normaliser
+        B = len(self.scenes)
+        force_tokens = force_tokens or [None] * B
+        root_override = root_override or [None] * B
+        restart = restart or [()] * B
         out = self._out
-        root_n = out.root[0, 0].float().numpy().astype(np.float64)
-        if root_override is not None:
-            over = np.asarray(root_override, np.float64)
-            root_n = np.where(np.isfinite(over), nz.normalise_root(np.nan_to_num(over)), root_n)
-        tok = np.array([self._sample(lg[0, 0]) for lg in out.logits], np.int64)
-        for i, v in (force_tokens or {}).items():
-            tok[i] = int(v)
-        prog = np.zeros(len(tok))
-        for i in range(len(tok)):
-            if tok[i] != 0 and tok[i] == self.tok[i] and i not in restart:
-                p = self.progress[i] + self._advance[i][tok[i]]
-                prog[i] = p % 1.0 if self._wraps[i][tok[i]] else min(p, 1.0)
-        # PoseGPT animates the new frame from the current body
-        root_raw = nz.denormalise_root(root_n)
-        terrain = relative = None
-        if any(c.terrain) or c.relative_position:
-            guess = join_state(root_raw, nz.denormalise_body(self.body_n.astype(np.float64)), L)
-            gw = geo.state_to_world(L, np.stack([self.state, guess]), dict(zip([e.name for e in L.articulated], self.roots_world)))
-            g_roots = np.stack([gw[e.name]["joints"][1, 0] for e in L.articulated])
-            g_R = np.stack([gw[e.name]["R"][1] for e in L.articulated])
-            terrain = self._terrain(guess, g_roots, geo.matrix_to_quat(g_R))
-            relative = self._relative(g_roots, g_R)
-        frames = self._frames(root_n, self.body_n, tok, None, terrain, relative)
-        body_n = self.pose_stream.step(frames).float()
-        new = join_state(root_raw, nz.denormalise_body(body_n[0, 0].numpy().astype(np.float64)), L)
-        # world skeletons, the rules, and the state re-derived from the corrected skeletons
-        anchors = {e.name: self.world[e.name][0] for e in L.articulated}
-        world = geo.state_to_world(L, np.stack([self.state, new]), anchors)
-        frame = {name: w["joints"][1] for name, w in world.items()}
-        if self.rules is not None:
-            frame = self.rules.step(frame)
-        quats = geo.quat_continuity(np.stack([self.quats, geo.matrix_to_quat(np.stack([world[e.name]["R"][1] for e in L.articulated]))]), 0)[1]
-        joints = {n: np.stack([self.world[n], frame[n]]) for n in frame}
-        rots = {e.name: np.stack([self.quats[i], quats[i]]) for i, e in enumerate(L.articulated)}
-        state = geo.world_to_state(L, joints, rots)[1]
-        self.state, self.world, self.quats = state.astype(np.float64), frame, quats
-        self.tok, self.progress = tok, prog
-        # ActionGPT reads the corrected frame
-        root_c, body_c = split_state(state, L)
-        root_cn, self.body_n = nz.normalise(root_c, body_c)
-        terrain = self._terrain(state, self.roots_world, quats)
-        relative = self._relative(self.roots_world, geo.quat_to_matrix(quats))
-        frames = self._frames(root_cn, self.body_n, tok, prog, terrain, relative)
-        self._out = self.action_stream.step(frames)
+        names = [e.name for e in L.articulated]
+        prev_roots = {n: np.stack([sc.world[n][0] for sc in self.scenes]) for n in names}  # (B, 3) each
+        root_all = out.root[:, 0].float().numpy().astype(np.float64)  # (B, root_dim) normalised
+        toks = []
+        for b, sc in enumerate(self.scenes):
+            if root_override[b] is not None:
+                over = np.asarray(root_override[b], np.float64)
+                root_all[b] = np.where(np.isfinite(over), nz.normalise_root(np.nan_to_num(over)), root_all[b])
+            tok = np.array([self._sample(lg[b, 0], sc.generator) for lg in out.logits], np.int64)
+            for i, v in (force_tokens[b] or {}).items():
+                tok[i] = int(v)
+            toks.append(tok)
+        raws = nz.denormalise_root(root_all)  # (B, root_dim) state units
+        bodies = np.stack([sc.body_n for sc in self.scenes])  # (B, body_dim) normalised, the current bodies
+        terrains: list = [None] * B
+        relatives: list = [None] * B
+        if any(c.terrain) or c.relative_position:  # the frame being animated: predicted root, current body
+            guess = join_state(raws, nz.denormalise_body(bodies.astype(np.float64)), L)
+            gw = _world_after(L, guess, prev_roots)
+            roots_g = np.stack([gw[n]["joints"][:, 0] for n in names], axis=1)  # (B, N, 3)
+            R_g = np.stack([gw[n]["R"] for n in names], axis=1)  # (B, N, 3, 3)
+            terrains = self._terrain({n: gw[n]["joints"] for n in names}, R_g)
+            relatives = [self._relative(r, R) for r, R in zip(roots_g, R_g)]
+        # PoseGPT animates the new frames from the current bodies
+        body_n = self.pose_stream.step(self._frames(root_all, bodies, toks, None, terrains, relatives))
+        new = join_state(raws, nz.denormalise_body(body_n[:, 0].float().numpy().astype(np.float64)), L)
+        # world skeletons, the rules (per stream: they hold state), and the state re-derived from the corrected skeletons
+        world = _world_after(L, new, prev_roots)
+        frames, progs = [], []
+        for b, sc in enumerate(self.scenes):
+            tok = toks[b]
+            prog = np.zeros(len(tok))
+            for i in range(len(tok)):
+                if tok[i] != 0 and tok[i] == sc.tok[i] and i not in restart[b]:
+                    p = sc.progress[i] + self._advance[i][tok[i]]
+                    prog[i] = p % 1.0 if self._wraps[i][tok[i]] else min(p, 1.0)
+            frame = {name: w["joints"][b] for name, w in world.items()}
+            frames.append(sc.rules.step(frame) if sc.rules is not None else frame)
+            progs.append(prog)
+        R_new = np.stack([world[n]["R"] for n in names], axis=1)  # (B, N, 3, 3)
+        q_prev = np.stack([sc.quats for sc in self.scenes])  # (B, N, 4)
+        quats = geo.matrix_to_quat(R_new)
+        quats = np.where((np.sum(quats * q_prev, axis=-1) < 0)[..., None], -quats, quats)  # sign continuity
+        joints = {n: np.stack([f[n] for f in frames]) for n in frames[0]}  # (B, K, 3) each
+        states = _state_after(L, prev_roots, joints, geo.quat_to_matrix(quats))  # (B, dim) float32
+        roots_c, bodies_c = nz.normalise(*split_state(states, L))
+        for b, sc in enumerate(self.scenes):
+            sc.state, sc.world, sc.quats, sc.tok, sc.progress = states[b].astype(np.float64), frames[b], quats[b], toks[b], progs[b]
+            sc.body_n = bodies_c[b]
+        roots_w = np.stack([joints[n][:, 0] for n in names], axis=1)  # (B, N, 3)
+        terrains = self._terrain(joints, geo.quat_to_matrix(quats))
+        relatives = [self._relative(r, geo.quat_to_matrix(q)) for r, q in zip(roots_w, quats)]
+        # ActionGPT reads the corrected frames
+        self._out = self.action_stream.step(self._frames(roots_c, bodies_c, toks, progs, terrains, relatives))
         self.t += 1
-        return state
+        return states
+
+
+def _world_after(layout, states: np.ndarray, prev_roots: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+    """World skeletons of one new state row per stream (B, dim): per entity "joints" (B, K, 3) and "R"
+    (B, 3, 3), each root advanced from ``prev_roots[name]`` (B, 3) by x = x_prev + R δ in float64
+    (``geometry.state_to_world``'s integration, one step, for the whole batch at once)."""
+    s = np.asarray(states, np.float64)
+    B = len(s)
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for e in layout.articulated:
+        R = geo.rot6d_to_matrix(s[:, layout.slice(f"{e.name}.rot6d")])
+        root = prev_roots[e.name] + np.einsum("bij,bj->bi", R, s[:, layout.slice(f"{e.name}.root")])
+        local = s[:, layout.slice(f"{e.name}.joints")].reshape(B, e.rig.n_keep - 1, 3)
+        out[e.name] = {"joints": np.concatenate([root[:, None, :], geo.to_world(local, root, R)], axis=1), "R": R}
+    for e in layout.attachments:
+        owner = out[e.owner]
+        local = s[:, layout.slice(f"{e.name}.points")].reshape(B, e.rig.n_keep, 3)
+        out[e.name] = {"joints": geo.to_world(local, owner["joints"][:, 0], owner["R"]), "R": owner["R"]}
+    return out
+
+
+def _state_after(layout, prev_roots: dict[str, np.ndarray], joints: dict[str, np.ndarray], R: np.ndarray) -> np.ndarray:
+    """State rows (B, dim) float32 of one new world frame per stream (``geometry.world_to_state``, one step):
+    root displacement Rᵀ (x − x_prev), root-local joints and points, 6D rotation; ``R`` (B, N, 3, 3)."""
+    B = len(R)
+    state = np.zeros((B, layout.dim), np.float64)
+    frames = {}
+    for i, e in enumerate(layout.articulated):
+        X, Ri = np.asarray(joints[e.name], np.float64), R[:, i]
+        root = X[:, 0]
+        frames[e.name] = (root, Ri)
+        state[:, layout.slice(f"{e.name}.root")] = np.einsum("bji,bj->bi", Ri, root - prev_roots[e.name])
+        state[:, layout.slice(f"{e.name}.joints")] = geo.to_local(X[:, 1:], root, Ri).reshape(B, -1)
+        state[:, layout.slice(f"{e.name}.rot6d")] = geo.matrix_to_rot6d(Ri)
+    for e in layout.attachments:
+        root, Ri = frames[e.owner]
+        state[:, layout.slice(f"{e.name}.points")] = geo.to_local(joints[e.name], root, Ri).reshape(B, -1)
+    return state.astype(np.float32)
 
 
 def _script_roots(script_root: Any, horizon: int, layout, root_dim: int) -> np.ndarray | None:

@@ -1,0 +1,342 @@
+"""The dynamics model: rollout speed at the paper's sizes, training speed, and what the window, the dtype and
+the relative feature buy in accuracy.
+
+    .venv/bin/python benchmarks/bench_dynamics.py [--part all|rollout|train|window|relative]
+        [--corpus DIR] [--scanned-corpus DIR] [--steps 1500] [--horizon 448]
+
+Inputs (made in a temp dir unless given): the *dynamics corpus* of the tests (ten 45 s synthetic
+recordings, seed 11, one recording held out; ``tests/conftest.py``), and a *scanned corpus* (two 20 s
+recordings with the stage's terrain scanned, so the collider has a surface). Torch uses every core.
+
+rollout. A paper-preset model (ActionGPT 4×256, PoseGPT 8×512, window 512; random weights: speed does
+not depend on them) saved as a checkpoint for the scanned corpus; ``Rollout`` with the rules on
+(collider + cap), temperature 1 so the streams of a batch differ, seeded with 64 recorded frames, then
+``--horizon`` predicted frames; state frames/s over the whole horizon and over its last 128 frames (a
+KV cache of ≥ 384 frames, near the full window). Recomputation (``ModelStream(cached=False)``) costs,
+per frame, one ``forward`` per model over the frames that still reach the newest one; in steady state
+that is layers·(window − 1) + 1 = 2,045 frames for ActionGPT and 4,089 for PoseGPT, timed directly.
+The ceiling: the models' weights (fp32 bytes) read once per step at the memory bandwidth a large
+``torch`` copy measures; "model only" steps both models at a full cache with no features, rules or
+state conversion.
+
+train. Training steps/s and samples/s (windows of length + 1 frames) of the tiny preset (window 64)
+and the paper preset (window 128: the synthetic segments hold < 513 frames), batch 8, fp32, after two
+warm-up steps.
+
+window. The tiny preset trained ``--steps`` steps at windows 16 / 32 / 64; per model and dtype (fp32,
+bf16 weights) the hunter RA-MPJPE of Force-GT rollouts (the recorded hunter tokens forced, rules off)
+over every held-out seed (32 seed frames, 40 predicted, seeds every 20 frames), and rollout frames/s.
+
+relative. The tiny preset (window 64) trained with and without the relative-position feature; free
+rollouts of 2,000 frames from three held-out seeds, rules off (the separation cap would hide the
+difference), 3-D separation of the two roots: mean, 95th percentile and share of frames beyond 6 m
+(the cap's distance), beside the recorded held-out separation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
+
+from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.dynamics.checkpoint import save_checkpoint
+from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
+from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, parameter_counts
+from marionette.dynamics.rollout import ModelStream, Rollout, open_terrain_field, rollout
+from marionette.dynamics.train import TrainConfig, batches_from, losses, make_optimizer, train
+from marionette.ingest import IngestOptions, VideoSettings, build_corpus
+
+SEED = 32
+
+
+# -- inputs ------------------------------------------------------------------------------------------
+
+
+def make_corpus(root: Path, recordings: int, seconds: float, seed: int, scan: bool) -> Path:
+    from marionette.synth import generate
+
+    generate(root / "recordings", recordings=recordings, seconds=seconds, seed=seed, width=96 if not scan else 160,
+             height=54 if not scan else 90, workers=2)  # fmt: skip
+    opts = IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28))
+    build_corpus(root / "recordings", root / "corpus", opts, workers=2, progress=False)
+    if scan:
+        from terrain_scan.scan import scan_stages
+
+        scan_stages(root / "corpus", incremental=True, log=lambda *_: None)
+    return root / "corpus"
+
+
+def paper_checkpoint(c: Corpus, out: Path) -> Path:
+    """A randomly initialised paper-preset checkpoint that ``Rollout`` loads for ``c``."""
+    tokens = ActionTokens.from_corpus(c)
+    cfg = DynamicsConfig.preset("paper", c.layout, tokens.sizes)
+    model = DynamicsModel(cfg, seed=0)
+    meta = {
+        "train_config": TrainConfig(preset="paper").to_json(),
+        "dynamics_config": cfg.to_json(),
+        "normaliser": Normaliser.from_corpus(c).to_json(),
+        "vocab": {"hash": tokens.vocab_hash, "sizes": list(tokens.sizes), "entities": list(tokens.entities)},
+    }
+    return save_checkpoint(out, 0, model, meta=meta)
+
+
+# -- rollout -----------------------------------------------------------------------------------------
+
+
+def bandwidth_gbps() -> float:
+    """Memory bandwidth (GB/s, read + write counted once each) of a 512 MiB torch copy, best of 5."""
+    src = torch.ones(128 * 2**20)
+    dst = torch.empty_like(src)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        dst.copy_(src)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * src.numel() * 4 / best / 1e9
+
+
+def model_only_fps(model: DynamicsModel, batch: int, dtype: torch.dtype, steps: int = 20) -> float:
+    """Frames/s of stepping both models (one frame each) at a full cache, no features or rules."""
+    c = model.config
+    g = torch.Generator().manual_seed(0)
+
+    def frames(progress: bool) -> Frames:
+        return Frames(
+            root=torch.randn(batch, 1, c.root_dim, generator=g).to(dtype),
+            body=torch.randn(batch, 1, c.body_dim, generator=g).to(dtype),
+            tokens=torch.zeros(batch, 1, c.n_entities, dtype=torch.int64),
+            progress=torch.zeros(batch, 1, c.n_entities, dtype=dtype) if progress else None,
+            terrain=torch.zeros(batch, 1, c.n_entities, c.terrain_features, dtype=dtype),
+        )
+
+    streams = []
+    for net in (model.action, model.pose):
+        s = ModelStream(net)
+        s.reset(batch)
+        full = c.window - 1
+        spec = net.spec
+        kv = torch.randn(batch, spec.heads, c.window, spec.head_dim, generator=g).to(dtype)  # a full ring (window slots)
+        s.cache = type(s.cache)(tuple(kv.clone() for _ in range(spec.layers)), tuple(kv.clone() for _ in range(spec.layers)), full, full)
+        streams.append(s)
+    with torch.inference_mode():  # as Rollout steps
+        for _ in range(2):
+            streams[0].step(frames(True))
+            streams[1].step(frames(False))
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            streams[0].step(frames(True))
+            streams[1].step(frames(False))
+    return batch * steps / (time.perf_counter() - t0)
+
+
+def recompute_seconds(model: DynamicsModel, batch: int, dtype: torch.dtype) -> float:
+    """Seconds per frame of recomputing both models over their steady-state history (one forward each)."""
+    c = model.config
+    total = 0.0
+    for net, progress in ((model.action, True), (model.pose, False)):
+        T = net.spec.layers * (c.window - 1) + 1
+        f = Frames(
+            root=torch.zeros(batch, T, c.root_dim, dtype=dtype),
+            body=torch.zeros(batch, T, c.body_dim, dtype=dtype),
+            tokens=torch.zeros(batch, T, c.n_entities, dtype=torch.int64),
+            progress=torch.zeros(batch, T, c.n_entities, dtype=dtype) if progress else None,
+            terrain=torch.zeros(batch, T, c.n_entities, c.terrain_features, dtype=dtype),
+        )
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            net(f)
+            total += time.perf_counter() - t0
+    return total
+
+
+def part_rollout(scanned: Path, horizon: int, work: Path) -> None:
+    c = Corpus(scanned)
+    ckpt = paper_checkpoint(c, work / "paper")
+    seg = max(c.segment_ids(), key=lambda s: c.dynamics_segment(s).num_rows)
+    field = open_terrain_field(c, seg)
+    seed_rows = c.dynamics_segment(seg).slice(0, 64)
+    model = DynamicsModel(DynamicsConfig.preset("paper", c.layout, ActionTokens.from_corpus(c).sizes))
+    counts = parameter_counts(model)
+    n_params = counts["total"]
+    bw = bandwidth_gbps()
+    rows = []
+    for batch in (1, 16):
+        for dtype in (torch.float32, torch.bfloat16):
+            ro = Rollout(ckpt, c, rules="auto", terrain_field=field, temperature=1.0, dtype=dtype)
+            ro.start_batch([seed_rows] * batch)
+            times = []
+            for _ in range(horizon):
+                t0 = time.perf_counter()
+                ro.step_batch()
+                times.append(time.perf_counter() - t0)
+            times = np.asarray(times)
+            overall = batch * horizon / times.sum()
+            tail = batch * 128 / times[-128:].sum()
+            only = model_only_fps(ro.model, batch, dtype)
+            recompute = batch / recompute_seconds(ro.model, batch, dtype)
+            ceiling = batch * bw * 1e9 / (n_params * (4 if dtype == torch.float32 else 2))
+            name = "fp32" if dtype == torch.float32 else "bf16"
+            rows.append([batch, name, f"{overall:.1f}", f"{tail:.1f}", f"{only:.1f}", f"{recompute:.2f}", f"{ceiling:.0f}",
+                         ", ".join(ro.enabled)])  # fmt: skip
+            print(f"batch {batch} {name}: {overall:.1f} frames/s", file=sys.stderr)
+    print(f"\n### Rollout, paper preset ({counts['ActionGPT']:,} + {counts['PoseGPT']:,} parameters), seed 64 frames, "
+          f"{horizon} predicted; memory copy {bw:.1f} GB/s\n")  # fmt: skip
+    print(table(["batch", "dtype", "cached, frames/s (whole horizon)", "cached, last 128 frames", "model only, full cache",
+                 "recomputed, steady state", "weight-streaming ceiling", "rules"], rows))  # fmt: skip
+
+
+# -- training ----------------------------------------------------------------------------------------
+
+
+def part_train(corpus: Path) -> None:
+    c = Corpus(corpus)
+    rows = []
+    for preset, window in (("tiny", 64), ("paper", 128)):
+        cfg = TrainConfig(preset=preset, window=window, batch_size=8, terrain=False)
+        nz = Normaliser.from_corpus(c)
+        data = WindowData(c, "train", normaliser=nz)
+        sampler = WindowSampler(data, window, cfg.batch_size, seed=0)
+        tokens = ActionTokens.from_corpus(c)
+        dyn = DynamicsConfig.preset(preset, c.layout, tokens.sizes, window=window, terrain=(False,) * len(tokens.sizes),
+                                    residual=cfg.residual)  # fmt: skip
+        model = DynamicsModel(dyn)
+        opt, _ = make_optimizer(model, cfg)
+        it = batches_from(sampler, 0)
+        batches = [next(it) for _ in range(7)]
+        times = []
+        for k, batch in enumerate(batches):
+            t0 = time.perf_counter()
+            terms = losses(model, model.action, model.pose, batch, nz, cfg, None, torch.Generator().manual_seed(k))
+            opt.zero_grad()
+            terms["total"].backward()
+            opt.step()
+            if k >= 2:
+                times.append(time.perf_counter() - t0)
+        step = float(np.median(times))
+        rows.append([preset, window, cfg.batch_size, f"{1 / step:.2f}", f"{cfg.batch_size / step:.1f}",
+                     f"{cfg.batch_size * (window + 1) / step:.0f}"])  # fmt: skip
+    print("\n### Training speed (fp32, AdamW, all cores)\n")
+    print(table(["preset", "window", "batch", "steps/s", "samples/s (windows)", "frames/s"], rows))
+
+
+# -- accuracy knobs ----------------------------------------------------------------------------------
+
+
+def held_out_seeds(c: Corpus, horizon: int, stride: int) -> list[tuple[str, int]]:
+    out = []
+    for s in c.segment_ids("test"):
+        n = c.dynamics_segment(s).num_rows
+        out += [(s, k) for k in range(0, n - SEED - horizon + 1, stride)]
+    return out
+
+
+def force_gt(c: Corpus, ckpt: Path, seeds, horizon: int, dtype: torch.dtype) -> tuple[float, float]:
+    """Mean hunter RA-MPJPE (m) of Force-GT rollouts over ``seeds``, and predicted frames/s."""
+    tokens = ActionTokens.from_corpus(c)
+    hi = tokens.entities.index("hunter")
+    errs, frames, took = [], 0, 0.0
+    for seg, start in seeds:
+        rec = c.dynamics_segment(seg).slice(start + SEED, horizon)
+        stream = tokens.encode(c.layout, rec)[0][:, hi]
+        force, k = [], 0
+        while k < horizon:
+            end = k + 1
+            while end < horizon and stream[end] == stream[k]:
+                end += 1
+            if stream[k]:
+                force.append(("hunter", k, end, int(stream[k])))
+            k = end
+        t0 = time.perf_counter()
+        table_ = rollout(ckpt, c, seg, SEED, horizon, force=force, rules="none", start=start, dtype=dtype)
+        took += time.perf_counter() - t0
+        frames += horizon
+        p = world_of_rows(c.layout, table_)["hunter"][SEED:]
+        r = world_of_rows(c.layout, rec)["hunter"]
+        errs.append(np.linalg.norm((p - p[:, :1]) - (r - r[:, :1]), axis=-1).mean())
+    return float(np.mean(errs)), frames / took
+
+
+def part_window(corpus: Path, steps: int, work: Path) -> None:
+    c = Corpus(corpus)
+    seeds = held_out_seeds(c, 40, 20)
+    rows = []
+    for window in (16, 32, 64):
+        out = work / f"tiny-w{window}"
+        t0 = time.perf_counter()
+        s = train(c, out, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=window, lr=2e-3, warmup=50),
+                  log=lambda *_: None)  # fmt: skip
+        took = time.perf_counter() - t0
+        for dtype in (torch.float32, torch.bfloat16):
+            err, fps = force_gt(c, out, seeds, 40, dtype)
+            rows.append([window, "fp32" if dtype == torch.float32 else "bf16", f"{err:.4f}", f"{fps:.0f}",
+                         f"{s['eval']['action_accuracy']:.4f}", f"{took:.0f}"])  # fmt: skip
+            print(f"window {window} {dtype}: {err:.4f}", file=sys.stderr)
+    print(f"\n### Window and dtype against hunter RA-MPJPE (tiny preset, {steps} steps, Force-GT, {len(seeds)} held-out "
+          "seeds, 32 + 40 frames)\n")  # fmt: skip
+    print(table(["window", "dtype", "RA-MPJPE (m)", "rollout frames/s", "held-out next-action acc.", "training s"], rows))
+
+
+def separation(table_, layout) -> np.ndarray:
+    w = world_of_rows(layout, table_)
+    a, b = (w[e.name][:, 0] for e in layout.articulated[:2])
+    return np.linalg.norm(a - b, axis=-1)
+
+
+def part_relative(corpus: Path, steps: int, work: Path) -> None:
+    c = Corpus(corpus)
+    recorded = np.concatenate([separation(c.dynamics_segment(s), c.layout) for s in c.segment_ids("test")])
+    rows = [["recorded (held-out)", "", f"{recorded.mean():.2f}", f"{np.percentile(recorded, 95):.2f}",
+             f"{(recorded > 6).mean():.1%}", f"{recorded.max():.1f}"]]  # fmt: skip
+    segs = c.segment_ids("test")
+    for relative in (False, True):
+        out = work / f"tiny-rel{int(relative)}"
+        train(c, out, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50, relative=relative),
+              log=lambda *_: None)  # fmt: skip
+        seps = []
+        for seg in segs[:3]:
+            t = rollout(out, c, seg, SEED, 2000, rules="none", temperature=1.0, seed=1)
+            seps.append(separation(t, c.layout)[SEED:])
+        sep = np.concatenate(seps)
+        rows.append([f"relative feature {'on' if relative else 'off'}", len(seps), f"{sep.mean():.2f}",
+                     f"{np.percentile(sep, 95):.2f}", f"{(sep > 6).mean():.1%}", f"{sep.max():.1f}"])  # fmt: skip
+        print(f"relative {relative}: {sep.mean():.2f}", file=sys.stderr)
+    print(f"\n### Separation over 2,000-frame free rollouts (tiny preset, {steps} steps, temperature 1, rules off)\n")
+    print(table(["model", "rollouts", "mean (m)", "p95 (m)", "share > 6 m", "max (m)"], rows))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative"])
+    ap.add_argument("--corpus", type=Path, default=None, help="the dynamics corpus (default: made in a temp dir)")
+    ap.add_argument("--scanned-corpus", type=Path, default=None, help="a corpus with scanned terrain (default: made)")
+    ap.add_argument("--steps", type=int, default=1500, help="training steps of the tiny models")
+    ap.add_argument("--horizon", type=int, default=448, help="predicted frames of the paper-preset rollouts")
+    a = ap.parse_args()
+    print(preamble("Dynamics: rollout and training speed, window / dtype / relative feature against accuracy"))
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads\n")
+    with tempfile.TemporaryDirectory(prefix="bench_dynamics_") as tmp:
+        work = Path(tmp)
+        if a.part in ("all", "rollout"):
+            scanned = a.scanned_corpus or make_corpus(work / "scanned", 2, 20.0, 3, scan=True)
+            part_rollout(scanned, a.horizon, work)
+        corpus = None
+        if a.part in ("all", "train", "window", "relative"):
+            corpus = a.corpus or make_corpus(work / "dynamics", 10, 45.0, 11, scan=False)
+        if a.part in ("all", "train"):
+            part_train(corpus)
+        if a.part in ("all", "window"):
+            part_window(corpus, a.steps, work)
+        if a.part in ("all", "relative"):
+            part_relative(corpus, a.steps, work)
+
+
+if __name__ == "__main__":
+    main()
