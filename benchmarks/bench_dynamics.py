@@ -43,10 +43,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
-from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.corpus import Corpus, world_of_rows
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, parameter_counts

@@ -373,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.fn(args)
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
+    except (FileNotFoundError, ValueError, RuntimeError, KeyError) as exc:
         print(f"marionette {args.cmd}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -58,7 +58,7 @@ def scanned_copy(scanned_corpus, tmp_path_factory) -> Path:
 # and terrain tests use the scanned session corpus.
 DYNAMICS_SYNTH = {"recordings": 10, "seconds": 45.0, "seed": 11, "width": 96, "height": 54}
 DYNAMICS_OPTIONS = IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28))
-TINY_DYNAMICS = {"preset": "tiny", "steps": 1500, "batch_size": 8, "window": 64, "lr": 2e-3, "warmup": 50, "seed": 0}
+TINY_DYNAMICS = {"preset": "tiny", "steps": 1000, "batch_size": 8, "window": 64, "lr": 2e-3, "warmup": 50, "seed": 0}
 
 
 @pytest.fixture(scope="session")

@@ -22,8 +22,9 @@ Alignment, for training on a window of frames x[0..T] (``action_training_pair``,
   caller's, possibly overridden), root[t+1] (likewise), terrain[t+1] and relative[t+1]; it predicts
   body[t+1].
 
-Both heads predict a change added to the current frame's value (``residual``): root[t+1] =
-root[t] + Δ, body[t+1] = body[t] + Δ. Inputs are expected normalised by the caller.
+The heads predict the next frame's values outright, or, with ``residual`` on, a change added to
+the current frame's (root[t+1] = root[t] + Δ, body[t+1] = body[t] + Δ); residual heads drift in long
+rollouts (docs/architecture.md), so they are off by default. Inputs are expected normalised by the caller.
 
 Attention window and streaming. ``forward`` over T frames lets frame i attend to frames
 max(0, i − window + 1)..i (plain causal attention when T ≤ window, a band mask beyond). ``step``
@@ -168,7 +169,7 @@ class DynamicsConfig:
     terrain: tuple[bool, ...]  # per articulated entity: read its terrain features
     terrain_features: int = TERRAIN_FEATURES
     relative_position: bool = False  # read the other entity's root in my root frame (3 per entity)
-    residual: bool = True  # heads predict a change added to the current frame's value
+    residual: bool = False  # heads predict a change added to the current frame's value
     dropout: float = 0.0
 
     def __post_init__(self) -> None:

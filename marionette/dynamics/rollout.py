@@ -128,10 +128,17 @@ class _Scene:
     generator: torch.Generator
 
 
+def _stream_seed(seed: int, b: int) -> int:
+    """The sampler seed of stream b of a batch: ``seed`` itself for stream 0 (a batch of one is a plain
+    rollout), otherwise drawn from SeedSequence([seed, b]) so streams of nearby seeds never coincide."""
+    return int(seed) if b == 0 else int(np.random.SeedSequence([int(seed), b]).generate_state(1, np.uint64)[0] >> 1)
+
+
 class Rollout:
     """A streaming rollout of one checkpoint over one scene: ``start(seed_rows)`` then ``step()`` per frame;
-    ``start_batch``/``step_batch`` run B streams through the models as one batch (stream b samples with
-    seed + b and has its own rules), which is how the rollout benchmark's batch 16 runs."""
+    ``start_batch``/``step_batch`` run B streams through the models as one batch (stream b has its own
+    sampler, ``_stream_seed(seed, b)``, and its own rules; all share the terrain field, so the seeds must
+    lie on one stage), which is how the rollout benchmark's batch 16 runs."""
 
     def __init__(self, ckpt: Path | str, corpus: Corpus | Path | str, *, temperature: float = 0.0, seed: int = 0,
                  rules: str | Sequence[str] = "auto", terrain_field: Any = None, cached: bool = True,
@@ -210,8 +217,13 @@ class Rollout:
         n = seeds[0].num_rows
         if n < 1:
             raise ValueError("a rollout needs at least one seed frame")
+        names = [str(t["segment"][0].as_py()) if t.num_rows and "segment" in t.column_names else "?" for t in seeds]
         if any(t.num_rows != n for t in seeds):
-            raise ValueError(f"batched seeds need equal lengths, not {[t.num_rows for t in seeds]}")
+            raise ValueError(f"batched seeds need equal lengths, not {dict(zip(names, (t.num_rows for t in seeds)))}")
+        known = set(self.corpus.segments["segment"].to_pylist())  # a rollout table's segments are not: nothing to compare
+        stages = {seg: self.corpus.segment_row(seg)["stage"] for seg in names if seg in known}
+        if len(set(stages.values())) > 1:
+            raise ValueError(f"a batch shares one terrain field, but its seeds lie on several stages: {stages}")
         L, nz = self.layout, self.normaliser
         per = []  # per stream: (root_n, body_n, tokens, progress, terrain, relative), each (n, ...)
         for rows in seeds:
@@ -242,7 +254,7 @@ class Rollout:
                 state=p[6][-1].astype(np.float64), world=world,
                 quats=np.stack([_fixed(last[f"{e.name}.rot_world"], 4)[0] for e in L.articulated]),
                 body_n=p[1][-1], tok=p[2][-1].copy(), progress=p[3][-1].astype(np.float64), rules=rules,
-                generator=torch.Generator().manual_seed(self.seed + b),
+                generator=torch.Generator().manual_seed(_stream_seed(self.seed, b)),
             ))  # fmt: skip
         self.t = 0
 
@@ -286,9 +298,12 @@ class Rollout:
         """``step`` for every stream: per-stream controls (or None), the next state rows (B, dim) float32."""
         L, c, nz = self.layout, self.config, self.normaliser
         B = len(self.scenes)
-        force_tokens = force_tokens or [None] * B
-        root_override = root_override or [None] * B
-        restart = restart or [()] * B
+        force_tokens = [None] * B if force_tokens is None else list(force_tokens)
+        root_override = [None] * B if root_override is None else list(root_override)
+        restart = [()] * B if restart is None else list(restart)
+        if not len(force_tokens) == len(root_override) == len(restart) == B:
+            raise ValueError(f"step_batch: {B} streams but {len(force_tokens)} force, {len(root_override)} root and "
+                             f"{len(restart)} restart entries")  # fmt: skip
         out = self._out
         names = [e.name for e in L.articulated]
         prev_roots = {n: np.stack([sc.world[n][0] for sc in self.scenes]) for n in names}  # (B, 3) each
@@ -392,9 +407,15 @@ def _script_roots(script_root: Any, horizon: int, layout, root_dim: int) -> np.n
         return None
     if isinstance(script_root, dict):
         out = np.full((horizon, root_dim), np.nan)
+        unknown = sorted(set(script_root) - {e.name for e in layout.articulated})
+        if unknown:
+            raise ValueError(f"script_root: unknown entities {unknown}")
         for i, e in enumerate(layout.articulated):
             if e.name in script_root:
-                out[:, 9 * i : 9 * i + 9] = np.asarray(script_root[e.name], np.float64)[:horizon]
+                a = np.asarray(script_root[e.name], np.float64)
+                if a.ndim != 2 or a.shape[1] != 9 or len(a) < horizon:
+                    raise ValueError(f"script_root[{e.name!r}] has shape {a.shape}; expected ({horizon}, 9) or longer")
+                out[:, 9 * i : 9 * i + 9] = a[:horizon]
         return out
     a = np.asarray(script_root, np.float64)
     if a.shape != (horizon, root_dim):
@@ -424,11 +445,15 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
                          f"from frame {start} does not fit")  # fmt: skip
     seed_rows = view.slice(start, seed_frames)
     names = [e.name for e in L.articulated]
-    for name, _start, _end, token in force:
+    for name, first, end, token in force:
         if name not in names:
             raise ValueError(f"force: unknown entity {name!r}; the scene has {names}")
-        if not 0 <= int(token) < ro.tokens.sizes[names.index(name)]:
-            raise ValueError(f"force: token {token} outside {name}'s vocabulary of {ro.tokens.sizes[names.index(name)]}")
+        if not 1 <= int(token) < ro.tokens.sizes[names.index(name)]:
+            raise ValueError(f"force {name}:{first}:{end}:{token}: token outside 1..{ro.tokens.sizes[names.index(name)] - 1} "
+                             f"({name}'s vocabulary; 0 is 'no valid action')")  # fmt: skip
+        if not 0 <= int(first) < int(end) or int(first) >= horizon:
+            raise ValueError(f"force {name}:{first}:{end}:{token}: frames [{first}, {end}) are empty, negative or "
+                             f"past the horizon {horizon}")  # fmt: skip
     scripted = _script_roots(script_root, horizon, L, ro.config.root_dim)
     ro.start(seed_rows)
     states, roots, quats, toks, progs = [], [], [], [], []
@@ -524,8 +549,8 @@ def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: floa
             arr[:] = np.where(np.isfinite(a[:horizon]), a[:horizon], arr)
         else:
             start, end, velocity = spec
-            if not 0 <= start < end:
-                raise ValueError(f"--script-root {name}: frames [{start}, {end}) are empty or negative")
+            if not 0 <= start < end or start >= horizon:
+                raise ValueError(f"--script-root {name}: frames [{start}, {end}) are empty, negative or past the horizon {horizon}")
             arr[start : min(end, horizon), 0:3] = np.asarray(velocity) / fps  # metres per model frame
     return out
 
@@ -539,8 +564,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--horizon", type=int, required=True, help="predicted frames")
     ap.add_argument("--temperature", type=float, default=0.0, help="0: argmax, deterministic")
     ap.add_argument("--seed", type=int, default=0, help="the sampler's seed")
-    ap.add_argument("--force", type=_parse_force, nargs="*", default=[], help="ENTITY:START:END:TOKEN (predicted frames, END exclusive)")
-    ap.add_argument("--script-root", type=_parse_script, nargs="*", default=[],
+    ap.add_argument("--force", type=_parse_force, nargs="+", action="extend", default=[], help="ENTITY:START:END:TOKEN (predicted frames, END exclusive)")
+    ap.add_argument("--script-root", type=_parse_script, nargs="+", action="extend", default=[],
                     help="ENTITY:START:END:VX,VY,VZ (m/s in the entity's frame) or ENTITY:FILE.npy ((horizon, 9) root channels)")  # fmt: skip
     ap.add_argument("--rules", default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
     ap.add_argument("--out", type=Path, required=True, help="STATES.arrow (the corpus state schema)")

@@ -161,6 +161,11 @@ def _rank_world() -> tuple[int, int]:
 # -- schedule and optimizer --------------------------------------------------------------------------
 
 
+def _noise_seed(seed: int, step: int, rank: int) -> int:
+    """The input-noise generator's seed of one (seed, step, rank): distinct for every triple."""
+    return int(np.random.SeedSequence([int(seed), int(step), int(rank)]).generate_state(1, np.uint64)[0] >> 1)
+
+
 def lr_factor(step: int, config: TrainConfig) -> float:
     """Multiplier of ``config.lr`` at optimizer step ``step`` (0-based): linear warmup, cosine to min_lr_ratio."""
     if step < config.warmup:
@@ -478,11 +483,12 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
         }
         return save_checkpoint(out_dir, at, model, opt, sched, meta)
 
+    end = config.steps if stop_at is None else min(stop_at, config.steps)
     board = None
-    if rank == 0:
+    if rank == 0 and step < end:  # a resumed run drops the events logged after its checkpoint
         from torch.utils.tensorboard import SummaryWriter
 
-        board = SummaryWriter(str(out_dir / TENSORBOARD))
+        board = SummaryWriter(str(out_dir / TENSORBOARD), purge_step=step + 1 if step else None)
 
     def run_eval(at: int) -> None:
         if held is None:
@@ -495,7 +501,6 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
                     board.add_scalar(f"eval/{k}", v, at)
         log(f"eval step {at} " + json.dumps({k: round(v, 4) for k, v in metrics.items()}))
 
-    end = config.steps if stop_at is None else min(stop_at, config.steps)
     model.train()
     batches = batches_from(sampler, step)
     last_saved = None
@@ -504,7 +509,7 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
         frames = _to(batch.frames, device)
         with autocast:
             known = None if batch.terrain_known is None else batch.terrain_known.to(device)
-            noise = torch.Generator().manual_seed(config.seed * 1_000_003 + step * 101 + rank)  # a function of the step: exact resume
+            noise = torch.Generator().manual_seed(_noise_seed(config.seed, step, rank))  # a function of the step: exact resume
             terms = losses(model, action, pose, Batch(frames, known, batch.segments, batch.starts), normaliser, config, hinge, noise)
         opt.zero_grad(set_to_none=True)
         terms["total"].backward()
@@ -534,9 +539,7 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
     last_saved = ckpt if resumed_done else (checkpoint(step) if rank == 0 else None)
     if board is not None:
         board.close()
-    if world > 1:
-        dist.barrier()  # nobody returns (and tears the group down) before rank 0 has written
-    return {
+    summary = {
         "steps": step,
         "window": length,
         "first": history[0] if history else None,
@@ -547,6 +550,11 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
         "checkpoint": str(last_saved) if last_saved else None,
         "losses": history,
     }
+    if rank == 0:
+        write_json(out_dir / SUMMARY, {k: v for k, v in summary.items() if k != "losses"})
+    if world > 1:
+        dist.barrier()  # nobody returns (and tears the group down) before rank 0 has written
+    return summary
 
 
 # -- CLI ---------------------------------------------------------------------------------------------
@@ -573,7 +581,12 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     """The ``TrainConfig`` of parsed arguments: ``--config`` JSON, then the flags that were given."""
-    base = TrainConfig.from_json(json.loads(args.config.read_text())).to_json() if args.config else {}
+    base = {}
+    if args.config:
+        try:
+            base = TrainConfig.from_json(json.loads(args.config.read_text())).to_json()
+        except (json.JSONDecodeError, TypeError, ValueError) as exc:
+            raise ValueError(f"{args.config}: not a TrainConfig JSON: {exc}") from exc
     over = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if f.name != "betas" and getattr(args, f.name) is not None}
     return TrainConfig.from_json({**base, **over})
 
@@ -587,9 +600,9 @@ def train_in_processes(corpus: Path | str, out_dir: Path | str, config: TrainCon
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
            "-m", "marionette.dynamics.train", str(corpus), "--out", str(out), "--config", str(out / "train-config.json")]  # fmt: skip
     env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    done = subprocess.run(cmd, env=env)  # the ranks' output goes where ours goes (rank 0 logs every step)
     if done.returncode != 0:
-        raise RuntimeError(f"torchrun with {nproc} processes failed ({done.returncode}):\n{done.stderr[-4000:]}")
+        raise RuntimeError(f"{out}: torchrun with {nproc} processes failed with exit code {done.returncode} (its output is above)")
     return json.loads((out / SUMMARY).read_text())
 
 
@@ -615,9 +628,7 @@ def run(args: argparse.Namespace) -> dict:
         if started:
             dist.destroy_process_group()
     if rank == 0:
-        brief = {k: v for k, v in summary.items() if k != "losses"}
-        write_json(Path(args.out) / SUMMARY, brief)
-        print(json.dumps(brief, indent=1))
+        print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return summary
 
 
