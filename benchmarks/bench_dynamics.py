@@ -1,7 +1,7 @@
 """The dynamics model: rollout speed at the paper's sizes, training speed, and what the window, the dtype and
 the relative feature buy in accuracy.
 
-    .venv/bin/python benchmarks/bench_dynamics.py [--part all|rollout|train|window|relative]
+    .venv/bin/python benchmarks/bench_dynamics.py [--part all|rollout|train|window|relative|heads]
         [--corpus DIR] [--scanned-corpus DIR] [--steps 1500] [--horizon 448]
 
 Inputs (made in a temp dir unless given): the *dynamics corpus* of the tests (ten 45 s synthetic
@@ -31,6 +31,12 @@ relative. The tiny preset (window 64) trained with and without the relative-posi
 rollouts of 2,000 frames from three held-out seeds, rules off (the separation cap would hide the
 difference), 3-D separation of the two roots: mean, 95th percentile and share of frames beyond 6 m
 (the cap's distance), beside the recorded held-out separation.
+
+heads. The tiny preset (window 64) trained with residual heads on clean inputs (``residual=True,
+input_noise=0``) and with absolute heads on noised inputs (the defaults); one 2,000-frame rollout from
+the first held-out segment, temperature 0, rules on: how far the roots wander (largest extent of the
+root path over the three axes) and the bone-length CV over the rollout (median and max over bones, both
+entities), beside the recorded train split's.
 """
 
 from __future__ import annotations
@@ -45,7 +51,7 @@ import numpy as np
 import torch
 from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
-from marionette.corpus import Corpus, world_of_rows
+from marionette.corpus import Corpus, _fixed, world_of_rows
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, parameter_counts
@@ -311,9 +317,40 @@ def part_relative(corpus: Path, steps: int, work: Path) -> None:
     print(table(["model", "rollouts", "mean (m)", "p95 (m)", "share > 6 m", "max (m)"], rows))
 
 
+def bone_cv(joints: np.ndarray, rig) -> np.ndarray:
+    lengths = np.stack([np.linalg.norm(joints[:, a] - joints[:, b], axis=-1) for a, b in rig.bones], axis=1)
+    return lengths.std(0) / lengths.mean(0)
+
+
+def part_heads(corpus: Path, steps: int, work: Path) -> None:
+    c = Corpus(corpus)
+    seg = c.segment_ids("test")[0]
+    rec = {e.name: [] for e in c.layout.articulated}
+    for s in c.segment_ids("train"):
+        w = world_of_rows(c.layout, c.dynamics_segment(s))
+        for e in c.layout.articulated:
+            rec[e.name].append(w[e.name])
+    rec_cv = np.concatenate([bone_cv(np.concatenate(rec[e.name]), e.rig) for e in c.layout.articulated])
+    rows = [["recorded (train split)", "", "", f"{np.median(rec_cv):.4f}", f"{rec_cv.max():.3f}"]]
+    for residual, noise in ((True, 0.0), (False, 0.1)):
+        out = work / f"tiny-res{int(residual)}"
+        train(c, out, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50, residual=residual,
+                                  input_noise=noise), log=lambda *_: None)  # fmt: skip
+        t = rollout(out, c, seg, SEED, 2000, rules="auto")
+        w = world_of_rows(c.layout, t)
+        span = max(float(np.ptp(w[e.name][SEED:, 0], axis=0).max()) for e in c.layout.articulated)
+        cv = np.concatenate([bone_cv(w[e.name][SEED:], e.rig) for e in c.layout.articulated])
+        finite = bool(np.isfinite(_fixed(t["state"], c.layout.dim)).all())
+        rows.append([f"{'residual, clean inputs' if residual else 'absolute, input noise 0.1 (default)'}", f"{span:,.0f}",
+                     str(finite), f"{np.median(cv):.4f}", f"{cv.max():.3f}"])  # fmt: skip
+        print(f"residual {residual}: span {span:.0f}", file=sys.stderr)
+    print(f"\n### Heads: residual on clean inputs against absolute on noised inputs (tiny, {steps} steps, 2,000 frames)\n")
+    print(table(["model", "root path extent (m)", "finite", "bone-length CV median", "max"], rows))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative"])
+    ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative", "heads"])
     ap.add_argument("--corpus", type=Path, default=None, help="the dynamics corpus (default: made in a temp dir)")
     ap.add_argument("--scanned-corpus", type=Path, default=None, help="a corpus with scanned terrain (default: made)")
     ap.add_argument("--steps", type=int, default=1500, help="training steps of the tiny models")
@@ -327,7 +364,7 @@ def main() -> None:
             scanned = a.scanned_corpus or make_corpus(work / "scanned", 2, 20.0, 3, scan=True)
             part_rollout(scanned, a.horizon, work)
         corpus = None
-        if a.part in ("all", "train", "window", "relative"):
+        if a.part in ("all", "train", "window", "relative", "heads"):
             corpus = a.corpus or make_corpus(work / "dynamics", 10, 45.0, 11, scan=False)
         if a.part in ("all", "train"):
             part_train(corpus)
@@ -335,6 +372,8 @@ def main() -> None:
             part_window(corpus, a.steps, work)
         if a.part in ("all", "relative"):
             part_relative(corpus, a.steps, work)
+        if a.part in ("all", "heads"):
+            part_heads(corpus, a.steps, work)
 
 
 if __name__ == "__main__":
