@@ -22,11 +22,13 @@ on terrain and ±(h_max − h_min)·5·(1/2046 + 2⁻¹¹) on bones (``height_bo
 
 from __future__ import annotations
 
+import io
 import json
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import av
 import numpy as np
@@ -139,27 +141,34 @@ def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta) -
     return n
 
 
-def read_meta(path: Path) -> GBufferMeta:
-    """The metadata of a G-buffer file; a clear error if it is not one."""
+def _source(data: Path | bytes) -> Any:
+    """What ``av.open`` reads: a path, or a file's bytes (e.g. a webdataset member)."""
+    return io.BytesIO(data) if isinstance(data, bytes | bytearray) else str(data)
+
+
+def read_meta(path: Path | bytes, name: str | None = None) -> GBufferMeta:
+    """The metadata of a G-buffer file (a path, or its bytes, called ``name`` in errors); a clear error if it is not one."""
+    where = name or ("<bytes>" if isinstance(path, bytes | bytearray) else path)
     try:
-        with av.open(str(path)) as c:
+        with av.open(_source(path)) as c:
             raw = c.metadata.get(TAG)
     except (av.error.FFmpegError, OSError) as err:
-        raise ValueError(f"{path}: cannot open as a G-buffer video: {err}") from err
+        raise ValueError(f"{where}: cannot open as a G-buffer video: {err}") from err
     if raw is None:
-        raise ValueError(f"{path}: no {TAG} metadata: not a Marionette G-buffer video")
+        raise ValueError(f"{where}: no {TAG} metadata: not a Marionette G-buffer video")
     d = json.loads(raw)
     if d.get("version") != GBUFFER_VERSION:
-        raise ValueError(f"{path}: G-buffer version {d.get('version')!r}, this reader knows {GBUFFER_VERSION}")
+        raise ValueError(f"{where}: G-buffer version {d.get('version')!r}, this reader knows {GBUFFER_VERSION}")
     return GBufferMeta(**d)
 
 
-def iter_codes(path: Path) -> Iterator[np.ndarray]:
-    """The raw 10-bit codes (H, W, 3) uint16 of each frame."""
-    with av.open(str(path)) as c:
+def iter_codes(path: Path | bytes, name: str | None = None) -> Iterator[np.ndarray]:
+    """The raw 10-bit codes (H, W, 3) uint16 of each frame of a G-buffer file (a path or its bytes)."""
+    where = name or ("<bytes>" if isinstance(path, bytes | bytearray) else path)
+    with av.open(_source(path)) as c:
         s = c.streams.video[0]
         if s.codec_context.pix_fmt != "gbrp10le":
-            raise ValueError(f"{path}: pixel format {s.codec_context.pix_fmt}, a G-buffer is gbrp10le")
+            raise ValueError(f"{where}: pixel format {s.codec_context.pix_fmt}, a G-buffer is gbrp10le")
         for frame in c.decode(s):
             yield frame.to_ndarray(format="gbrp10le")
 
