@@ -208,6 +208,23 @@ def cmd_train_dynamics(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_observation(a: argparse.Namespace) -> int:
+    """Train the observation model on a corpus's video shards (resuming from --out)."""
+    from marionette.observation.train import ObservationTrainConfig, train
+
+    keys = ("preset", "steps", "batch_size", "frames", "reduce", "patch", "lr", "warmup", "seed", "checkpoint_every")
+    train(a.corpus, a.out, ObservationTrainConfig(**{k: getattr(a, k) for k in keys if getattr(a, k) is not None}))
+    return 0
+
+
+def cmd_generate(a: argparse.Namespace) -> int:
+    """Paint RGB onto a pose-control video with a trained observation model."""
+    from marionette.observation.generate import main as generate_main
+
+    generate_main(a)
+    return 0
+
+
 def cmd_rollout(a: argparse.Namespace) -> int:
     """Roll a trained dynamics model out from a recorded segment's first frames."""
     from marionette.dynamics.rollout import run
@@ -349,6 +366,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     train_arguments(s)
     s.set_defaults(fn=cmd_train_dynamics)
+
+    s = tsub.add_parser("observation", help="train the observation model (pose video + first frame → RGB) on the video shards")
+    s.add_argument("corpus", type=Path)
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--preset", default=None, help="tiny (default) or small")
+    for flag, kind in (("--steps", int), ("--batch-size", int), ("--frames", int), ("--reduce", int), ("--patch", int),
+                       ("--lr", float), ("--warmup", int), ("--seed", int), ("--checkpoint-every", int)):  # fmt: skip
+        s.add_argument(flag, type=kind, default=None)
+    s.set_defaults(fn=cmd_train_observation)
+
+    s = sub.add_parser("generate", help="paint RGB onto a pose-control video with a trained observation model")
+    from marionette.observation.generate import add_arguments as generate_arguments
+
+    generate_arguments(s)
+    s.set_defaults(fn=cmd_generate)
 
     s = sub.add_parser("rollout", help="roll a trained dynamics model out from a recorded segment, with forced tokens and scripted roots")
     from marionette.dynamics.rollout import add_arguments as rollout_arguments

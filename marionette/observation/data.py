@@ -1,0 +1,135 @@
+"""Training clips for the observation model, streamed from a corpus's video shards with webdataset.
+
+A video shard (``video/shard-NNNNNN.tar``) holds, per 81-frame chunk ``<segment>__c<chunk>``, the RGB
+clip ``rgb.mp4`` (the training resolution), its pose-control target ``pose.mkv`` (the bridge's lossless
+10-bit G-buffer, same size and frame count) and a ``json``. A *clip* is ``frames`` consecutive frames
+(4k + 1, as Wan's VAE expects) of one chunk that holds a pose target, reduced to the model's
+``size`` (H, W):
+
+- ``rgb`` (T, 3, H, W) float32 in [−1, 1]: area-averaged (the chunk's size must be a whole multiple of
+  ``size``);
+- ``pose`` (T, 3, H, W) float32 in [0, 1]: the G-buffer's 10-bit codes / 1023 (height, identity,
+  inverse depth), sampled nearest-neighbour (every ``factor``-th pixel), so identities stay exact.
+
+Which clip of a chunk: ``start`` = 0 for evaluation (``ClipSource.clips(split, random=False)``); for
+training, one start per chunk per epoch drawn from ``numpy.random.default_rng([seed, epoch])`` in the
+shard order, uniform in [0, n − frames]. Chunks shorter than ``frames`` and chunks without a pose
+target are skipped (counted in ``ClipSource.skipped``). Splits come from ``meta/segments.parquet``.
+Tar members are read into memory by webdataset (never extracted), so member names cannot reach the
+file system.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import webdataset as wds
+
+from marionette.bridge.gbuffer import CODE_MAX, iter_codes
+from marionette.corpus import Corpus
+from marionette.ingest.video import decode_frames
+
+
+@dataclass
+class Clip:
+    """One training clip: ``rgb`` (T, 3, H, W) in [−1, 1], ``pose`` (T, 3, H, W) in [0, 1], where it came from."""
+
+    rgb: torch.Tensor
+    pose: torch.Tensor
+    key: str
+    start: int
+
+
+def _reduce_rgb(frames: np.ndarray, factor: int) -> np.ndarray:
+    """(T, H·f, W·f, 3) uint8 → (T, H, W, 3) float32 area means."""
+    T, H, W, C = frames.shape
+    return frames.reshape(T, H // factor, factor, W // factor, factor, C).mean(axis=(2, 4), dtype=np.float32)
+
+
+def check_size(src_hw: tuple[int, int], size: tuple[int, int], where: str) -> int:
+    """The reduction factor from a chunk's (H, W) to the model's, or a ValueError naming ``where``."""
+    (sh, sw), (h, w) = src_hw, size
+    if sh % h or sw % w or sh // h != sw // w:
+        raise ValueError(f"{where}: a {sh}×{sw} chunk does not reduce to the model's {h}×{w} by one whole factor")
+    return sh // h
+
+
+def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) -> Clip:
+    """A webdataset sample {"__key__", "rgb.mp4", "pose.mkv", ...} → the clip of ``frames`` frames from ``start``."""
+    key = sample["__key__"]
+    rgb = np.stack(decode_frames(sample["rgb.mp4"]))  # (n, H, W, 3) uint8
+    codes = np.stack(list(iter_codes(sample["pose.mkv"], name=f"{key}.pose.mkv")))  # (n, H, W, 3) uint16
+    if codes.shape[:3] != rgb.shape[:3]:
+        raise ValueError(f"{key}: pose.mkv {codes.shape[:3]} and rgb.mp4 {rgb.shape[:3]} differ in frames or size")
+    if start + frames > len(rgb):
+        raise ValueError(f"{key}: a clip of {frames} frames from {start} exceeds the chunk's {len(rgb)}")
+    f = check_size(rgb.shape[1:3], size, key)
+    rgb = _reduce_rgb(rgb[start : start + frames], f) / 127.5 - 1.0
+    pose = codes[start : start + frames, ::f, ::f].astype(np.float32) / CODE_MAX
+    return Clip(
+        rgb=torch.from_numpy(np.ascontiguousarray(rgb.transpose(0, 3, 1, 2))),
+        pose=torch.from_numpy(np.ascontiguousarray(pose.transpose(0, 3, 1, 2))),
+        key=key,
+        start=start,
+    )
+
+
+def _frame_count(sample: dict) -> int:
+    """Frames of a chunk, from its json (one camera intrinsics row per frame)."""
+    if "json" not in sample:
+        raise ValueError(f"{sample['__key__']}: no json member")
+    return len(json.loads(sample["json"])["K"])
+
+
+class ClipSource:
+    """The clips of one split of a corpus's video shards (module doc: which clips)."""
+
+    def __init__(self, corpus: Corpus | Path | str, split: str, frames: int, size: tuple[int, int]) -> None:
+        self.corpus = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
+        if frames < 1 or (frames - 1) % 4:
+            raise ValueError(f"a clip has 4k + 1 frames (Wan's VAE), not {frames}")
+        self.split, self.frames, self.size = split, int(frames), (int(size[0]), int(size[1]))
+        self.segments = set(self.corpus.segment_ids(split))
+        self.shards = sorted(str(p) for p in (self.corpus.path / "video").glob("shard-*.tar"))
+        self.skipped: dict[str, str] = {}
+
+    def _samples(self) -> Iterator[dict]:
+        if not self.shards:
+            return
+        for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False):
+            key = sample["__key__"]
+            if key.split("__c")[0] not in self.segments:
+                continue
+            if "pose.mkv" not in sample:
+                self.skipped[key] = "no pose.mkv (render the pose targets first)"
+                continue
+            n = _frame_count(sample)
+            if n < self.frames:
+                self.skipped[key] = f"{n} frames, fewer than a clip's {self.frames}"
+                continue
+            yield sample
+
+    def chunks(self) -> Iterator[Clip]:
+        """Every usable chunk whole (all its frames, start 0), reduced to ``size``: what a trainer keeps in
+        memory to cut clips from."""
+        for sample in self._samples():
+            try:
+                yield decode_clip(sample, _frame_count(sample), self.size, 0)
+            except ValueError as err:
+                self.skipped[sample["__key__"]] = str(err)
+
+    def clips(self, seed: int = 0, epoch: int = 0, random: bool = True) -> Iterator[Clip]:
+        """Every usable chunk's clip, in shard order; random starts (seeded) or start 0."""
+        rng = np.random.default_rng([int(seed), int(epoch)])
+        for sample in self._samples():
+            n = _frame_count(sample)
+            start = int(rng.integers(0, n - self.frames + 1)) if random else 0
+            try:
+                yield decode_clip(sample, self.frames, self.size, start)
+            except ValueError as err:
+                self.skipped[sample["__key__"]] = str(err)

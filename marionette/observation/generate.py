@@ -1,0 +1,72 @@
+"""``marionette generate``: a trained observation model, a pose-control video and a first frame → an RGB mp4.
+
+The pose video is a bridge G-buffer (``marionette render`` or a corpus's ``pose.mkv``) whose size is a
+whole multiple of the model's; it is sampled nearest-neighbour like the training clips. The first
+frame is an image file (PNG, JPEG; read with PyAV) of the pose video's size, area-averaged to the
+model's. Both are checked before any compute. The output is H.264 at the model's size (the frames the
+model made, first frame included), at ``fps``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import av
+import numpy as np
+import torch
+
+from marionette.bridge.gbuffer import CODE_MAX, iter_codes, read_meta
+from marionette.ingest.video import VideoSettings, encode_mp4
+from marionette.io import write_bytes
+from marionette.observation.data import _reduce_rgb, check_size
+from marionette.observation.model import generate
+from marionette.observation.train import load_model
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An image file → (H, W, 3) uint8 RGB; a clear error naming the file if it is not one."""
+    try:
+        with av.open(str(path)) as c:
+            frame = next(c.decode(video=0))
+    except (av.error.FFmpegError, OSError, StopIteration) as err:
+        raise ValueError(f"{path}: cannot read as an image: {err}") from err
+    return frame.to_ndarray(format="rgb24")
+
+
+def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pose frames (T, 3, h, w) in [0, 1] and the first frame (3, h, w) in [−1, 1] at the model's ``size``."""
+    meta = read_meta(pose_path)
+    first = read_image(first_path)
+    if first.shape[:2] != (meta.height, meta.width):
+        raise ValueError(f"{first_path}: a {first.shape[0]}×{first.shape[1]} first frame for a {meta.height}×{meta.width} pose video")
+    f = check_size((meta.height, meta.width), size, str(pose_path))
+    codes = np.stack([c[::f, ::f] for c in iter_codes(pose_path)])
+    pose = torch.from_numpy(codes.astype(np.float32).transpose(0, 3, 1, 2) / CODE_MAX)
+    rgb = _reduce_rgb(first[None], f)[0] / 127.5 - 1.0
+    return pose, torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+
+
+def main(args: argparse.Namespace) -> Path:
+    model = load_model(args.ckpt)
+    pose, first = load_inputs(args.pose, args.first_frame, model.config.size)
+    t0 = time.perf_counter()
+    video = generate(model, pose, first, chunks=args.chunks, steps=args.steps, seed=args.seed)
+    took = time.perf_counter() - t0
+    frames = ((video.permute(0, 2, 3, 1).numpy() + 1.0) * 127.5).round().clip(0, 255).astype(np.uint8)
+    h, w = frames.shape[1:3]
+    write_bytes(args.out, encode_mp4(frames, args.fps, VideoSettings(height=h, width=w, crf=18)))
+    print(f"wrote {args.out}: {len(frames)} frames {w}×{h} ({(len(frames) - 1) / took:.1f} generated frames/s, {args.steps} steps)")
+    return args.out
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("ckpt", type=Path, help="an observation checkpoint or training directory")
+    ap.add_argument("--pose", type=Path, required=True, help="a pose-control G-buffer video (.mkv)")
+    ap.add_argument("--first-frame", type=Path, required=True, help="the first frame (an image of the pose video's size)")
+    ap.add_argument("--out", type=Path, required=True, help="output .mp4")
+    ap.add_argument("--chunks", type=int, default=None, help="chunks to relay (default: as many as the pose video holds)")
+    ap.add_argument("--steps", type=int, default=20, help="sampling steps per chunk")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--fps", type=float, default=30.0)

@@ -1,0 +1,226 @@
+"""A small control-conditioned video diffusion transformer: pose-control video + first frame → RGB video.
+
+The network (``VideoDiT``) is a DiT over patches of reduced-resolution pixels. A clip of T frames of
+H × W enters as one token per (frame, p × p patch): each token concatenates, per pixel of its patch,
+
+- the noisy RGB x_s (3 channels),
+- the pose-control frame (3: the bridge's height, identity, inverse depth in [0, 1]),
+- the first frame (3, the same for every frame of the clip) and a mask (1 on frame 0, else 0),
+
+projected to ``width``, plus fixed sine–cosine embeddings of the frame index and of the patch row
+and column. Blocks are pre-norm self-attention over all T·(H/p)·(W/p) tokens and an MLP, each
+modulated (shift, scale, gate; zero-initialised gates, "adaLN-Zero") by an embedding of the noise
+level s. A linear head returns, per patch, the velocity (3 channels per pixel).
+
+Objective: rectified flow. x_s = (1 − s)·x₀ + s·ε with ε ~ N(0, I), s ~ U(0, 1); the network predicts
+v = ε − x₀; the loss is the MSE of v over frames 1..T−1 (frame 0 is given). Sampling integrates
+dx/ds = v from s = 1 to 0 with ``steps`` Euler steps on a uniform grid, with frame 0 held at the
+first frame's noised value x_s = (1 − s)·first + s·ε₀ so that it is consistent with every step.
+
+Relay (``generate``): a video longer than one chunk is made chunk by chunk; chunk k + 1 takes the last
+generated frame of chunk k as its first frame and the next T − 1 pose frames, so a horizon of N chunks
+yields 1 + N·(T − 1) frames. Noise comes from one ``torch.Generator`` seeded by ``seed``: the same seed
+gives the same video.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+RGB, POSE = 3, 3
+IN_CHANNELS = RGB + POSE + RGB + 1  # noisy RGB, pose, first frame, first-frame mask
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    """Everything that fixes the network's parameter set; saved as JSON beside its checkpoints."""
+
+    frames: int = 9  # clip length, 4k + 1
+    height: int = 36
+    width_px: int = 64
+    patch: int = 4
+    width: int = 128
+    layers: int = 4
+    heads: int = 4
+    mlp_ratio: int = 4
+
+    def __post_init__(self) -> None:
+        if self.frames < 2 or (self.frames - 1) % 4:
+            raise ValueError(f"observation config: frames {self.frames} must be 4k + 1 with k ≥ 1")
+        if self.height % self.patch or self.width_px % self.patch:
+            raise ValueError(f"observation config: {self.height}×{self.width_px} is not a whole number of {self.patch}-pixel patches")
+        if self.width % self.heads:
+            raise ValueError(f"observation config: width {self.width} does not split into {self.heads} heads")
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.height, self.width_px
+
+    @property
+    def tokens(self) -> int:
+        return self.frames * (self.height // self.patch) * (self.width_px // self.patch)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> ObservationConfig:
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"observation config JSON has unknown fields {unknown}")
+        return cls(**d)
+
+
+OBS_PRESETS = {
+    "tiny": ObservationConfig(frames=9, height=36, width_px=64, patch=4, width=96, layers=3, heads=4),
+    "small": ObservationConfig(frames=17, height=88, width_px=160, patch=8, width=256, layers=8, heads=8),
+}
+
+
+def sincos(positions: Tensor, dim: int) -> Tensor:
+    """(n,) positions → (n, dim) sine–cosine embeddings (base 10000)."""
+    half = dim // 2
+    freq = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float64) / half)
+    ang = positions.double()[:, None] * freq[None]
+    return torch.cat([ang.sin(), ang.cos()], dim=-1).float()
+
+
+class Block(nn.Module):
+    def __init__(self, c: ObservationConfig) -> None:
+        super().__init__()
+        self.heads = c.heads
+        self.norm1 = nn.LayerNorm(c.width, elementwise_affine=False)
+        self.qkv = nn.Linear(c.width, 3 * c.width)
+        self.proj = nn.Linear(c.width, c.width)
+        self.norm2 = nn.LayerNorm(c.width, elementwise_affine=False)
+        self.mlp = nn.Sequential(nn.Linear(c.width, c.mlp_ratio * c.width), nn.GELU(), nn.Linear(c.mlp_ratio * c.width, c.width))
+        self.modulation = nn.Linear(c.width, 6 * c.width)  # shift/scale/gate for attention and MLP
+
+    def forward(self, x: Tensor, cond: Tensor) -> Tensor:
+        B, N, C = x.shape
+        s1, c1, g1, s2, c2, g2 = self.modulation(cond)[:, None].chunk(6, dim=-1)  # (B, 1, C) each
+        h = self.norm1(x) * (1 + c1) + s1
+        q, k, v = self.qkv(h).view(B, N, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)  # (B, nh, N, hs)
+        a = F.scaled_dot_product_attention(q, k, v).transpose(1, 2).reshape(B, N, C)
+        x = x + g1 * self.proj(a)
+        return x + g2 * self.mlp(self.norm2(x) * (1 + c2) + s2)
+
+
+class VideoDiT(nn.Module):
+    """Velocity of the noisy RGB of a clip, given its pose frames, its first frame and the noise level."""
+
+    def __init__(self, config: ObservationConfig, seed: int = 0) -> None:
+        super().__init__()
+        c = self.config = config
+        g = torch.Generator().manual_seed(int(seed))
+        p = c.patch
+        self.embed = nn.Linear(IN_CHANNELS * p * p, c.width)
+        self.time = nn.Sequential(nn.Linear(c.width, c.width), nn.SiLU(), nn.Linear(c.width, c.width))
+        self.blocks = nn.ModuleList(Block(c) for _ in range(c.layers))
+        self.norm = nn.LayerNorm(c.width, elementwise_affine=False)
+        self.final_mod = nn.Linear(c.width, 2 * c.width)
+        self.head = nn.Linear(c.width, RGB * p * p)
+        with torch.no_grad():
+            for m in self.modules():
+                if isinstance(m, nn.Linear):
+                    m.weight.normal_(0.0, m.in_features**-0.5, generator=g)
+                    m.bias.zero_()
+            for b in self.blocks:  # adaLN-Zero: every block starts as the identity
+                b.modulation.weight.zero_()
+            self.final_mod.weight.zero_()
+            self.head.weight.zero_()
+        hp, wp = c.height // p, c.width_px // p
+        t, r, q = torch.meshgrid(torch.arange(c.frames), torch.arange(hp), torch.arange(wp), indexing="ij")
+        third = (c.width // 3) // 2 * 2
+        pos = torch.cat([sincos(t.reshape(-1), third), sincos(r.reshape(-1), third), sincos(q.reshape(-1), c.width - 2 * third)], -1)
+        self.register_buffer("pos", pos, persistent=False)  # (tokens, width)
+
+    def patchify(self, x: Tensor) -> Tensor:
+        """(B, T, C, H, W) → (B, T·(H/p)·(W/p), C·p·p)."""
+        B, T, C, H, W = x.shape
+        p = self.config.patch
+        x = x.reshape(B, T, C, H // p, p, W // p, p).permute(0, 1, 3, 5, 2, 4, 6)
+        return x.reshape(B, T * (H // p) * (W // p), C * p * p)
+
+    def unpatchify(self, x: Tensor) -> Tensor:
+        """(B, tokens, C·p·p) → (B, T, C, H, W)."""
+        c, p = self.config, self.config.patch
+        B = x.shape[0]
+        hp, wp = c.height // p, c.width_px // p
+        x = x.reshape(B, c.frames, hp, wp, -1, p, p).permute(0, 1, 4, 2, 5, 3, 6)
+        return x.reshape(B, c.frames, -1, c.height, c.width_px)
+
+    def forward(self, x_s: Tensor, pose: Tensor, first: Tensor, s: Tensor) -> Tensor:
+        """x_s, pose (B, T, 3, H, W), first (B, 3, H, W), s (B,) → velocity (B, T, 3, H, W)."""
+        B, T = x_s.shape[:2]
+        mask = torch.zeros(B, T, 1, *x_s.shape[3:], dtype=x_s.dtype, device=x_s.device)
+        mask[:, 0] = 1.0
+        cond_first = first[:, None].expand(B, T, *first.shape[1:])
+        tokens = self.embed(self.patchify(torch.cat([x_s, pose, cond_first, mask], dim=2))) + self.pos
+        cond = self.time(sincos(s * 1000.0, self.config.width).to(x_s.device))  # (B, width)
+        for block in self.blocks:
+            tokens = block(tokens, cond)
+        shift, scale = self.final_mod(cond)[:, None].chunk(2, dim=-1)
+        return self.unpatchify(self.head(self.norm(tokens) * (1 + scale) + shift))
+
+
+def check_inputs(config: ObservationConfig, pose: Tensor, first: Tensor) -> None:
+    """Fail before any compute, naming the mismatch, unless pose is (T, 3, H, W) and first (3, H, W) at the model's size."""
+    h, w = config.size
+    if pose.ndim != 4 or pose.shape[1] != POSE or tuple(pose.shape[2:]) != (h, w):
+        raise ValueError(f"pose video {tuple(pose.shape)}: the model takes (T, {POSE}, {h}, {w}) pose frames (height, id, inverse depth)")
+    if len(pose) < config.frames:
+        raise ValueError(f"pose video of {len(pose)} frames: a chunk needs {config.frames}")
+    if first.shape != (RGB, h, w):
+        raise ValueError(f"first frame {tuple(first.shape)}: the model takes ({RGB}, {h}, {w})")
+
+
+def flow_loss(model: VideoDiT, rgb: Tensor, pose: Tensor, generator: torch.Generator) -> Tensor:
+    """Rectified-flow loss of a batch of clips (B, T, 3, H, W), frames 1..T−1 (module doc)."""
+    B = rgb.shape[0]
+    s = torch.rand(B, generator=generator).to(rgb.device)
+    eps = torch.randn(rgb.shape, generator=generator).to(rgb.device)
+    x_s = (1 - s)[:, None, None, None, None] * rgb + s[:, None, None, None, None] * eps
+    v = model(x_s, pose, rgb[:, 0], s)
+    return F.mse_loss(v[:, 1:], (eps - rgb)[:, 1:])
+
+
+@torch.no_grad()
+def sample_chunk(model: VideoDiT, pose: Tensor, first: Tensor, steps: int, generator: torch.Generator) -> Tensor:
+    """One chunk (B, T, 3, H, W) in [−1, 1] from pose (B, T, 3, H, W) and first frames (B, 3, H, W) by Euler steps."""
+    B, T = pose.shape[:2]
+    x = torch.randn(pose.shape[0], T, RGB, *pose.shape[3:], generator=generator)
+    eps0 = x[:, 0].clone()
+    grid = torch.linspace(1.0, 0.0, steps + 1)
+    for k in range(steps):
+        s, s_next = float(grid[k]), float(grid[k + 1])
+        x[:, 0] = (1 - s) * first + s * eps0  # the given frame, noised to this level
+        v = model(x, pose, first, torch.full((B,), s))
+        x = x + (s_next - s) * v
+    x[:, 0] = first
+    return x.clamp(-1.0, 1.0)
+
+
+def generate(model: VideoDiT, pose: Tensor, first: Tensor, chunks: int | None = None, steps: int = 20,
+             seed: int = 0) -> Tensor:  # fmt: skip
+    """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a pose video (≥ that many frames) and a first frame,
+    relayed over N chunks (default: as many as the pose video holds)."""
+    c = model.config
+    check_inputs(c, pose, first)
+    step = c.frames - 1
+    n = (len(pose) - 1) // step if chunks is None else int(chunks)
+    if n < 1 or 1 + n * step > len(pose):
+        raise ValueError(f"{n} chunks need {1 + n * step} pose frames; the pose video has {len(pose)}")
+    g = torch.Generator().manual_seed(int(seed))
+    out, cur = [first[None]], first
+    model.eval()
+    for k in range(n):
+        clip = sample_chunk(model, pose[None, k * step : k * step + c.frames], cur[None], steps, g)[0]
+        out.append(clip[1:])
+        cur = clip[-1]
+    return torch.cat(out, dim=0)

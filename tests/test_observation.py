@@ -1,0 +1,141 @@
+"""The observation model's first increment: clips from the video shards, a tiny video DiT trained by
+rectified flow (it beats its initialisation on held-out chunks), seeded generation relayed over
+chunks, input checks before compute, and the train/generate commands."""
+
+from __future__ import annotations
+
+import shutil
+import tarfile
+
+import av
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from marionette.observation.data import ClipSource
+from marionette.observation.model import ObservationConfig, VideoDiT, check_inputs, generate
+from marionette.observation.train import ObservationTrainConfig, load_model, train
+
+CONFIG = ObservationTrainConfig(preset="tiny", steps=300, batch_size=4, frames=5, reduce=4, patch=2, lr=1e-3, warmup=20)
+
+
+@pytest.fixture(scope="module")
+def obs_corpus(scanned_corpus, tmp_path_factory):
+    """A copy of the scanned session corpus with pose targets rendered and one recording held out."""
+    from marionette.bridge.targets import render_pose_targets
+
+    out = tmp_path_factory.mktemp("observation") / "corpus"
+    shutil.copytree(scanned_corpus, out)
+    render_pose_targets(out)
+    path = out / "meta" / "segments.parquet"
+    seg = pq.read_table(path)
+    split = pc.if_else(pc.equal(seg["sample"], "data_part1/rec0001"), pa.scalar("test"), seg["split"])
+    pq.write_table(seg.set_column(seg.schema.get_field_index("split"), "split", split), path)
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained(obs_corpus, tmp_path_factory):
+    out = tmp_path_factory.mktemp("obs-run")
+    return out, train(obs_corpus, out, CONFIG, log=lambda *_: None)
+
+
+def test_clips_are_the_chunks_reduced(obs_corpus):
+    src = ClipSource(obs_corpus, "train", 5, (18, 32))
+    clips = list(src.clips(seed=0))
+    assert clips and not src.skipped
+    c = clips[0]
+    assert c.rgb.shape == (5, 3, 18, 32) and c.pose.shape == (5, 3, 18, 32)
+    assert float(c.rgb.min()) >= -1.0 and float(c.rgb.max()) <= 1.0 and float(c.pose.min()) >= 0.0 and float(c.pose.max()) <= 1.0
+    ids = np.rint(c.pose[:, 1].numpy() * 1023) / 1023 * 255  # identity codes sampled nearest: whole ids
+    assert np.allclose(ids, np.rint(ids), atol=0.15) and (ids > 100).any()
+    assert [x.start for x in ClipSource(obs_corpus, "train", 5, (18, 32)).clips(seed=0)] == [x.start for x in clips]
+    with pytest.raises(ValueError, match="4k"):
+        ClipSource(obs_corpus, "train", 6, (18, 32))
+    bad = ClipSource(obs_corpus, "train", 5, (20, 32))  # 72×128 does not reduce to 20×32
+    assert not list(bad.clips()) and all("reduce" in r for r in bad.skipped.values())
+
+
+def test_training_beats_its_initialisation_on_held_out_chunks(trained):
+    _, s = trained
+    first, last = s["evals"][0]["held_out_loss"], s["evals"][-1]["held_out_loss"]
+    print(f"\n{s['chunks']} train / {s['held_out']} held-out chunks ({s['held_out_split']}), {s['parameters']:,} parameters: "
+          f"held-out flow loss {first:.4f} at initialisation → {last:.4f} after {s['steps']} steps")  # fmt: skip
+    assert s["held_out_split"] == "test"
+    assert last < 0.7 * first
+
+
+def test_generation_is_seeded_and_relays_chunks(obs_corpus, trained):
+    out, _ = trained
+    model = load_model(out)
+    T = model.config.frames
+    held = list(ClipSource(obs_corpus, "test", T, model.config.size).chunks())
+    chunk = held[0]
+    pose, first = chunk.pose[: 1 + 3 * (T - 1)], chunk.rgb[0]
+    a = generate(model, pose, first, chunks=3, steps=8, seed=1)
+    b = generate(model, pose, first, chunks=3, steps=8, seed=1)
+    c = generate(model, pose, first, chunks=3, steps=8, seed=2)
+    assert a.shape == (1 + 3 * (T - 1), 3, *model.config.size)
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert torch.equal(a[0], first)  # the given frame
+    # relay: the first *generated* frame of chunks 2 and 3 against the frame that seeded them, beside the
+    # step between consecutive generated frames inside a chunk and the distance to other held-out chunks
+    seams = [float((a[1 + k * (T - 1)] - a[k * (T - 1)]).abs().mean()) for k in (1, 2)]
+    within = [float((a[j + 1] - a[j]).abs().mean()) for j in range(1, len(a) - 1) if j % (T - 1)]
+    other = [float((a[k * (T - 1)] - h.rgb[0]).abs().mean()) for k in (1, 2) for h in held[1:]]
+    print(f"\nrelay seams (mean |Δ|, [-1, 1] units): {[round(x, 4) for x in seams]}; consecutive generated frames inside a "
+          f"chunk {np.mean(within):.4f}; seed frames against other held-out chunks {np.mean(other):.4f}")  # fmt: skip
+    assert max(seams) <= 1.5 * np.mean(within)  # a seam is no rougher than a step inside a chunk (± half)
+    assert max(seams) < 0.5 * np.mean(other)
+
+
+def test_bad_inputs_fail_before_compute():
+    c = ObservationConfig(frames=5, height=18, width_px=32, patch=2, width=32, layers=1, heads=2)
+    model = VideoDiT(c)
+    pose, first = torch.zeros(9, 3, 18, 32), torch.zeros(3, 18, 32)
+    check_inputs(c, pose, first)
+    for bad_pose, bad_first, match in (
+        (torch.zeros(9, 4, 18, 32), first, "pose video"),  # another channel layout
+        (torch.zeros(9, 3, 20, 32), first, "pose video"),  # another size
+        (torch.zeros(3, 3, 18, 32), first, "frames"),  # shorter than a chunk
+        (pose, torch.zeros(3, 36, 64), "first frame"),  # a first frame of another size
+    ):
+        with pytest.raises(ValueError, match=match):
+            generate(model, bad_pose, bad_first)
+
+
+def _png(path, rgb: np.ndarray) -> None:
+    with av.open(str(path), "w", format="image2") as c:
+        s = c.add_stream("png")
+        s.width, s.height, s.pix_fmt = rgb.shape[1], rgb.shape[0], "rgb24"
+        for p in s.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+            c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+
+
+def test_train_and_generate_commands(obs_corpus, tmp_path):
+    from marionette.cli import main as cli
+    from marionette.ingest.video import decode_frames
+
+    runs = tmp_path / "obs"
+    assert cli(["train", "observation", str(obs_corpus), "--out", str(runs), "--steps", "3", "--frames", "5", "--reduce", "4",
+                "--patch", "2", "--batch-size", "2"]) == 0  # fmt: skip
+    with tarfile.open(sorted((obs_corpus / "video").glob("*.tar"))[0]) as tar:
+        names = tar.getnames()
+        key = next(n for n in names if n.endswith(".pose.mkv"))[: -len(".pose.mkv")]
+        (tmp_path / "pose.mkv").write_bytes(tar.extractfile(f"{key}.pose.mkv").read())
+        rgb = decode_frames(tar.extractfile(f"{key}.rgb.mp4").read())
+    _png(tmp_path / "first.png", rgb[0])
+    out = tmp_path / "gen.mp4"
+    args = ["generate", str(runs), "--pose", str(tmp_path / "pose.mkv"), "--first-frame", str(tmp_path / "first.png"),
+            "--out", str(out), "--chunks", "2", "--steps", "2"]  # fmt: skip
+    assert cli(args) == 0
+    frames = decode_frames(out.read_bytes())
+    assert len(frames) == 9 and frames[0].shape == (18, 32, 3)
+    _png(tmp_path / "small.png", rgb[0][::2, ::2])
+    assert cli([*args[:5], str(tmp_path / "small.png"), *args[6:]]) == 2  # a first frame of another size
+    assert cli([*args[:3], str(tmp_path / "first.png"), *args[4:]]) == 2  # an image is not a G-buffer video
