@@ -212,7 +212,7 @@ def cmd_train_observation(a: argparse.Namespace) -> int:
     """Train the observation model on a corpus's video shards (resuming from --out)."""
     from marionette.observation.train import ObservationTrainConfig, train
 
-    keys = ("preset", "steps", "batch_size", "frames", "reduce", "patch", "lr", "warmup", "seed", "checkpoint_every")
+    keys = ("preset", "steps", "batch_size", "frames", "reduce", "patch", "lr", "warmup", "seed", "checkpoint_every", "control")
     train(a.corpus, a.out, ObservationTrainConfig(**{k: getattr(a, k) for k in keys if getattr(a, k) is not None}))
     return 0
 
@@ -371,6 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("corpus", type=Path)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--preset", default=None, help="tiny (default) or small")
+    s.add_argument("--control", choices=["pose", "actions"], default=None,
+                   help="pose (default): pose-control video; actions: the pixel-AR baseline (first frame + action schedule)")  # fmt: skip
     for flag, kind in (("--steps", int), ("--batch-size", int), ("--frames", int), ("--reduce", int), ("--patch", int),
                        ("--lr", float), ("--warmup", int), ("--seed", int), ("--checkpoint-every", int)):  # fmt: skip
         s.add_argument(flag, type=kind, default=None)

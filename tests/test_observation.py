@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shutil
 import tarfile
+from dataclasses import replace
 
 import av
 import numpy as np
@@ -66,6 +67,34 @@ def test_training_beats_its_initialisation_on_held_out_chunks(trained):
           f"held-out flow loss {first:.4f} at initialisation → {last:.4f} after {s['steps']} steps")  # fmt: skip
     assert s["held_out_split"] == "test"
     assert last < 0.7 * first
+
+
+@pytest.fixture(scope="module")
+def baseline(obs_corpus, tmp_path_factory):
+    out = tmp_path_factory.mktemp("obs-baseline")
+    return out, train(obs_corpus, out, replace(CONFIG, control="actions"), log=lambda *_: None)
+
+
+def test_the_pixel_ar_baseline_trains_on_action_schedules(obs_corpus, baseline):
+    """The baseline reads the first frame and the recorded action schedule (no pose video): it learns
+    (held-out flow loss), generates from a schedule, and rejects tokens outside the vocabularies."""
+    out, s = baseline
+    first, last = s["evals"][0]["held_out_loss"], s["evals"][-1]["held_out_loss"]
+    print(f"\nbaseline: held-out flow loss {first:.4f} → {last:.4f} after {s['steps']} steps")
+    assert last < 0.7 * first
+    model = load_model(out)
+    assert model.config.control == "actions" and model.actions is not None
+    T = model.config.frames
+    ch = next(iter(ClipSource(obs_corpus, "test", T, model.config.size, actions=True).chunks()))
+    assert ch.actions.shape == (len(ch.rgb), len(model.config.vocab_sizes)) and (ch.actions > 0).any()
+    video = generate(model, ch.actions[: 1 + 2 * (T - 1)], ch.rgb[0], chunks=2, steps=4, seed=0)
+    assert video.shape == (1 + 2 * (T - 1), 3, *model.config.size) and torch.isfinite(video).all()
+    bad = ch.actions.clone()
+    bad[0, 0] = model.config.vocab_sizes[0]
+    with pytest.raises(ValueError, match="vocabulary"):
+        generate(model, bad, ch.rgb[0])
+    with pytest.raises(ValueError, match="action schedule"):
+        generate(model, ch.pose, ch.rgb[0])  # a pose video given to the baseline
 
 
 def test_generation_is_seeded_and_relays_chunks(obs_corpus, trained):

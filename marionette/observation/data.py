@@ -43,6 +43,7 @@ class Clip:
     pose: torch.Tensor
     key: str
     start: int
+    actions: torch.Tensor | None = None  # (T, N) int64 entity tokens of each frame (the baseline's control)
 
 
 def _reduce_rgb(frames: np.ndarray, factor: int) -> np.ndarray:
@@ -89,7 +90,8 @@ def _frame_count(sample: dict) -> int:
 class ClipSource:
     """The clips of one split of a corpus's video shards (module doc: which clips)."""
 
-    def __init__(self, corpus: Corpus | Path | str, split: str, frames: int, size: tuple[int, int]) -> None:
+    def __init__(self, corpus: Corpus | Path | str, split: str, frames: int, size: tuple[int, int],
+                 actions: bool = False) -> None:  # fmt: skip
         self.corpus = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
         if frames < 1 or (frames - 1) % 4:
             raise ValueError(f"a clip has 4k + 1 frames (Wan's VAE), not {frames}")
@@ -97,6 +99,25 @@ class ClipSource:
         self.segments = set(self.corpus.segment_ids(split))
         self.shards = sorted(str(p) for p in (self.corpus.path / "video").glob("shard-*.tar"))
         self.skipped: dict[str, str] = {}
+        self.actions = actions
+        self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # segment → (source frames, tokens (n, N))
+
+    def _actions(self, sample: dict, clip: Clip, n: int) -> Clip:
+        """The clip with the entity tokens of its frames: the chunk json's source frames [a, b) in the segment's rows."""
+        from marionette.dynamics.data import ActionTokens
+
+        seg = clip.key.split("__c")[0]
+        if seg not in self._tokens:
+            rows = self.corpus.read_segment(seg)
+            tokens, _ = ActionTokens.from_corpus(self.corpus).encode(self.corpus.layout, rows, where=str(self.corpus.path))
+            self._tokens[seg] = (rows["frame"].to_numpy(), tokens)
+        frames, tokens = self._tokens[seg]
+        a = int(json.loads(sample["json"])["frames"][0]) + clip.start
+        idx = np.searchsorted(frames, np.arange(a, a + len(clip.rgb)))
+        if idx.max() >= len(frames) or not np.array_equal(frames[idx], np.arange(a, a + len(clip.rgb))):
+            raise ValueError(f"{clip.key}: source frames {a}..{a + len(clip.rgb) - 1} are not all rows of segment {seg}")
+        clip.actions = torch.from_numpy(tokens[idx])
+        return clip
 
     def _samples(self) -> Iterator[dict]:
         if not self.shards:
@@ -119,7 +140,8 @@ class ClipSource:
         memory to cut clips from."""
         for sample in self._samples():
             try:
-                yield decode_clip(sample, _frame_count(sample), self.size, 0)
+                clip = decode_clip(sample, _frame_count(sample), self.size, 0)
+                yield self._actions(sample, clip, clip.rgb.shape[0]) if self.actions else clip
             except ValueError as err:
                 self.skipped[sample["__key__"]] = str(err)
 
@@ -130,6 +152,7 @@ class ClipSource:
             n = _frame_count(sample)
             start = int(rng.integers(0, n - self.frames + 1)) if random else 0
             try:
-                yield decode_clip(sample, self.frames, self.size, start)
+                clip = decode_clip(sample, self.frames, self.size, start)
+                yield self._actions(sample, clip, self.frames) if self.actions else clip
             except ValueError as err:
                 self.skipped[sample["__key__"]] = str(err)

@@ -17,6 +17,10 @@ v = ε − x₀; the loss is the MSE of v over frames 1..T−1 (frame 0 is given
 dx/ds = v from s = 1 to 0 with ``steps`` Euler steps on a uniform grid, with frame 0 held at the
 first frame's noised value x_s = (1 − s)·first + s·ε₀ so that it is consistent with every step.
 
+The pixel-AR baseline of the paper is the same network with ``control="actions"``: no pose channels;
+instead each frame's tokens get the sum of per-entity embeddings of that frame's action tokens (the
+action schedule), so it must infer where bodies are from the first frame and the actions alone.
+
 Relay (``generate``): a video longer than one chunk is made chunk by chunk; chunk k + 1 takes the last
 generated frame of chunk k as its first frame and the next T − 1 pose frames, so a horizon of N chunks
 yields 1 + N·(T − 1) frames. Noise comes from one ``torch.Generator`` seeded by ``seed``: the same seed
@@ -33,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 RGB, POSE = 3, 3
-IN_CHANNELS = RGB + POSE + RGB + 1  # noisy RGB, pose, first frame, first-frame mask
+CONTROLS = ("pose", "actions")
 
 
 @dataclass(frozen=True)
@@ -48,8 +52,14 @@ class ObservationConfig:
     layers: int = 4
     heads: int = 4
     mlp_ratio: int = 4
+    control: str = "pose"  # "pose": pose-control frames; "actions": the pixel-AR baseline's action schedule
+    vocab_sizes: tuple[int, ...] = ()  # per articulated entity, for control "actions"
 
     def __post_init__(self) -> None:
+        if self.control not in CONTROLS:
+            raise ValueError(f"observation config: control {self.control!r} is not one of {CONTROLS}")
+        if self.control == "actions" and not self.vocab_sizes:
+            raise ValueError("observation config: an action-conditioned model needs vocab_sizes")
         if self.frames < 2 or (self.frames - 1) % 4:
             raise ValueError(f"observation config: frames {self.frames} must be 4k + 1 with k ≥ 1")
         if self.height % self.patch or self.width_px % self.patch:
@@ -65,15 +75,22 @@ class ObservationConfig:
     def tokens(self) -> int:
         return self.frames * (self.height // self.patch) * (self.width_px // self.patch)
 
+    @property
+    def in_channels(self) -> int:
+        """Per pixel: noisy RGB, the pose frame (pose control only), the first frame, its mask."""
+        return RGB + (POSE if self.control == "pose" else 0) + RGB + 1
+
     def to_json(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["vocab_sizes"] = list(self.vocab_sizes)
+        return d
 
     @classmethod
     def from_json(cls, d: dict) -> ObservationConfig:
         unknown = sorted(set(d) - {f.name for f in fields(cls)})
         if unknown:
             raise ValueError(f"observation config JSON has unknown fields {unknown}")
-        return cls(**d)
+        return cls(**{**d, "vocab_sizes": tuple(d.get("vocab_sizes", ()))})
 
 
 OBS_PRESETS = {
@@ -119,7 +136,9 @@ class VideoDiT(nn.Module):
         c = self.config = config
         g = torch.Generator().manual_seed(int(seed))
         p = c.patch
-        self.embed = nn.Linear(IN_CHANNELS * p * p, c.width)
+        self.embed = nn.Linear(c.in_channels * p * p, c.width)
+        # the baseline's action schedule: per entity, an embedding of its token added to every token of that frame
+        self.actions = nn.ModuleList(nn.Embedding(v, c.width) for v in c.vocab_sizes) if c.control == "actions" else None
         self.time = nn.Sequential(nn.Linear(c.width, c.width), nn.SiLU(), nn.Linear(c.width, c.width))
         self.blocks = nn.ModuleList(Block(c) for _ in range(c.layers))
         self.norm = nn.LayerNorm(c.width, elementwise_affine=False)
@@ -130,6 +149,8 @@ class VideoDiT(nn.Module):
                 if isinstance(m, nn.Linear):
                     m.weight.normal_(0.0, m.in_features**-0.5, generator=g)
                     m.bias.zero_()
+                elif isinstance(m, nn.Embedding):
+                    m.weight.normal_(0.0, 0.02, generator=g)
             for b in self.blocks:  # adaLN-Zero: every block starts as the identity
                 b.modulation.weight.zero_()
             self.final_mod.weight.zero_()
@@ -155,67 +176,83 @@ class VideoDiT(nn.Module):
         x = x.reshape(B, c.frames, hp, wp, -1, p, p).permute(0, 1, 4, 2, 5, 3, 6)
         return x.reshape(B, c.frames, -1, c.height, c.width_px)
 
-    def forward(self, x_s: Tensor, pose: Tensor, first: Tensor, s: Tensor) -> Tensor:
-        """x_s, pose (B, T, 3, H, W), first (B, 3, H, W), s (B,) → velocity (B, T, 3, H, W)."""
+    def forward(self, x_s: Tensor, control: Tensor, first: Tensor, s: Tensor) -> Tensor:
+        """x_s (B, T, 3, H, W); control: pose (B, T, 3, H, W), or action tokens (B, T, N) for the baseline;
+        first (B, 3, H, W); s (B,) → velocity (B, T, 3, H, W)."""
+        c = self.config
         B, T = x_s.shape[:2]
         mask = torch.zeros(B, T, 1, *x_s.shape[3:], dtype=x_s.dtype, device=x_s.device)
         mask[:, 0] = 1.0
         cond_first = first[:, None].expand(B, T, *first.shape[1:])
-        tokens = self.embed(self.patchify(torch.cat([x_s, pose, cond_first, mask], dim=2))) + self.pos
-        cond = self.time(sincos(s * 1000.0, self.config.width).to(x_s.device))  # (B, width)
+        parts = [x_s, control, cond_first, mask] if c.control == "pose" else [x_s, cond_first, mask]
+        tokens = self.embed(self.patchify(torch.cat(parts, dim=2))) + self.pos
+        if self.actions is not None:
+            per_frame = sum(emb(control[..., i]) for i, emb in enumerate(self.actions))  # (B, T, width)
+            tokens = (tokens.view(B, T, -1, c.width) + per_frame[:, :, None]).view(B, -1, c.width)
+        cond = self.time(sincos(s * 1000.0, c.width).to(x_s.device))  # (B, width)
         for block in self.blocks:
             tokens = block(tokens, cond)
         shift, scale = self.final_mod(cond)[:, None].chunk(2, dim=-1)
         return self.unpatchify(self.head(self.norm(tokens) * (1 + scale) + shift))
 
 
-def check_inputs(config: ObservationConfig, pose: Tensor, first: Tensor) -> None:
-    """Fail before any compute, naming the mismatch, unless pose is (T, 3, H, W) and first (3, H, W) at the model's size."""
+def check_inputs(config: ObservationConfig, control: Tensor, first: Tensor) -> None:
+    """Fail before any compute, naming the mismatch, unless the control is (T, 3, H, W) pose frames at the
+    model's size (or (T, N) action tokens within the vocabularies, for the baseline) and first is (3, H, W)."""
     h, w = config.size
-    if pose.ndim != 4 or pose.shape[1] != POSE or tuple(pose.shape[2:]) != (h, w):
-        raise ValueError(f"pose video {tuple(pose.shape)}: the model takes (T, {POSE}, {h}, {w}) pose frames (height, id, inverse depth)")
-    if len(pose) < config.frames:
-        raise ValueError(f"pose video of {len(pose)} frames: a chunk needs {config.frames}")
+    if config.control == "pose":
+        if control.ndim != 4 or control.shape[1] != POSE or tuple(control.shape[2:]) != (h, w):
+            raise ValueError(f"pose video {tuple(control.shape)}: the model takes (T, {POSE}, {h}, {w}) pose frames (height, id, inverse depth)")
+    else:
+        n = len(config.vocab_sizes)
+        if control.ndim != 2 or control.shape[1] != n or control.dtype != torch.int64:
+            raise ValueError(f"action schedule {tuple(control.shape)} {control.dtype}: the baseline takes (T, {n}) int64 tokens")
+        for i, v in enumerate(config.vocab_sizes):
+            if int(control[:, i].min()) < 0 or int(control[:, i].max()) >= v:
+                raise ValueError(f"action schedule: entity {i}'s tokens leave its vocabulary of {v}")
+    if len(control) < config.frames:
+        raise ValueError(f"control of {len(control)} frames: a chunk needs {config.frames}")
     if first.shape != (RGB, h, w):
         raise ValueError(f"first frame {tuple(first.shape)}: the model takes ({RGB}, {h}, {w})")
 
 
-def flow_loss(model: VideoDiT, rgb: Tensor, pose: Tensor, generator: torch.Generator) -> Tensor:
-    """Rectified-flow loss of a batch of clips (B, T, 3, H, W), frames 1..T−1 (module doc)."""
+def flow_loss(model: VideoDiT, rgb: Tensor, control: Tensor, generator: torch.Generator) -> Tensor:
+    """Rectified-flow loss of a batch of clips (B, T, 3, H, W) under their control, frames 1..T−1 (module doc)."""
     B = rgb.shape[0]
     s = torch.rand(B, generator=generator).to(rgb.device)
     eps = torch.randn(rgb.shape, generator=generator).to(rgb.device)
     x_s = (1 - s)[:, None, None, None, None] * rgb + s[:, None, None, None, None] * eps
-    v = model(x_s, pose, rgb[:, 0], s)
+    v = model(x_s, control, rgb[:, 0], s)
     return F.mse_loss(v[:, 1:], (eps - rgb)[:, 1:])
 
 
 @torch.no_grad()
-def sample_chunk(model: VideoDiT, pose: Tensor, first: Tensor, steps: int, generator: torch.Generator) -> Tensor:
-    """One chunk (B, T, 3, H, W) in [−1, 1] from pose (B, T, 3, H, W) and first frames (B, 3, H, W) by Euler steps."""
-    B, T = pose.shape[:2]
-    x = torch.randn(pose.shape[0], T, RGB, *pose.shape[3:], generator=generator)
+def sample_chunk(model: VideoDiT, control: Tensor, first: Tensor, steps: int, generator: torch.Generator) -> Tensor:
+    """One chunk (B, T, 3, H, W) in [−1, 1] from its control (B, T, ...) and first frames (B, 3, H, W) by Euler steps."""
+    B, T = control.shape[:2]
+    x = torch.randn(B, T, RGB, *first.shape[2:], generator=generator)
     eps0 = x[:, 0].clone()
     grid = torch.linspace(1.0, 0.0, steps + 1)
     for k in range(steps):
         s, s_next = float(grid[k]), float(grid[k + 1])
         x[:, 0] = (1 - s) * first + s * eps0  # the given frame, noised to this level
-        v = model(x, pose, first, torch.full((B,), s))
+        v = model(x, control, first, torch.full((B,), s))
         x = x + (s_next - s) * v
     x[:, 0] = first
     return x.clamp(-1.0, 1.0)
 
 
-def generate(model: VideoDiT, pose: Tensor, first: Tensor, chunks: int | None = None, steps: int = 20,
+def generate(model: VideoDiT, control: Tensor, first: Tensor, chunks: int | None = None, steps: int = 20,
              seed: int = 0) -> Tensor:  # fmt: skip
-    """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a pose video (≥ that many frames) and a first frame,
-    relayed over N chunks (default: as many as the pose video holds)."""
+    """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a control (a pose video, or the baseline's action
+    schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds)."""
     c = model.config
-    check_inputs(c, pose, first)
+    check_inputs(c, control, first)
+    pose = control
     step = c.frames - 1
     n = (len(pose) - 1) // step if chunks is None else int(chunks)
     if n < 1 or 1 + n * step > len(pose):
-        raise ValueError(f"{n} chunks need {1 + n * step} pose frames; the pose video has {len(pose)}")
+        raise ValueError(f"{n} chunks need {1 + n * step} control frames; the control has {len(pose)}")
     g = torch.Generator().manual_seed(int(seed))
     out, cur = [first[None]], first
     model.eval()

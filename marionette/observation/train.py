@@ -45,6 +45,7 @@ class ObservationTrainConfig:
     warmup: int = 50
     seed: int = 0
     checkpoint_every: int = 0
+    control: str = "pose"  # "pose", or "actions": the pixel-AR baseline (first frame + action schedule)
 
     def __post_init__(self) -> None:
         if self.preset not in OBS_PRESETS:
@@ -68,8 +69,18 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
     if h % config.reduce or w % config.reduce:
         raise ValueError(f"{corpus.path}: chunks of {h}×{w} do not divide by reduce={config.reduce}")
     base = OBS_PRESETS[config.preset]
+    vocab: tuple[int, ...] = ()
+    if config.control == "actions":
+        from marionette.dynamics.data import ActionTokens
+
+        vocab = ActionTokens.from_corpus(corpus).sizes
     return replace(base, height=h // config.reduce, width_px=w // config.reduce, frames=config.frames or base.frames,
-                   patch=config.patch or base.patch)  # fmt: skip
+                   patch=config.patch or base.patch, control=config.control, vocab_sizes=vocab)  # fmt: skip
+
+
+def control_of(clip: Clip, control: str) -> torch.Tensor:
+    """The clip's control input: its pose frames, or its action tokens (the baseline)."""
+    return clip.pose if control == "pose" else clip.actions
 
 
 def _lr(step: int, config: ObservationTrainConfig) -> float:
@@ -79,13 +90,13 @@ def _lr(step: int, config: ObservationTrainConfig) -> float:
     return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str) -> tuple[torch.Tensor, torch.Tensor]:
     rng = np.random.default_rng([seed, step])
     picks = rng.integers(0, len(chunks), size)
     starts = [int(rng.integers(0, chunks[i].rgb.shape[0] - frames + 1)) for i in picks]
     rgb = torch.stack([chunks[i].rgb[s : s + frames] for i, s in zip(picks, starts)])
-    pose = torch.stack([chunks[i].pose[s : s + frames] for i, s in zip(picks, starts)])
-    return rgb, pose
+    ctrl = torch.stack([control_of(chunks[i], control)[s : s + frames] for i, s in zip(picks, starts)])
+    return rgb, ctrl
 
 
 @torch.no_grad()
@@ -96,8 +107,9 @@ def held_out_loss(model: VideoDiT, chunks: list[Clip]) -> float:
     T = model.config.frames
     total = 0.0
     for ch in chunks:
+        ctrl = control_of(ch, model.config.control)
         for _ in range(EVAL_DRAWS):
-            total += float(flow_loss(model, ch.rgb[None, :T], ch.pose[None, :T], g))
+            total += float(flow_loss(model, ch.rgb[None, :T], ctrl[None, :T], g))
     model.train()
     return total / max(len(chunks) * EVAL_DRAWS, 1)
 
@@ -108,13 +120,14 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     out_dir = Path(out_dir)
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
     mc = model_config(corpus, config)
-    src = ClipSource(corpus, "train", mc.frames, mc.size)
+    actions = config.control == "actions"
+    src = ClipSource(corpus, "train", mc.frames, mc.size, actions=actions)
     chunks = list(src.chunks())
     if not chunks:
         first = dict(list(src.skipped.items())[:3])
         raise ValueError(f"{corpus.path}: no train chunk with a pose target and ≥ {mc.frames} frames; {len(src.skipped)} skipped, e.g. {first}")
     held_split = HELD_OUT if corpus.segment_ids(HELD_OUT) else "train"
-    held = list(ClipSource(corpus, held_split, mc.frames, mc.size).chunks())
+    held = list(ClipSource(corpus, held_split, mc.frames, mc.size, actions=actions).chunks())
     model = VideoDiT(mc, seed=config.seed)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=0.0)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr(s, config))
@@ -142,8 +155,8 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     started = step
     model.train()
     while step < end:
-        rgb, pose = _batch(chunks, mc.frames, config.batch_size, config.seed, step)
-        loss = flow_loss(model, rgb, pose, torch.Generator().manual_seed(config.seed * 1_000_003 + step))
+        rgb, ctrl = _batch(chunks, mc.frames, config.batch_size, config.seed, step, config.control)
+        loss = flow_loss(model, rgb, ctrl, torch.Generator().manual_seed(config.seed * 1_000_003 + step))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
