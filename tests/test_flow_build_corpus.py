@@ -254,3 +254,26 @@ def test_train_dynamics_deployment_trains_under_ddp_resumes_and_reports(local_pr
     written = (ckpt / "model.safetensors").stat().st_mtime_ns
     run_deployment(local_prefect, deployment="train-dynamics/weekly", **params)
     assert latest_checkpoint(out) == ckpt and (ckpt / "model.safetensors").stat().st_mtime_ns == written
+
+
+@pytest.mark.timeout(600)
+def test_train_observation_deployment_renders_targets_trains_and_reports(local_prefect, corpus, tmp_path):
+    """The train-observation/weekly deployment (schedule declared, off) on a corpus without pose targets."""
+    dep = httpx.get(f"{local_prefect['api']}/deployments/name/train-observation/weekly", timeout=10).json()
+    assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 4 * * 0", False)]
+    copy = tmp_path / "corpus"
+    shutil.copytree(corpus, copy)
+    out = tmp_path / "observation"
+    params = {"corpus": copy, "out": out, "steps": 4, "batch_size": 2, "frames": 5, "reduce": 4, "patch": 2,
+              "checkpoint_every": 2}
+    run_id = run_deployment(local_prefect, deployment="train-observation/weekly", **params)
+    from marionette.dynamics.checkpoint import latest_checkpoint
+
+    ckpt = latest_checkpoint(out)
+    assert ckpt is not None and ckpt.name == "step-00000004"
+    with tarfile.open(sorted((copy / "video").glob("*.tar"))[0]) as tar:
+        assert any(n.endswith(".pose.mkv") for n in tar.getnames())  # the flow rendered the targets first
+    artifacts = httpx.post(
+        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-observation-report"]}}}
+    ).json()
+    assert any(a["flow_run_id"] == run_id and "step-00000004" in a["data"] for a in artifacts)
