@@ -210,10 +210,14 @@ def cmd_train_dynamics(a: argparse.Namespace) -> int:
 
 def cmd_train_observation(a: argparse.Namespace) -> int:
     """Train the observation model on a corpus's video shards (resuming from --out)."""
-    from marionette.observation.train import ObservationTrainConfig, train
+    from marionette.observation.train import ObservationTrainConfig, train, train_in_processes
 
     keys = ("preset", "steps", "batch_size", "frames", "reduce", "patch", "lr", "warmup", "seed", "checkpoint_every", "control")
-    train(a.corpus, a.out, ObservationTrainConfig(**{k: getattr(a, k) for k in keys if getattr(a, k) is not None}))
+    config = ObservationTrainConfig(**{k: getattr(a, k) for k in keys if getattr(a, k) is not None})
+    if a.nproc > 1:
+        train_in_processes(a.corpus, a.out, config, a.nproc)
+    else:
+        train(a.corpus, a.out, config)
     return 0
 
 
@@ -234,7 +238,7 @@ def cmd_rollout(a: argparse.Namespace) -> int:
 
 
 def cmd_demo(a: argparse.Namespace) -> int:
-    """Synthetic recordings → corpus → 20 fps view → terrain → pose targets → dynamics training → a rollout, end to end."""
+    """Synthetic recordings → corpus → 20 fps view → terrain → pose targets → dynamics → a rollout → observation model, end to end."""
     from marionette.corpus import Corpus
     from marionette.ingest import IngestOptions, build_corpus
     from marionette.synth import generate
@@ -242,24 +246,25 @@ def cmd_demo(a: argparse.Namespace) -> int:
     out = Path(a.out)
     src, corpus = out / "recordings", out / "corpus"
     t0 = time.time()
-    print(f"[1/7] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
+    print(f"[1/8] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
     generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
-    print(f"[2/7] building the corpus {corpus} with {a.workers} workers")
+    print(f"[2/8] building the corpus {corpus} with {a.workers} workers")
     build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
     c = Corpus(corpus)
     rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
-    print(f"[3/7] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
+    print(f"[3/8] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
     from terrain_scan.scan import scan_stages
 
     for st, r in scan_stages(corpus, incremental=True, log=lambda *_: None).items():
-        print(f"[4/7] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
-    print("[5/7] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
+        print(f"[4/8] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
+    print("[5/8] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
     _pose_targets(corpus)
     seg = c.segment_ids()[0]
     follow = out / f"{seg}-follow.mkv"
     cmd_render(argparse.Namespace(source=corpus, segment=seg, camera="follow", out=follow, size=(352, 640), fps=None, terrain=None))
     print(inspect_text(corpus))
     _demo_dynamics(c, out, a.dynamics_steps)
+    _demo_observation(c, out, a.observation_steps)
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
     return 0
 
@@ -273,7 +278,7 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
 
     runs = out / "dynamics"
     t = time.time()
-    print(f"[6/7] training ActionGPT + PoseGPT (tiny preset, {steps} steps) into {runs}")
+    print(f"[6/8] training ActionGPT + PoseGPT (tiny preset, {steps} steps) into {runs}")
     s = train(c, runs, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50),
               log=lambda m: print("   ", m) if m.startswith(("window", "baselines", "eval")) else None)  # fmt: skip
     print(f"    {s['steps']} steps in {time.time() - t:.1f} s; checkpoint {s['checkpoint']}")
@@ -290,10 +295,48 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
             "--render", str(video), "--size", "352x640"]  # fmt: skip
     if attack is not None:
         argv += ["--force", f"{entity}:40:60:{attack}"]
-    print(f"[7/7] rollout of {seg}: 32 seed frames, 200 predicted (10 s), {entity} forced to attack over frames 40–59, rules on")
+    print(f"[7/8] rollout of {seg}: 32 seed frames, 200 predicted (10 s), {entity} forced to attack over frames 40–59, rules on")
     ap = argparse.ArgumentParser()
     rollout_arguments(ap)
     run_rollout(ap.parse_args(argv), log=lambda m: print("   ", m))
+
+
+def _demo_observation(c, out: Path, steps: int) -> None:
+    """The demo's observation stage: train the tiny video model, then paint a held-out chunk's pose video from its first frame."""
+    import tarfile
+
+    from marionette.ingest.video import decode_frames
+    from marionette.observation.generate import main as generate_main
+    from marionette.observation.train import ObservationTrainConfig, train
+
+    runs = out / "observation"
+    t = time.time()
+    video = c.info["ingest"]["video"]
+    reduce = 8 if video["height"] % 8 == 0 and video["width"] % 8 == 0 else 4
+    print(f"[8/8] training the observation model (tiny video DiT, {steps} steps, 1/{reduce} of the chunk size) into {runs}")
+    s = train(c, runs, ObservationTrainConfig(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3,
+                                              warmup=20), log=lambda m: print("   ", m))  # fmt: skip
+    print(f"    {s['steps']} steps in {time.time() - t:.1f} s")
+    held = set(c.segment_ids("test") or c.segment_ids())
+    for shard in sorted((c.path / "video").glob("shard-*.tar")):
+        with tarfile.open(shard) as tar:
+            keys = [n[: -len(".pose.mkv")] for n in tar.getnames() if n.endswith(".pose.mkv") and n.split("__c")[0] in held]
+            if keys:
+                (out / "pose.mkv").write_bytes(tar.extractfile(f"{keys[0]}.pose.mkv").read())
+                first = decode_frames(tar.extractfile(f"{keys[0]}.rgb.mp4").read())[0]
+                break
+    else:
+        print("    no held-out chunk with a pose target: nothing to generate")
+        return
+    import av
+
+    with av.open(str(out / "first.png"), "w", format="image2") as png:
+        st = png.add_stream("png")
+        st.width, st.height, st.pix_fmt = first.shape[1], first.shape[0], "rgb24"
+        for p in [*st.encode(av.VideoFrame.from_ndarray(first, format="rgb24")), *st.encode()]:
+            png.mux(p)
+    generate_main(argparse.Namespace(ckpt=runs, pose=out / "pose.mkv", first_frame=out / "first.png", out=out / "generated.mp4",
+                                     chunks=4, steps=8, seed=0, fps=30.0))  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -376,6 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
     for flag, kind in (("--steps", int), ("--batch-size", int), ("--frames", int), ("--reduce", int), ("--patch", int),
                        ("--lr", float), ("--warmup", int), ("--seed", int), ("--checkpoint-every", int)):  # fmt: skip
         s.add_argument(flag, type=kind, default=None)
+    s.add_argument("--nproc", type=int, default=1, help="processes: > 1 trains under torchrun (DDP)")
     s.set_defaults(fn=cmd_train_observation)
 
     s = sub.add_parser("generate", help="paint RGB onto a pose-control video with a trained observation model")
@@ -399,6 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--height", type=int, default=180)
     s.add_argument("--workers", type=int, default=2)
     s.add_argument("--dynamics-steps", type=int, default=1000, help="training steps of the demo's tiny dynamics model")
+    s.add_argument("--observation-steps", type=int, default=300, help="training steps of the demo's tiny observation model")
     s.set_defaults(fn=cmd_demo)
     return p
 

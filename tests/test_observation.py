@@ -168,3 +168,24 @@ def test_train_and_generate_commands(obs_corpus, tmp_path):
     _png(tmp_path / "small.png", rgb[0][::2, ::2])
     assert cli([*args[:5], str(tmp_path / "small.png"), *args[6:]]) == 2  # a first frame of another size
     assert cli([*args[:3], str(tmp_path / "first.png"), *args[4:]]) == 2  # an image is not a G-buffer video
+
+
+def test_ddp_two_processes_gloo(obs_corpus, tmp_path):
+    """``marionette train observation --nproc 2`` trains under torchrun (2 × gloo); the checkpoint loads in one process."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "ddp"
+    marionette = str(Path(sys.executable).with_name("marionette"))
+    cmd = [marionette, "train", "observation", str(obs_corpus), "--out", str(out), "--steps", "3", "--frames", "5",
+           "--reduce", "4", "--patch", "2", "--batch-size", "2", "--nproc", "2"]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 3 and summary["checkpoint"].endswith("step-00000003")
+    assert r.stdout.count("held-out flow loss") == 1  # rank 0 alone logs
+    model = load_model(out)
+    assert model.config.frames == 5 and all(torch.isfinite(p).all() for p in model.parameters())

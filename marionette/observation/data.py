@@ -122,7 +122,9 @@ class ClipSource:
     def _samples(self) -> Iterator[dict]:
         if not self.shards:
             return
-        for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False):
+        # every DDP rank reads every shard (ranks differ in the clips they draw, not in the chunks they hold)
+        every_shard = lambda urls: urls  # noqa: E731
+        for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False, nodesplitter=every_shard):
             key = sample["__key__"]
             if key.split("__c")[0] not in self.segments:
                 continue

@@ -8,11 +8,21 @@ Objective: the rectified-flow loss of ``model.flow_loss`` with noise from a gene
 Evaluation, on the held-out split ("test", or the train split when there is none): the flow loss of
 every held-out chunk's first clip at 8 fixed (s, ε) draws (seed 1234), so successive evaluations
 compare like with like. Checkpoints: ``dynamics.checkpoint`` (safetensors + JSON, atomic, ``latest``).
+
+DDP: under torchrun (``train_in_processes``, ``marionette train observation --nproc N``) the network is
+wrapped in ``DistributedDataParallel`` (gloo on CPU, NCCL on GPU); rank r draws its clips from
+``default_rng([seed, step, r])`` and its noise from (seed, step, r); logged losses are averaged over
+ranks; rank 0 evaluates and writes checkpoints and ``summary.json``.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import math
+import os
+import subprocess
+import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -20,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.distributed as dist
 
 from marionette.corpus import Corpus
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
@@ -90,8 +101,15 @@ def _lr(step: int, config: ObservationTrainConfig) -> float:
     return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str) -> tuple[torch.Tensor, torch.Tensor]:
-    rng = np.random.default_rng([seed, step])
+def _rank_world() -> tuple[int, int]:
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str,
+           rank: int = 0) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    rng = np.random.default_rng([seed, step] if rank == 0 else [seed, step, rank])
     picks = rng.integers(0, len(chunks), size)
     starts = [int(rng.integers(0, chunks[i].rgb.shape[0] - frames + 1)) for i in picks]
     rgb = torch.stack([chunks[i].rgb[s : s + frames] for i, s in zip(picks, starts)])
@@ -117,6 +135,8 @@ def held_out_loss(model: VideoDiT, chunks: list[Clip]) -> float:
 def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: ObservationTrainConfig,
           log: Callable[[str], Any] = print, *, stop_at: int | None = None) -> dict:  # fmt: skip
     """Train (or resume from ``latest_checkpoint(out_dir)``) for ``config.steps`` steps; returns a summary."""
+    rank, world = _rank_world()
+    log = log if rank == 0 else (lambda *_: None)
     out_dir = Path(out_dir)
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
     mc = model_config(corpus, config)
@@ -143,10 +163,13 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     params = sum(p.numel() for p in model.parameters())
     log(f"{len(chunks)} train chunks, {len(held)} held-out ({held_split}); clips {mc.frames}×{mc.height}×{mc.width_px}, "
         f"{mc.tokens} tokens; {params:,} parameters")  # fmt: skip
-    if not evals:
+    if not evals and rank == 0:
         evals.append({"step": 0, "held_out_loss": held_out_loss(model, held)})
+    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
 
-    def checkpoint(at: int) -> Path:
+    def checkpoint(at: int) -> Path | None:
+        if rank != 0:
+            return None
         meta = {"train_config": config.to_json(), "observation_config": mc.to_json(), "losses": history, "evals": evals,
                 "kind": "observation"}  # fmt: skip
         return save_checkpoint(out_dir, at, model, opt, sched, meta)
@@ -155,26 +178,35 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     started = step
     model.train()
     while step < end:
-        rgb, ctrl = _batch(chunks, mc.frames, config.batch_size, config.seed, step, config.control)
-        loss = flow_loss(model, rgb, ctrl, torch.Generator().manual_seed(config.seed * 1_000_003 + step))
+        rgb, ctrl = _batch(chunks, mc.frames, config.batch_size, config.seed, step, config.control, rank)
+        noise = torch.Generator().manual_seed(config.seed * 1_000_003 + step if rank == 0 else hash((config.seed, step, rank)) % 2**62)
+        loss = flow_loss(net, rgb, ctrl, noise)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
         step += 1
-        history.append({"step": step, "loss": float(loss.detach())})
+        value = loss.detach().clone()
+        if world > 1:
+            dist.all_reduce(value)
+            value /= world
+        history.append({"step": step, "loss": float(value)})
         if config.checkpoint_every and step % config.checkpoint_every == 0 and step < end:
             checkpoint(step)
     if step > started:
-        evals.append({"step": step, "held_out_loss": held_out_loss(model, held)})
+        if rank == 0:
+            evals.append({"step": step, "held_out_loss": held_out_loss(model, held)})
         last = checkpoint(step)
     else:
         last = ckpt
-    log(f"held-out flow loss {evals[0]['held_out_loss']:.4f} at initialisation → {evals[-1]['held_out_loss']:.4f} at step {step}")
     summary = {"steps": step, "evals": evals, "checkpoint": str(last) if last else None, "parameters": params,
                "chunks": len(chunks), "held_out": len(held), "held_out_split": held_split}  # fmt: skip
-    write_json(out_dir / "summary.json", summary)
+    if rank == 0:
+        log(f"held-out flow loss {evals[0]['held_out_loss']:.4f} at initialisation → {evals[-1]['held_out_loss']:.4f} at step {step}")
+        write_json(out_dir / "summary.json", summary)
+    if world > 1:
+        dist.barrier()  # nobody tears the group down before rank 0 has written
     return {**summary, "losses": history}
 
 
@@ -192,3 +224,39 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
     model = VideoDiT(ObservationConfig.from_json(meta["observation_config"]))
     load_checkpoint(ckpt, model, restore_rng=False)
     return model.eval()
+
+
+def train_in_processes(corpus: Path | str, out_dir: Path | str, config: ObservationTrainConfig, nproc: int) -> dict:
+    """Train under ``torchrun --standalone`` with ``nproc`` processes; the summary rank 0 wrote."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "train-config.json", config.to_json())
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
+           "-m", "marionette.observation.train", str(corpus), "--out", str(out), "--config", str(out / "train-config.json")]  # fmt: skip
+    done = subprocess.run(cmd, env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
+    if done.returncode != 0:
+        raise RuntimeError(f"{out}: torchrun with {nproc} processes failed with exit code {done.returncode} (its output is above)")
+    return json.loads((out / "summary.json").read_text())
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """``python -m marionette.observation.train CORPUS --out DIR --config JSON`` (one process per rank under torchrun)."""
+    ap = argparse.ArgumentParser(prog="python -m marionette.observation.train")
+    ap.add_argument("corpus", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--config", type=Path, required=True, help="an ObservationTrainConfig JSON")
+    a = ap.parse_args(argv)
+    config = ObservationTrainConfig.from_json(json.loads(a.config.read_text()))
+    started = False
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        started = True
+    try:
+        return train(a.corpus, a.out, config)
+    finally:
+        if started:
+            dist.destroy_process_group()
+
+
+if __name__ == "__main__":
+    main()
