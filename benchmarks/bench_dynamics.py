@@ -55,7 +55,7 @@ from marionette.corpus import Corpus, _fixed, world_of_rows
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, parameter_counts
-from marionette.dynamics.rollout import ModelStream, Rollout, open_terrain_field, rollout
+from marionette.dynamics.rollout import ModelStream, Rollout, force_windows, open_terrain_field, rollout
 from marionette.dynamics.train import TrainConfig, batches_from, losses, make_optimizer, train
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
 
@@ -250,15 +250,7 @@ def force_gt(c: Corpus, ckpt: Path, seeds, horizon: int, dtype: torch.dtype) -> 
     errs, frames, took = [], 0, 0.0
     for seg, start in seeds:
         rec = c.dynamics_segment(seg).slice(start + SEED, horizon)
-        stream = tokens.encode(c.layout, rec)[0][:, hi]
-        force, k = [], 0
-        while k < horizon:
-            end = k + 1
-            while end < horizon and stream[end] == stream[k]:
-                end += 1
-            if stream[k]:
-                force.append(("hunter", k, end, int(stream[k])))
-            k = end
+        force = force_windows("hunter", tokens.encode(c.layout, rec)[0][:, hi])
         t0 = time.perf_counter()
         table_ = rollout(ckpt, c, seg, SEED, horizon, force=force, rules="none", start=start, dtype=dtype)
         took += time.perf_counter() - t0

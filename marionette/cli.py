@@ -307,6 +307,7 @@ def _demo_observation(c, out: Path, steps: int) -> None:
 
     from marionette.ingest.video import decode_frames
     from marionette.observation.generate import main as generate_main
+    from marionette.observation.generate import write_image
     from marionette.observation.train import ObservationTrainConfig, train
 
     runs = out / "observation"
@@ -328,13 +329,7 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     else:
         print("    no held-out chunk with a pose target: nothing to generate")
         return
-    import av
-
-    with av.open(str(out / "first.png"), "w", format="image2") as png:
-        st = png.add_stream("png")
-        st.width, st.height, st.pix_fmt = first.shape[1], first.shape[0], "rgb24"
-        for p in [*st.encode(av.VideoFrame.from_ndarray(first, format="rgb24")), *st.encode()]:
-            png.mux(p)
+    write_image(out / "first.png", first)
     generate_main(argparse.Namespace(ckpt=runs, pose=out / "pose.mkv", first_frame=out / "first.png", out=out / "generated.mp4",
                                      chunks=4, steps=8, seed=0, fps=30.0))  # fmt: skip
 

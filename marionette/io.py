@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import os
@@ -80,3 +81,10 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
 def text_sha256(*parts: str) -> str:
     """Hex sha256 of strings joined by newlines."""
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def check_json_fields(cls: type, d: dict, what: str) -> None:
+    """Fail, naming them, on keys of ``d`` that are not fields of the dataclass ``cls`` (a config JSON from another version)."""
+    unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ValueError(f"{what} JSON has unknown fields {unknown}")

@@ -13,7 +13,7 @@ import torch
 from marionette import geometry as geo
 from marionette.corpus import Corpus, _fixed, world_of_rows
 from marionette.dynamics.data import ActionTokens
-from marionette.dynamics.rollout import Rollout, rollout
+from marionette.dynamics.rollout import Rollout, force_windows, rollout
 
 SEED = 32  # seed frames
 FAST_TIP_MPS = 5.0  # the train split's non-attack frames never move the weapon tip faster than 3.1 m/s (root frame)
@@ -56,19 +56,6 @@ def ra_mpjpe(table, recorded, layout, entity: str) -> float:
     p = world_of_rows(layout, table)[entity][SEED:]
     r = world_of_rows(layout, recorded)[entity]
     return float(np.linalg.norm((p - p[:, :1]) - (r - r[:, :1]), axis=-1).mean())
-
-
-def force_stream(entity: str, tokens: np.ndarray) -> list[tuple[str, int, int, int]]:
-    """A token stream as force windows, one per run of equal tokens (token 0 left to the model)."""
-    out, k = [], 0
-    while k < len(tokens):
-        end = k + 1
-        while end < len(tokens) and tokens[end] == tokens[k]:
-            end += 1
-        if tokens[k] != 0:
-            out.append((entity, k, end, int(tokens[k])))
-        k = end
-    return out
 
 
 def test_learning_beats_every_baseline(tiny_dynamics):
@@ -123,7 +110,7 @@ def test_forcing_the_recorded_stream_beats_a_shuffled_one(corpus, ckpt):
         stream = tokens.encode(corpus.layout, recorded)[0][:, hi]
         shuffled = stream[np.random.default_rng(0).permutation(H)]
         for out, s in ((gt, stream), (shuf, shuffled)):
-            table = rollout(ckpt, corpus, seg, SEED, H, force=force_stream("hunter", s), rules="none", start=start)
+            table = rollout(ckpt, corpus, seg, SEED, H, force=force_windows("hunter", s), rules="none", start=start)
             out.append(ra_mpjpe(table, recorded, corpus.layout, "hunter"))
     gt, shuf = np.array(gt), np.array(shuf)
     print(f"\nhunter RA-MPJPE over {len(seeds)} held-out seeds, horizon {H}: Force-GT {gt.mean():.4f} ± {gt.std():.4f} m, "

@@ -8,7 +8,6 @@ import shutil
 import tarfile
 from dataclasses import replace
 
-import av
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -17,6 +16,7 @@ import pytest
 import torch
 
 from marionette.observation.data import ClipSource
+from marionette.observation.generate import write_image
 from marionette.observation.model import ObservationConfig, VideoDiT, check_inputs, generate
 from marionette.observation.train import ObservationTrainConfig, load_model, train
 
@@ -136,16 +136,6 @@ def test_bad_inputs_fail_before_compute():
             generate(model, bad_pose, bad_first)
 
 
-def _png(path, rgb: np.ndarray) -> None:
-    with av.open(str(path), "w", format="image2") as c:
-        s = c.add_stream("png")
-        s.width, s.height, s.pix_fmt = rgb.shape[1], rgb.shape[0], "rgb24"
-        for p in s.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
-            c.mux(p)
-        for p in s.encode():
-            c.mux(p)
-
-
 def test_train_and_generate_commands(obs_corpus, tmp_path):
     from marionette.cli import main as cli
     from marionette.ingest.video import decode_frames
@@ -158,14 +148,14 @@ def test_train_and_generate_commands(obs_corpus, tmp_path):
         key = next(n for n in names if n.endswith(".pose.mkv"))[: -len(".pose.mkv")]
         (tmp_path / "pose.mkv").write_bytes(tar.extractfile(f"{key}.pose.mkv").read())
         rgb = decode_frames(tar.extractfile(f"{key}.rgb.mp4").read())
-    _png(tmp_path / "first.png", rgb[0])
+    write_image(tmp_path / "first.png", rgb[0])
     out = tmp_path / "gen.mp4"
     args = ["generate", str(runs), "--pose", str(tmp_path / "pose.mkv"), "--first-frame", str(tmp_path / "first.png"),
             "--out", str(out), "--chunks", "2", "--steps", "2"]  # fmt: skip
     assert cli(args) == 0
     frames = decode_frames(out.read_bytes())
     assert len(frames) == 9 and frames[0].shape == (18, 32, 3)
-    _png(tmp_path / "small.png", rgb[0][::2, ::2])
+    write_image(tmp_path / "small.png", rgb[0][::2, ::2])
     assert cli([*args[:5], str(tmp_path / "small.png"), *args[6:]]) == 2  # a first frame of another size
     assert cli([*args[:3], str(tmp_path / "first.png"), *args[4:]]) == 2  # an image is not a G-buffer video
 

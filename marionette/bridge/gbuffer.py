@@ -141,16 +141,18 @@ def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta) -
     return n
 
 
-def _source(data: Path | bytes) -> Any:
-    """What ``av.open`` reads: a path, or a file's bytes (e.g. a webdataset member)."""
-    return io.BytesIO(data) if isinstance(data, bytes | bytearray) else str(data)
+def _source(data: Path | bytes, name: str | None) -> tuple[Any, Any]:
+    """What ``av.open`` reads (a path, or a file's bytes, e.g. a webdataset member) and what errors call it."""
+    if isinstance(data, bytes | bytearray):
+        return io.BytesIO(data), name or "<bytes>"
+    return str(data), name or data
 
 
 def read_meta(path: Path | bytes, name: str | None = None) -> GBufferMeta:
     """The metadata of a G-buffer file (a path, or its bytes, called ``name`` in errors); a clear error if it is not one."""
-    where = name or ("<bytes>" if isinstance(path, bytes | bytearray) else path)
+    src, where = _source(path, name)
     try:
-        with av.open(_source(path)) as c:
+        with av.open(src) as c:
             raw = c.metadata.get(TAG)
     except (av.error.FFmpegError, OSError) as err:
         raise ValueError(f"{where}: cannot open as a G-buffer video: {err}") from err
@@ -164,8 +166,8 @@ def read_meta(path: Path | bytes, name: str | None = None) -> GBufferMeta:
 
 def iter_codes(path: Path | bytes, name: str | None = None) -> Iterator[np.ndarray]:
     """The raw 10-bit codes (H, W, 3) uint16 of each frame of a G-buffer file (a path or its bytes)."""
-    where = name or ("<bytes>" if isinstance(path, bytes | bytearray) else path)
-    with av.open(_source(path)) as c:
+    src, where = _source(path, name)
+    with av.open(src) as c:
         s = c.streams.video[0]
         if s.codec_context.pix_fmt != "gbrp10le":
             raise ValueError(f"{where}: pixel format {s.codec_context.pix_fmt}, a G-buffer is gbrp10le")

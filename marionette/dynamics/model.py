@@ -51,6 +51,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from marionette.io import check_json_fields
 from marionette.schema import Layout, SchemaError
 
 PATCH_SIZE = 11  # egocentric height patch, cells per side
@@ -247,10 +248,7 @@ class DynamicsConfig:
     @classmethod
     def from_json(cls, d: dict) -> DynamicsConfig:
         """Rebuild a config from ``to_json()``."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"dynamics config JSON has unknown fields {unknown}")
+        check_json_fields(cls, d, "dynamics config")
         kw: dict[str, Any] = {}
         for k, v in d.items():
             if k in ("action_gpt", "pose_gpt"):

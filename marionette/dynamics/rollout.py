@@ -171,11 +171,10 @@ class Rollout:
         # per entity, per token: clip frames advanced per model step, and whether the action wraps ("state")
         ratio = self.corpus.fps / self.fps
         self._advance = [ratio / c for c in self.tokens.clip_lengths]
-        self._wraps = []
         types = self.corpus.vocab.get("entity_types", {})
-        for i in range(len(self.tokens.entities)):
-            kinds = {(k, a["token"]): a.get("kind") for k in types for a in types[k]["actions"]}
-            self._wraps.append(np.array([kinds.get(self.tokens.type_token(i, t)) == "state" for t in range(self.tokens.sizes[i])]))
+        kinds = {(k, a["token"]): a.get("kind") for k in types for a in types[k]["actions"]}
+        self._wraps = [np.array([kinds.get(self.tokens.type_token(i, t)) == "state" for t in range(self.tokens.sizes[i])])
+                       for i in range(len(self.tokens.entities))]  # fmt: skip
         self.scenes: list[_Scene] = []
         self.t = 0
 
@@ -399,6 +398,20 @@ def _state_after(layout, prev_roots: dict[str, np.ndarray], joints: dict[str, np
         root, Ri = frames[e.owner]
         state[:, layout.slice(f"{e.name}.points")] = geo.to_local(joints[e.name], root, Ri).reshape(B, -1)
     return state.astype(np.float32)
+
+
+def force_windows(entity: str, tokens: Sequence[int]) -> list[Force]:
+    """A token stream (one per predicted frame) as force windows, one per run of equal tokens; token 0
+    ("no valid action") is left to the model. Forcing the recorded stream this way is Force-GT."""
+    out, k = [], 0
+    while k < len(tokens):
+        end = k + 1
+        while end < len(tokens) and tokens[end] == tokens[k]:
+            end += 1
+        if tokens[k] != 0:
+            out.append((entity, k, end, int(tokens[k])))
+        k = end
+    return out
 
 
 def _script_roots(script_root: Any, horizon: int, layout, root_dim: int) -> np.ndarray | None:

@@ -54,8 +54,6 @@ import argparse
 import json
 import math
 import os
-import subprocess
-import sys
 from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields, replace
@@ -70,6 +68,7 @@ from torch import Tensor, nn
 
 from marionette import geometry as geo
 from marionette.corpus import Corpus
+from marionette.distributed import process_group_from_env, rank_world, train_under_torchrun
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.dynamics.data import ActionTokens, Batch, HeldOutWindows, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import (
@@ -83,7 +82,7 @@ from marionette.dynamics.model import (
     parameter_counts,
     pose_training_pair,
 )
-from marionette.io import write_json
+from marionette.io import check_json_fields, write_json
 from marionette.schema import Layout
 
 HELD_OUT_SPLIT = "test"
@@ -143,19 +142,8 @@ class TrainConfig:
 
     @classmethod
     def from_json(cls, d: dict) -> TrainConfig:
-        unknown = sorted(set(d) - {f.name for f in fields(cls)})
-        if unknown:
-            raise ValueError(f"train config JSON has unknown fields {unknown}")
+        check_json_fields(cls, d, "train config")
         return cls(**{**d, **({"betas": tuple(d["betas"])} if "betas" in d else {})})
-
-
-# -- distributed -------------------------------------------------------------------------------------
-
-
-def _rank_world() -> tuple[int, int]:
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
 
 
 # -- schedule and optimizer --------------------------------------------------------------------------
@@ -409,7 +397,7 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
 
     ``stop_at`` ends the run after that many steps (checkpointed), as an interruption would; the
     schedule is still the one of ``config.steps``."""
-    rank, world = _rank_world()
+    rank, world = rank_world()
     log = log if rank == 0 else (lambda *_: None)
     out_dir = Path(out_dir)
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
@@ -592,18 +580,9 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 
 def train_in_processes(corpus: Path | str, out_dir: Path | str, config: TrainConfig, nproc: int) -> dict:
-    """Train under torchrun with ``nproc`` processes on this machine (``--standalone``: a loopback
-    rendezvous; gloo on CPU, NCCL on GPU) and return the summary rank 0 wrote (losses left out)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "train-config.json", config.to_json())
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
-           "-m", "marionette.dynamics.train", str(corpus), "--out", str(out), "--config", str(out / "train-config.json")]  # fmt: skip
-    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
-    done = subprocess.run(cmd, env=env)  # the ranks' output goes where ours goes (rank 0 logs every step)
-    if done.returncode != 0:
-        raise RuntimeError(f"{out}: torchrun with {nproc} processes failed with exit code {done.returncode} (its output is above)")
-    return json.loads((out / SUMMARY).read_text())
+    """Train under torchrun with ``nproc`` processes on this machine (gloo on CPU, NCCL on GPU) and return
+    the summary rank 0 wrote (losses left out)."""
+    return train_under_torchrun("marionette.dynamics.train", corpus, out_dir, config.to_json(), nproc, SUMMARY)
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -614,19 +593,9 @@ def run(args: argparse.Namespace) -> dict:
         summary = train_in_processes(args.corpus, args.out, config, args.nproc)
         print(json.dumps(summary, indent=1))
         return summary
-    started = False
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
-        if torch.cuda.is_available():
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
-        dist.init_process_group(backend)
-        started = True
-    rank = _rank_world()[0]
-    try:
+    with process_group_from_env():
+        rank = rank_world()[0]
         summary = train(args.corpus, args.out, config)
-    finally:
-        if started:
-            dist.destroy_process_group()
     if rank == 0:
         print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return summary

@@ -102,7 +102,7 @@ class ClipSource:
         self.actions = actions
         self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # segment → (source frames, tokens (n, N))
 
-    def _actions(self, sample: dict, clip: Clip, n: int) -> Clip:
+    def _actions(self, sample: dict, clip: Clip) -> Clip:
         """The clip with the entity tokens of its frames: the chunk json's source frames [a, b) in the segment's rows."""
         from marionette.dynamics.data import ActionTokens
 
@@ -143,7 +143,7 @@ class ClipSource:
         for sample in self._samples():
             try:
                 clip = decode_clip(sample, _frame_count(sample), self.size, 0)
-                yield self._actions(sample, clip, clip.rgb.shape[0]) if self.actions else clip
+                yield self._actions(sample, clip) if self.actions else clip
             except ValueError as err:
                 self.skipped[sample["__key__"]] = str(err)
 
@@ -155,6 +155,6 @@ class ClipSource:
             start = int(rng.integers(0, n - self.frames + 1)) if random else 0
             try:
                 clip = decode_clip(sample, self.frames, self.size, start)
-                yield self._actions(sample, clip, self.frames) if self.actions else clip
+                yield self._actions(sample, clip) if self.actions else clip
             except ValueError as err:
                 self.skipped[sample["__key__"]] = str(err)

@@ -35,6 +35,19 @@ def read_image(path: Path) -> np.ndarray:
     return frame.to_ndarray(format="rgb24")
 
 
+def write_image(path: Path, rgb: np.ndarray) -> None:
+    """(H, W, 3) uint8 RGB → a PNG file (PyAV), written atomically."""
+    import io
+
+    buf = io.BytesIO()
+    with av.open(buf, "w", format="image2pipe") as c:
+        s = c.add_stream("png")
+        s.width, s.height, s.pix_fmt = rgb.shape[1], rgb.shape[0], "rgb24"
+        for p in [*s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")), *s.encode()]:
+            c.mux(p)
+    write_bytes(path, buf.getvalue())
+
+
 def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Pose frames (T, 3, h, w) in [0, 1] and the first frame (3, h, w) in [−1, 1] at the model's ``size``."""
     meta = read_meta(pose_path)

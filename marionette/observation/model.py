@@ -30,11 +30,13 @@ gives the same video.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from marionette.io import check_json_fields
 
 RGB, POSE = 3, 3
 CONTROLS = ("pose", "actions")
@@ -87,9 +89,7 @@ class ObservationConfig:
 
     @classmethod
     def from_json(cls, d: dict) -> ObservationConfig:
-        unknown = sorted(set(d) - {f.name for f in fields(cls)})
-        if unknown:
-            raise ValueError(f"observation config JSON has unknown fields {unknown}")
+        check_json_fields(cls, d, "observation config")
         return cls(**{**d, "vocab_sizes": tuple(d.get("vocab_sizes", ()))})
 
 

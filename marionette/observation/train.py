@@ -20,11 +20,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import subprocess
-import sys
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +30,9 @@ import torch
 import torch.distributed as dist
 
 from marionette.corpus import Corpus
+from marionette.distributed import process_group_from_env, rank_world, train_under_torchrun
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
-from marionette.io import write_json
+from marionette.io import check_json_fields, write_json
 from marionette.observation.data import Clip, ClipSource
 from marionette.observation.model import OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
 
@@ -67,9 +65,7 @@ class ObservationTrainConfig:
 
     @classmethod
     def from_json(cls, d: dict) -> ObservationTrainConfig:
-        unknown = sorted(set(d) - {f.name for f in fields(cls)})
-        if unknown:
-            raise ValueError(f"observation train config JSON has unknown fields {unknown}")
+        check_json_fields(cls, d, "observation train config")
         return cls(**d)
 
 
@@ -101,12 +97,6 @@ def _lr(step: int, config: ObservationTrainConfig) -> float:
     return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def _rank_world() -> tuple[int, int]:
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
-
-
 def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str,
            rank: int = 0) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     rng = np.random.default_rng([seed, step] if rank == 0 else [seed, step, rank])
@@ -135,7 +125,7 @@ def held_out_loss(model: VideoDiT, chunks: list[Clip]) -> float:
 def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: ObservationTrainConfig,
           log: Callable[[str], Any] = print, *, stop_at: int | None = None) -> dict:  # fmt: skip
     """Train (or resume from ``latest_checkpoint(out_dir)``) for ``config.steps`` steps; returns a summary."""
-    rank, world = _rank_world()
+    rank, world = rank_world()
     log = log if rank == 0 else (lambda *_: None)
     out_dir = Path(out_dir)
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
@@ -155,8 +145,7 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     ckpt = latest_checkpoint(out_dir)
     if ckpt is not None:
         meta = load_checkpoint(ckpt, model, opt, sched)
-        if meta["train_config"] != config.to_json() and {**meta["train_config"], "checkpoint_every": 0} != {
-            **config.to_json(), "checkpoint_every": 0}:  # fmt: skip
+        if {**meta["train_config"], "checkpoint_every": 0} != {**config.to_json(), "checkpoint_every": 0}:
             raise ValueError(f"{ckpt}: was trained with another config; use a fresh out_dir")
         step, history, evals = int(meta["step"]), list(meta["losses"]), list(meta["evals"])
         log(f"resumed from {ckpt} at step {step}")
@@ -228,15 +217,7 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
 
 def train_in_processes(corpus: Path | str, out_dir: Path | str, config: ObservationTrainConfig, nproc: int) -> dict:
     """Train under ``torchrun --standalone`` with ``nproc`` processes; the summary rank 0 wrote."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "train-config.json", config.to_json())
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
-           "-m", "marionette.observation.train", str(corpus), "--out", str(out), "--config", str(out / "train-config.json")]  # fmt: skip
-    done = subprocess.run(cmd, env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
-    if done.returncode != 0:
-        raise RuntimeError(f"{out}: torchrun with {nproc} processes failed with exit code {done.returncode} (its output is above)")
-    return json.loads((out / "summary.json").read_text())
+    return train_under_torchrun("marionette.observation.train", corpus, out_dir, config.to_json(), nproc)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -247,15 +228,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--config", type=Path, required=True, help="an ObservationTrainConfig JSON")
     a = ap.parse_args(argv)
     config = ObservationTrainConfig.from_json(json.loads(a.config.read_text()))
-    started = False
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-        started = True
-    try:
+    with process_group_from_env():
         return train(a.corpus, a.out, config)
-    finally:
-        if started:
-            dist.destroy_process_group()
 
 
 if __name__ == "__main__":
