@@ -31,7 +31,8 @@ from marionette.observation.train import ObservationTrainConfig, load_model, tra
 CONFIG = ObservationTrainConfig(preset="tiny", batch_size=4, frames=5, reduce=4, patch=2, lr=1e-3, warmup=20)
 
 
-def make_corpus(root: Path) -> Path:
+def make_corpus(root: Path, scan: bool = False) -> Path:
+    """The benchmark corpus under ``root`` (module doc); ``scan``: scan its terrain before rendering pose targets."""
     import pyarrow as pa
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
@@ -43,6 +44,10 @@ def make_corpus(root: Path) -> Path:
     synth(root / "recordings", recordings=3, seconds=10.0, seed=7, width=160, height=90, workers=2)
     build_corpus(root / "recordings", root / "corpus", IngestOptions(video=VideoSettings(height=72, width=128, crf=23)),
                  workers=2, progress=False)  # fmt: skip
+    if scan:
+        from terrain_scan.scan import scan_stages
+
+        scan_stages(root / "corpus", incremental=True, log=lambda *_: None)
     render_pose_targets(root / "corpus")
     path = root / "corpus" / "meta" / "segments.parquet"
     seg = pq.read_table(path)

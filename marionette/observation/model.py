@@ -102,7 +102,7 @@ OBS_PRESETS = {
 def sincos(positions: Tensor, dim: int) -> Tensor:
     """(n,) positions → (n, dim) sine–cosine embeddings (base 10000)."""
     half = dim // 2
-    freq = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float64) / half)
+    freq = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float64, device=positions.device) / half)
     ang = positions.double()[:, None] * freq[None]
     return torch.cat([ang.sin(), ang.cos()], dim=-1).float()
 
@@ -189,7 +189,7 @@ class VideoDiT(nn.Module):
         if self.actions is not None:
             per_frame = sum(emb(control[..., i]) for i, emb in enumerate(self.actions))  # (B, T, width)
             tokens = (tokens.view(B, T, -1, c.width) + per_frame[:, :, None]).view(B, -1, c.width)
-        cond = self.time(sincos(s * 1000.0, c.width).to(x_s.device))  # (B, width)
+        cond = self.time(sincos(s * 1000.0, c.width).to(x_s.dtype))  # (B, width)
         for block in self.blocks:
             tokens = block(tokens, cond)
         shift, scale = self.final_mod(cond)[:, None].chunk(2, dim=-1)
@@ -230,13 +230,13 @@ def flow_loss(model: VideoDiT, rgb: Tensor, control: Tensor, generator: torch.Ge
 def sample_chunk(model: VideoDiT, control: Tensor, first: Tensor, steps: int, generator: torch.Generator) -> Tensor:
     """One chunk (B, T, 3, H, W) in [−1, 1] from its control (B, T, ...) and first frames (B, 3, H, W) by Euler steps."""
     B, T = control.shape[:2]
-    x = torch.randn(B, T, RGB, *first.shape[2:], generator=generator)
+    x = torch.randn(B, T, RGB, *first.shape[2:], generator=generator).to(first.device)  # CPU noise: the same video on any device
     eps0 = x[:, 0].clone()
     grid = torch.linspace(1.0, 0.0, steps + 1)
     for k in range(steps):
         s, s_next = float(grid[k]), float(grid[k + 1])
         x[:, 0] = (1 - s) * first + s * eps0  # the given frame, noised to this level
-        v = model(x, control, first, torch.full((B,), s))
+        v = model(x, control, first, torch.full((B,), s, device=first.device))
         x = x + (s_next - s) * v
     x[:, 0] = first
     return x.clamp(-1.0, 1.0)
