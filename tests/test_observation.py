@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from marionette.observation.data import ClipSource
+from marionette.observation.data import ClipSource, reduce_codes
 from marionette.observation.generate import write_image
 from marionette.observation.model import ObservationConfig, VideoDiT, check_inputs, generate
 from marionette.observation.train import ObservationTrainConfig, load_model, train
@@ -51,13 +51,26 @@ def test_clips_are_the_chunks_reduced(obs_corpus):
     c = clips[0]
     assert c.rgb.shape == (5, 3, 18, 32) and c.pose.shape == (5, 3, 18, 32)
     assert float(c.rgb.min()) >= -1.0 and float(c.rgb.max()) <= 1.0 and float(c.pose.min()) >= 0.0 and float(c.pose.max()) <= 1.0
-    ids = np.rint(c.pose[:, 1].numpy() * 1023) / 1023 * 255  # identity codes sampled nearest: whole ids
-    assert np.allclose(ids, np.rint(ids), atol=0.15) and (ids > 100).any()
+    # identity codes are sampled, never blended: whole ids to the G-buffer's quantisation (a half-float ulp + rounding ≤ 1 code)
+    ids = np.rint(c.pose[:, 1].numpy() * 1023) / 1023 * 255
+    assert np.allclose(ids, np.rint(ids), atol=1.0 * 255 / 1023 + 1e-6) and (ids > 100).any()
     assert [x.start for x in ClipSource(obs_corpus, "train", 5, (18, 32)).clips(seed=0)] == [x.start for x in clips]
     with pytest.raises(ValueError, match="4k"):
         ClipSource(obs_corpus, "train", 6, (18, 32))
     bad = ClipSource(obs_corpus, "train", 5, (20, 32))  # 72×128 does not reduce to 20×32
     assert not list(bad.clips()) and all("reduce" in r for r in bad.skipped.values())
+
+
+def test_pose_reduction_keeps_one_pixel_bones():
+    """A 4 × 4 block keeps all three channels of its bone pixel (the highest id), else of its top-left pixel."""
+    codes = np.zeros((2, 8, 8, 3), np.uint16)
+    codes[..., 0], codes[..., 2] = np.arange(64).reshape(8, 8), 7  # terrain: heights differ per pixel
+    codes[0, 1, 6] = [11, 800, 22]  # a hunter bone, one pixel, in block (0, 1)
+    codes[0, 5, 2], codes[0, 6, 3] = [12, 480, 23], [13, 790, 24]  # a monster and a hunter pixel in block (1, 0)
+    r = reduce_codes(codes, 4)
+    assert r.shape == (2, 2, 2, 3)
+    assert r[0, 0, 1].tolist() == [11, 800, 22] and r[0, 1, 0].tolist() == [13, 790, 24]
+    assert r[0, 0, 0].tolist() == [0, 0, 7] and r[0, 1, 1].tolist() == [36, 0, 7] and r[1, 1, 1].tolist() == [36, 0, 7]
 
 
 def test_training_beats_its_initialisation_on_held_out_chunks(trained):

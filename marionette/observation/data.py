@@ -9,7 +9,8 @@ clip ``rgb.mp4`` (the training resolution), its pose-control target ``pose.mkv``
 - ``rgb`` (T, 3, H, W) float32 in [−1, 1]: area-averaged (the chunk's size must be a whole multiple of
   ``size``);
 - ``pose`` (T, 3, H, W) float32 in [0, 1]: the G-buffer's 10-bit codes / 1023 (height, identity,
-  inverse depth), sampled nearest-neighbour (every ``factor``-th pixel), so identities stay exact.
+  inverse depth), one source pixel per block (``reduce_codes``: the block's bone pixel where it has one),
+  so identities stay exact and bones one pixel wide survive the reduction.
 
 Which clip of a chunk: ``start`` = 0 for evaluation (``ClipSource.clips(split, random=False)``); for
 training, one start per chunk per epoch drawn from ``numpy.random.default_rng([seed, epoch])`` in the
@@ -52,6 +53,16 @@ def _reduce_rgb(frames: np.ndarray, factor: int) -> np.ndarray:
     return frames.reshape(T, H // factor, factor, W // factor, factor, C).mean(axis=(2, 4), dtype=np.float32)
 
 
+def reduce_codes(codes: np.ndarray, factor: int) -> np.ndarray:
+    """(T, H·f, W·f, 3) G-buffer codes → (T, H, W, 3): per f × f block, every channel of the pixel with the largest
+    identity code (a bone where the block holds one, so a one-pixel bone survives; the top-left pixel where ties)."""
+    T, H, W, C = codes.shape
+    h, w = H // factor, W // factor
+    blocks = codes.reshape(T, h, factor, w, factor, C).transpose(0, 1, 3, 2, 4, 5).reshape(T, h, w, factor * factor, C)
+    pick = blocks[..., 1].argmax(axis=-1)  # first maximum: the top-left pixel of an all-terrain block
+    return np.take_along_axis(blocks, pick[..., None, None], axis=3)[:, :, :, 0]
+
+
 def check_size(src_hw: tuple[int, int], size: tuple[int, int], where: str) -> int:
     """The reduction factor from a chunk's (H, W) to the model's, or a ValueError naming ``where``."""
     (sh, sw), (h, w) = src_hw, size
@@ -71,7 +82,7 @@ def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) ->
         raise ValueError(f"{key}: a clip of {frames} frames from {start} exceeds the chunk's {len(rgb)}")
     f = check_size(rgb.shape[1:3], size, key)
     rgb = _reduce_rgb(rgb[start : start + frames], f) / 127.5 - 1.0
-    pose = codes[start : start + frames, ::f, ::f].astype(np.float32) / CODE_MAX
+    pose = reduce_codes(codes[start : start + frames], f).astype(np.float32) / CODE_MAX
     return Clip(
         rgb=torch.from_numpy(np.ascontiguousarray(rgb.transpose(0, 3, 1, 2))),
         pose=torch.from_numpy(np.ascontiguousarray(pose.transpose(0, 3, 1, 2))),

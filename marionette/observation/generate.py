@@ -1,7 +1,7 @@
 """``marionette generate``: a trained observation model, a pose-control video and a first frame → an RGB mp4.
 
 The pose video is a bridge G-buffer (``marionette render`` or a corpus's ``pose.mkv``) whose size is a
-whole multiple of the model's; it is sampled nearest-neighbour like the training clips. The first
+whole multiple of the model's; it is reduced like the training clips (``data.reduce_codes``). The first
 frame is an image file (PNG, JPEG; read with PyAV) of the pose video's size, area-averaged to the
 model's. Both are checked before any compute. The output is H.264 at the model's size (the frames the
 model made, first frame included), at ``fps``.
@@ -20,7 +20,7 @@ import torch
 from marionette.bridge.gbuffer import CODE_MAX, iter_codes, read_meta
 from marionette.ingest.video import VideoSettings, encode_mp4
 from marionette.io import write_bytes
-from marionette.observation.data import _reduce_rgb, check_size
+from marionette.observation.data import _reduce_rgb, check_size, reduce_codes
 from marionette.observation.model import generate
 from marionette.observation.train import load_model
 
@@ -55,7 +55,7 @@ def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tup
     if first.shape[:2] != (meta.height, meta.width):
         raise ValueError(f"{first_path}: a {first.shape[0]}×{first.shape[1]} first frame for a {meta.height}×{meta.width} pose video")
     f = check_size((meta.height, meta.width), size, str(pose_path))
-    codes = np.stack([c[::f, ::f] for c in iter_codes(pose_path)])
+    codes = reduce_codes(np.stack(list(iter_codes(pose_path))), f)
     pose = torch.from_numpy(codes.astype(np.float32).transpose(0, 3, 1, 2) / CODE_MAX)
     rgb = _reduce_rgb(first[None], f)[0] / 127.5 - 1.0
     return pose, torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
