@@ -237,27 +237,39 @@ def cmd_rollout(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(a: argparse.Namespace) -> int:
+    """Run the evaluation protocol on a dynamics checkpoint (and an observation model) and write the report."""
+    from marionette.eval.report import evaluate
+
+    s = evaluate(a.dynamics, a.corpus, a.out, observation=a.observation, segments=a.segments, seed_frames=a.seed_frames,
+                 horizon=a.horizon, seed=a.seed)  # fmt: skip
+    print(f"report: {s['report_md']}")
+    return 0
+
+
 def cmd_demo(a: argparse.Namespace) -> int:
-    """Synthetic recordings → corpus → 20 fps view → terrain → pose targets → dynamics → a rollout → observation model, end to end."""
+    """Synthetic recordings → corpus → 20 fps view → terrain → pose targets → dynamics → a rollout → observation model →
+    evaluation report, end to end."""
     from marionette.corpus import Corpus
+    from marionette.eval.report import evaluate
     from marionette.ingest import IngestOptions, build_corpus
     from marionette.synth import generate
 
     out = Path(a.out)
     src, corpus = out / "recordings", out / "corpus"
     t0 = time.time()
-    print(f"[1/8] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
+    print(f"[1/9] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
     generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
-    print(f"[2/8] building the corpus {corpus} with {a.workers} workers")
+    print(f"[2/9] building the corpus {corpus} with {a.workers} workers")
     build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
     c = Corpus(corpus)
     rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
-    print(f"[3/8] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
+    print(f"[3/9] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
     from terrain_scan.scan import scan_stages
 
     for st, r in scan_stages(corpus, incremental=True, log=lambda *_: None).items():
-        print(f"[4/8] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
-    print("[5/8] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
+        print(f"[4/9] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
+    print("[5/9] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
     _pose_targets(corpus)
     seg = c.segment_ids()[0]
     follow = out / f"{seg}-follow.mkv"
@@ -265,6 +277,10 @@ def cmd_demo(a: argparse.Namespace) -> int:
     print(inspect_text(corpus))
     _demo_dynamics(c, out, a.dynamics_steps)
     _demo_observation(c, out, a.observation_steps)
+    print("[9/9] evaluation: state-layer metrics beside the recorded state, controllability probe, rule ablation, proxy-FVD")
+    report = evaluate(out / "dynamics", corpus, out / "evaluation", observation=out / "observation", segments=4, seed_frames=32,
+                      horizon=80, log=lambda m: print("   ", m))  # fmt: skip
+    print(f"    report: {report['report_md']} (plots beside it)")
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
     return 0
 
@@ -278,7 +294,7 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
 
     runs = out / "dynamics"
     t = time.time()
-    print(f"[6/8] training ActionGPT + PoseGPT (tiny preset, {steps} steps) into {runs}")
+    print(f"[6/9] training ActionGPT + PoseGPT (tiny preset, {steps} steps) into {runs}")
     s = train(c, runs, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50),
               log=lambda m: print("   ", m) if m.startswith(("window", "baselines", "eval")) else None)  # fmt: skip
     print(f"    {s['steps']} steps in {time.time() - t:.1f} s; checkpoint {s['checkpoint']}")
@@ -295,7 +311,7 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
             "--render", str(video), "--size", "352x640"]  # fmt: skip
     if attack is not None:
         argv += ["--force", f"{entity}:40:60:{attack}"]
-    print(f"[7/8] rollout of {seg}: 32 seed frames, 200 predicted (10 s), {entity} forced to attack over frames 40–59, rules on")
+    print(f"[7/9] rollout of {seg}: 32 seed frames, 200 predicted (10 s), {entity} forced to attack over frames 40–59, rules on")
     ap = argparse.ArgumentParser()
     rollout_arguments(ap)
     run_rollout(ap.parse_args(argv), log=lambda m: print("   ", m))
@@ -314,7 +330,7 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     t = time.time()
     video = c.info["ingest"]["video"]
     reduce = 8 if video["height"] % 8 == 0 and video["width"] % 8 == 0 else 4
-    print(f"[8/8] training the observation model (tiny video DiT, {steps} steps, 1/{reduce} of the chunk size) into {runs}")
+    print(f"[8/9] training the observation model (tiny video DiT, {steps} steps, 1/{reduce} of the chunk size) into {runs}")
     s = train(c, runs, ObservationTrainConfig(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3,
                                               warmup=20), log=lambda m: print("   ", m))  # fmt: skip
     print(f"    {s['steps']} steps in {time.time() - t:.1f} s")
@@ -428,6 +444,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     rollout_arguments(s)
     s.set_defaults(fn=cmd_rollout)
+
+    s = sub.add_parser("eval", help="evaluate a dynamics checkpoint: state metrics, controllability probe, rule ablation, proxy-FVD")
+    s.add_argument("dynamics", type=Path, help="a dynamics checkpoint or training directory")
+    s.add_argument("corpus", type=Path)
+    s.add_argument("--out", type=Path, required=True, help="the report directory")
+    s.add_argument("--observation", type=Path, default=None, help="an observation checkpoint or training directory (for the video rows)")
+    s.add_argument("--segments", type=int, default=8, help="held-out windows")
+    s.add_argument("--seed-frames", type=int, default=64, help="recorded context frames of each window")
+    s.add_argument("--horizon", type=int, default=120, help="predicted frames of each window")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(fn=cmd_eval)
 
     s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")
     s.add_argument("--out", type=Path, default=Path("demo-run"))

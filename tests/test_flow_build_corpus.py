@@ -277,3 +277,27 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
         f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-observation-report"]}}}
     ).json()
     assert any(a["flow_run_id"] == run_id and "step-00000004" in a["data"] for a in artifacts)
+
+
+@pytest.mark.timeout(600)
+def test_evaluate_deployment_writes_the_report_and_publishes_it(local_prefect, corpus, tmp_path):
+    """The evaluate/weekly deployment (schedule declared, off) on a small checkpoint: report files and artifacts."""
+    from marionette.dynamics.train import TrainConfig, train
+
+    dep = httpx.get(f"{local_prefect['api']}/deployments/name/evaluate/weekly", timeout=10).json()
+    assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 6 * * 1", False)]
+    runs = tmp_path / "dynamics"
+    train(corpus, runs, TrainConfig(preset="tiny", steps=4, batch_size=4, window=16), log=lambda *_: None)
+    out = tmp_path / "report"
+    params = {"dynamics": runs, "corpus": corpus, "out": out, "observation": "null", "segments": 2, "seed_frames": 16, "horizon": 24}
+    run_id = run_deployment(local_prefect, deployment="evaluate/weekly", **params)
+    report = json.loads((out / "report.json").read_text())
+    assert (out / "report.md").read_text().startswith("# Evaluation")
+    assert all((out / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for name in ("ablation", "compliance", "drift"))
+    artifacts = httpx.post(
+        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["evaluation-report", "evaluation-headline"]}}}
+    ).json()
+    mine = {a["key"]: a for a in artifacts if a["flow_run_id"] == run_id}
+    assert set(mine) == {"evaluation-report", "evaluation-headline"}
+    assert "Controllability probe" in mine["evaluation-report"]["data"]
+    assert len(report["windows"]) == 2 and report["windows"][0]["horizon"] == 24

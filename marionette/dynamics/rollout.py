@@ -60,7 +60,7 @@ from marionette.schema import state_schema
 Force = tuple[str, int, int, int]  # (entity, start, end exclusive, token), predicted-frame indices
 
 
-def _checkpoint_dir(ckpt: Path | str) -> Path:
+def checkpoint_dir(ckpt: Path | str) -> Path:
     """A checkpoint directory itself, or the newest one under a training output directory."""
     p = Path(ckpt)
     if (p / "meta.json").exists():
@@ -145,7 +145,7 @@ class Rollout:
                  dtype: torch.dtype = torch.float32) -> None:  # fmt: skip
         self.corpus = _as_corpus(corpus)
         self.layout = self.corpus.layout
-        self.ckpt = _checkpoint_dir(ckpt)
+        self.ckpt = checkpoint_dir(ckpt)
         meta = read_meta(self.ckpt)
         self.config = DynamicsConfig.from_json(meta["dynamics_config"])
         self.config.check_layout(self.layout)
@@ -264,13 +264,13 @@ class Rollout:
     tok = property(lambda self: self.scenes[0].tok)
     progress = property(lambda self: self.scenes[0].progress)
 
-    def _roots(self, scene: _Scene) -> np.ndarray:
+    def roots_of(self, scene: _Scene) -> np.ndarray:
         return np.stack([scene.world[e.name][0] for e in self.layout.articulated])
 
     @property
     def roots_world(self) -> np.ndarray:
         """World roots (N, 3) float64 of the first stream's current frame."""
-        return self._roots(self.scenes[0])
+        return self.roots_of(self.scenes[0])
 
     def _sample(self, logits: torch.Tensor, generator: torch.Generator) -> int:
         lg = logits.reshape(-1).double().clone()
@@ -482,11 +482,11 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
         quats.append(ro.quats.copy())
         toks.append(ro.tok.copy())
         progs.append(ro.progress.copy())
-    return _table(c, ro, seed_rows, segment, seed, np.array(states).reshape(horizon, L.dim), np.array(roots).reshape(horizon, -1, 3),
+    return rollout_table(c, ro, seed_rows, segment, seed, np.array(states).reshape(horizon, L.dim), np.array(roots).reshape(horizon, -1, 3),
                   np.array(quats).reshape(horizon, -1, 4), np.array(toks).reshape(horizon, -1), np.array(progs).reshape(horizon, -1))  # fmt: skip
 
 
-def _table(c: Corpus, ro: Rollout, seed_rows: pa.Table, segment: str, seed: int, states: np.ndarray, roots: np.ndarray,
+def rollout_table(c: Corpus, ro: Rollout, seed_rows: pa.Table, segment: str, seed: int, states: np.ndarray, roots: np.ndarray,
            quats: np.ndarray, toks: np.ndarray, progs: np.ndarray) -> pa.Table:  # fmt: skip
     L, h = c.layout, len(states)
     schema = state_schema(L)
@@ -590,7 +590,7 @@ def run(args: argparse.Namespace, log=print) -> pa.Table:
     """Run a parsed rollout command: the rollout, its table, and the optional render."""
     rules = args.rules if args.rules in ("auto", "none") else tuple(r for r in args.rules.split(",") if r)
     c = _as_corpus(args.corpus)
-    fps = float(read_meta(_checkpoint_dir(args.ckpt))["train_config"].get("fps", 20.0))
+    fps = float(read_meta(checkpoint_dir(args.ckpt))["train_config"].get("fps", 20.0))
     script = script_from_args(args.script_root, args.horizon, fps, c.layout)
     started = time.perf_counter()
     table = rollout(args.ckpt, c, args.segment, args.seed_frames, args.horizon, args.temperature, args.seed, args.force,

@@ -1,0 +1,475 @@
+"""The evaluation protocol on the state layer (issue 7): held-out windows, generated-vs-recorded metrics,
+the controllability probe and the rule ablation. Definitions are DESIGN's "Evaluation definitions"
+(``metrics.py``); what this module adds, exactly:
+
+- **Windows** (``select_windows``): a window is (segment, start) with ``seed_frames`` seed rows and
+  ``horizon`` predicted rows of the segment's dynamics view (the model's rate). Segments come from the
+  "test" split ("train" when the corpus has none). ``numpy.random.default_rng(seed)`` shuffles the
+  segments long enough for a window; window k takes segment k mod their count and a start uniform in
+  [0, frames − length]. A window longer than every segment (or than a named segment) is a ValueError.
+- **Rollouts** (``run_windows``): the windows of one stage run as one batch (``Rollout.start_batch``);
+  rules the stage cannot run (the collider without a scanned stage, the cap without two articulated
+  entities) are dropped and reported, never an error. Stream b's sampler is seeded ``_stream_seed(seed, b)``:
+  at temperature 0 (the default) every stream is deterministic and equals a single ``rollout``.
+- **State layer** (``window_metrics`` / ``state_layer``): per entity RA-MPJPE and root drift against the
+  recorded rows of the same window (both 0 on the recorded side by definition), bone-length CV, foot
+  skate over the rig's foot joints (``foot_joints``), CFR / MMP of the key joints against the stage's
+  scanned terrain (NaN without one), the body's share of a follow-camera pose-control frame
+  (``body_shares`` with the weapon counted for its owner; rendered at a small size), and the scene's
+  root separation. Each generated number sits beside the same measurement on the recorded rows.
+- **Probe** (``controllability_probe``): Free (no control), Force-GT (the recorded token stream of the
+  probe entity forced run by run, ``force_windows``) and Force-Shuf (that stream permuted over frames
+  with ``default_rng([seed, window])``): mean ± std of the entity's RA-MPJPE, and the windows where
+  Force-GT < Force-Shuf. **Per-class compliance**: each run of one recorded token of class c (vocab.json)
+  is one instance; the motion over its frames is classified with the corpus's own rule
+  (``ingest.finalize.classify`` on mean horizontal root speed, peak root-frame body speed incl. owned
+  attachments, frames); compliance = share of instances whose motion classifies as c. It is given for
+  Force-GT, for Free (the same instances, uncontrolled: the baseline) and for the recorded motion
+  (the reference: at the model's rate and cut at window edges, recorded motion does not always
+  reproduce its own class either — peaks at 20 fps are lower than at the 30 fps the vocab used).
+- **Rule ablation** (``rule_ablation``): recorded / no rule / + collider / + collider + cap on the same
+  windows, seed and checkpoint: CFR, MMP, skate (means over articulated entities) and the horizontal
+  root separation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from marionette.bridge.rules import enabled_rules
+from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.dynamics.checkpoint import read_meta
+from marionette.dynamics.data import ActionTokens, _as_corpus
+from marionette.dynamics.rollout import Force, Rollout, checkpoint_dir, force_windows, open_terrain_field, rollout_table
+from marionette.eval import metrics as M
+from marionette.ingest.finalize import classify
+from marionette.schema import Layout
+
+FOOT_NAMES = ("foot", "toe", "claw", "ankle", "heel", "paw", "hoof")  # a contact joint whose name holds one is a foot
+ABLATION: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("no rule", ()),
+    ("+ collider", ("collider",)),
+    ("+ collider + cap", ("collider", "cap")),
+)
+PROBE_CONDITIONS = ("free", "force_gt", "force_shuf")
+CLASSES = ("stationary", "locomotion", "attack", "other")
+
+
+@dataclass(frozen=True)
+class Window:
+    """A held-out window: dynamics frames [start, start + seed_frames) seed the rollout, the next ``horizon`` are compared."""
+
+    segment: str
+    start: int
+    seed_frames: int
+    horizon: int
+    stage: str
+
+    @property
+    def length(self) -> int:
+        return self.seed_frames + self.horizon
+
+
+def model_fps(ckpt: Path | str) -> float:
+    """The frame rate (frames/s) a dynamics checkpoint (or training directory) was trained at."""
+    return float(read_meta(checkpoint_dir(ckpt))["train_config"].get("fps", 20.0))
+
+
+def select_windows(corpus: Corpus | Path | str, n: int, seed_frames: int = 64, horizon: int = 120, seed: int = 0,
+                   split: str = "test", segments: Sequence[str] | None = None, fps: float = 20.0) -> list[Window]:  # fmt: skip
+    """``n`` windows (module doc), deterministic in ``seed``; ``segments`` names them instead of a split."""
+    c = _as_corpus(corpus)
+    if n < 1 or seed_frames < 1 or horizon < 1:
+        raise ValueError(f"need n ≥ 1 windows of seed_frames ≥ 1 and horizon ≥ 1, not {n}, {seed_frames}, {horizon}")
+    length = seed_frames + horizon
+    if segments is None:
+        segments = c.segment_ids(split) or c.segment_ids("train")
+        if not segments:
+            raise ValueError(f"{c.path}: no segment in split {split!r} nor 'train'")
+        frames = {s: c.dynamics_segment(s, fps).num_rows for s in segments}
+        fit = [s for s in segments if frames[s] >= length]
+        if not fit:
+            longest = max(frames, key=frames.get)
+            raise ValueError(f"{c.path}: a window of {seed_frames} seed + {horizon} predicted frames ({length} at {fps:g} fps) "
+                             f"is longer than every segment; the longest, {longest!r}, has {frames[longest]} frames")  # fmt: skip
+    else:
+        fit = list(segments)
+        frames = {}
+        for s in fit:
+            view = c.dynamics_segment(s, fps)
+            M.check_window(view, 0, length, where=f"{c.path}: window of segment {s!r} at {fps:g} fps")
+            frames[s] = view.num_rows
+    rng = np.random.default_rng(seed)
+    order = [fit[i] for i in rng.permutation(len(fit))]
+    out = []
+    for k in range(n):
+        s = order[k % len(order)]
+        out.append(Window(s, int(rng.integers(0, frames[s] - length + 1)), seed_frames, horizon, str(c.segment_row(s)["stage"])))
+    return out
+
+
+def recorded_rows(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table:
+    """The recorded dynamics rows of a window's horizon (what the prediction is compared with)."""
+    view = corpus.dynamics_segment(window.segment, fps)
+    M.check_window(view, window.start, window.length, where=f"{corpus.path}: window {window}")
+    return view.slice(window.start + window.seed_frames, window.horizon)
+
+
+# -- rollouts ---------------------------------------------------------------------------------------------
+
+
+def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *,
+                rules: str | Sequence[str] = "auto", force: Sequence[Sequence[Force]] | None = None,
+                temperature: float = 0.0, seed: int = 0, batch: int = 16) -> tuple[list[pa.Table], dict[str, tuple[str, ...]]]:  # fmt: skip
+    """Roll every window out (seed rows + horizon predicted rows, ``rollout``'s table) with optional
+    per-window ``force``; returns the tables in window order and the rules that ran per stage."""
+    c = _as_corpus(corpus)
+    force = [()] * len(windows) if force is None else list(force)
+    if len(force) != len(windows):
+        raise ValueError(f"{len(windows)} windows but {len(force)} force lists")
+    if len({w.seed_frames for w in windows}) > 1 or len({w.horizon for w in windows}) > 1:
+        raise ValueError("run_windows: windows of one call share seed_frames and horizon")
+    tables: list[pa.Table | None] = [None] * len(windows)
+    ran: dict[str, tuple[str, ...]] = {}
+    stages: dict[str, list[int]] = {}
+    for i, w in enumerate(windows):
+        stages.setdefault(w.stage, []).append(i)
+    for stage, idx in stages.items():
+        field = open_terrain_field(c, windows[idx[0]].segment)
+        want: Any = rules
+        if rules not in ("auto", "none", None):
+            possible = enabled_rules(c.layout, field)
+            want = tuple(r for r in rules if r in possible)
+        ro = Rollout(ckpt, c, temperature=temperature, seed=seed, rules=want, terrain_field=field)
+        ran[stage] = ro.enabled
+        names = [e.name for e in c.layout.articulated]
+        for lo in range(0, len(idx), batch):
+            part = idx[lo : lo + batch]
+            seeds = []
+            for i in part:
+                w = windows[i]
+                view = c.dynamics_segment(w.segment, ro.fps)
+                M.check_window(view, w.start, w.length, where=f"{c.path}: window {w}")
+                seeds.append(view.slice(w.start, w.seed_frames))
+            ro.start_batch(seeds)
+            H = windows[part[0]].horizon
+            rec = {k: [[] for _ in part] for k in ("state", "roots", "quats", "tok", "prog")}
+            for t in range(H):
+                forced, restart = [], []
+                for i in part:
+                    f, r = {}, []
+                    for name, first, end, token in force[i]:
+                        if int(first) <= t < int(end):
+                            f[names.index(name)] = int(token)
+                            if t == int(first):
+                                r.append(names.index(name))
+                    forced.append(f)
+                    restart.append(r)
+                states = ro.step_batch(forced, None, restart)
+                for b, sc in enumerate(ro.scenes):
+                    for k, v in (("state", states[b]), ("roots", ro.roots_of(sc)), ("quats", sc.quats.copy()), ("tok", sc.tok.copy()),
+                                 ("prog", sc.progress.copy())):  # fmt: skip
+                        rec[k][b].append(v)
+            for b, i in enumerate(part):
+                tables[i] = rollout_table(c, ro, seeds[b], windows[i].segment, seed, *(np.array(rec[k][b]) for k in rec))
+    return tables, ran  # type: ignore[return-value]
+
+
+def predicted(table: pa.Table, window: Window) -> pa.Table:
+    """The horizon rows of a window's rollout table."""
+    return table.slice(window.seed_frames, window.horizon)
+
+
+# -- the state layer ----------------------------------------------------------------------------------
+
+
+def foot_joints(entity_rig) -> list[int]:
+    """Kept-joint indices of a rig's feet: its contact joints named like a foot (``FOOT_NAMES``), else all of them."""
+    feet = [i for n, i in zip(entity_rig.contact_joints, entity_rig.contact_index) if any(f in n.lower() for f in FOOT_NAMES)]
+    return feet or list(entity_rig.contact_index)
+
+
+def body_share_frames(
+    layout: Layout, rows: pa.Table, terrain: Any = None, size: tuple[int, int] = (72, 128)
+) -> dict[str, np.ndarray]:
+    """Per articulated entity, its share (N,) of each pose-control frame of ``rows`` (follow camera, the rows'
+    own rate, ``size`` H × W, the weapon counted for its owner); ``terrain`` a ``TerrainScene`` (none: empty)."""
+    from marionette.bridge.camera import follow_cameras
+    from marionette.bridge.gbuffer import GBufferMeta, decode_codes, to_codes
+    from marionette.bridge.kinematics import bone_segments, world_skeletons
+    from marionette.bridge.render import Rasterizer
+    from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, height_range
+
+    terrain = terrain or TerrainScene.empty()
+    settings = RenderSettings()
+    state, anchors, valid, t = chunk_inputs(layout, rows)
+    skel = world_skeletons(layout, state, anchors, valid, t, t)
+    ents = layout.articulated
+    fwd = skel.rot[ents[0].name] @ np.asarray(ents[0].rig.forward_axis, np.float64)
+    fps = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else 20.0
+    H, W = size
+    cams = follow_cameras([skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, W, H)
+    h = height_range(terrain, np.concatenate([skel.joints[e.name][:, 0, 1] for e in ents]), settings)
+    meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, W, H, fps)
+    ids = []
+    with Rasterizer(W, H) as rast:
+        rast.set_terrain(terrain.vertices, terrain.faces)
+        for i in range(len(t)):
+            rgb = rast.render(
+                cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m
+            )
+            ids.append(decode_codes(to_codes(rgb), meta).id)
+    return M.body_shares(np.stack(ids), layout, include_attachments=True)
+
+
+def window_metrics(layout: Layout, generated: pa.Table, recorded: pa.Table, fps: float, field: Any = None,
+                   terrain: Any = None, render_size: tuple[int, int] | None = (72, 128)) -> dict[str, Any]:  # fmt: skip
+    """The state-layer metrics of one window: ``generated`` and ``recorded`` are the horizon rows (equal
+    counts). Returns {"metrics": {"<metric>/<entity>": {"generated", "recorded"}}, "drift": {entity: (H,)}}."""
+    M.check_rollout_table(generated, layout, "generated rows")
+    M.check_rollout_table(recorded, layout, "recorded rows")
+    if generated.num_rows != recorded.num_rows:
+        raise ValueError(f"generated rows ({generated.num_rows}) and recorded rows ({recorded.num_rows}) differ in length")
+    wg, wr = world_of_rows(layout, generated), world_of_rows(layout, recorded)
+    out: dict[str, dict[str, float]] = {}
+    drift: dict[str, np.ndarray] = {}
+
+    def put(metric: str, entity: str, g: float, r: float) -> None:
+        out[f"{metric}/{entity}"] = {"generated": float(g), "recorded": float(r)}
+
+    for e in layout.articulated:
+        g, r = wg[e.name], wr[e.name]
+        put("ra_mpjpe_m", e.name, M.ra_mpjpe(g, r), M.ra_mpjpe(r, r))
+        drift[e.name] = M.root_drift(g[:, 0], r[:, 0])
+        put("root_drift_final_m", e.name, drift[e.name][-1], 0.0)
+        put("bone_length_cv", e.name, M.bone_length_cv(g, e.rig.parents), M.bone_length_cv(r, e.rig.parents))
+        feet = foot_joints(e.rig)
+        put("foot_skate_mps", e.name, M.foot_skate(g[:, feet], fps), M.foot_skate(r[:, feet], fps))
+        if field is not None:
+            cg, cr = M.key_joint_clearances(g, e.rig, field), M.key_joint_clearances(r, e.rig, field)
+            put("cfr", e.name, M.contact_failure_rate(cg), M.contact_failure_rate(cr))
+            put("mmp_m", e.name, M.mean_max_penetration(cg), M.mean_max_penetration(cr))
+        else:
+            put("cfr", e.name, np.nan, np.nan)
+            put("mmp_m", e.name, np.nan, np.nan)
+    if len(layout.articulated) == 2:
+        a, b = (e.name for e in layout.articulated)
+        (g3, gh), (r3, rh) = M.separation(wg[a][:, 0], wg[b][:, 0]), M.separation(wr[a][:, 0], wr[b][:, 0])
+        put("separation_m", "scene", g3.mean(), r3.mean())
+        put("separation_horizontal_m", "scene", gh.mean(), rh.mean())
+    if render_size is not None:
+        sg, sr = (
+            body_share_frames(layout, generated, terrain, render_size),
+            body_share_frames(layout, recorded, terrain, render_size),
+        )
+        for name in sg:
+            put("body_share", name, sg[name].mean(), sr[name].mean())
+    return {"metrics": out, "drift": drift}
+
+
+def summarise(values: Sequence[float]) -> dict[str, Any]:
+    """Mean, population std and count of the finite values (NaN mean and std when none)."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    return {
+        "mean": float(v.mean()) if len(v) else float("nan"),
+        "std": float(v.std()) if len(v) else float("nan"),
+        "n": int(len(v)),
+    }
+
+
+def state_layer(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], tables: Sequence[pa.Table], *,
+                render_size: tuple[int, int] | None = (72, 128)) -> dict[str, Any]:  # fmt: skip
+    """The state-layer table over windows: per "<metric>/<entity>" the generated and recorded summaries,
+    per-window values, and per entity the root drift (windows, horizon) for curves."""
+    c = _as_corpus(corpus)
+    fps = model_fps(ckpt)
+    per = []
+    scenes: dict[str, tuple[Any, Any]] = {}
+    for w, table in zip(windows, tables):
+        if w.stage not in scenes:
+            field = open_terrain_field(c, w.segment)
+            scenes[w.stage] = (field, _terrain_scene(c, w.segment) if render_size else None)
+        field, terrain = scenes[w.stage]
+        per.append(window_metrics(c.layout, predicted(table, w), recorded_rows(c, w, fps), fps, field, terrain, render_size))
+    rows = {}
+    for key in per[0]["metrics"]:
+        g = [p["metrics"][key]["generated"] for p in per]
+        r = [p["metrics"][key]["recorded"] for p in per]
+        rows[key] = {"generated": summarise(g), "recorded": summarise(r), "per_window": {"generated": g, "recorded": r}}
+    drift = {name: np.stack([p["drift"][name] for p in per]) for name in per[0]["drift"]}
+    notes = []
+    if not any(f is not None for f, _ in scenes.values()):
+        notes.append("CFR/MMP not measured: no stage of these windows has a terrain scan")
+    return {"metrics": rows, "drift": drift, "fps": fps, "notes": notes}
+
+
+def _terrain_scene(c: Corpus, segment: str) -> Any:
+    from marionette.bridge.targets import TerrainScene
+    from terrain_scan.scan import stage_dir
+
+    d = stage_dir(c.path, c.segment_row(segment)["stage"])
+    return TerrainScene.of_stage(d) if (d / "manifest.json").exists() else TerrainScene.empty()
+
+
+# -- the controllability probe -----------------------------------------------------------------------------
+
+
+def _motion_stats(layout: Layout, entity: str, rows: pa.Table, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per row (the first is the previous frame only): horizontal root speed and peak root-frame speed of any
+    joint or owned attachment point (m/s) — the statistics ``ingest.sample.action_stats`` classifies on."""
+    n = rows.num_rows
+    state = _fixed(rows["state"], layout.dim).astype(np.float64)
+    local = [state[:, layout.slice(f"{entity}.joints")].reshape(n, -1, 3)]
+    local += [state[:, layout.slice(f"{o.name}.points")].reshape(n, -1, 3) for o in layout.attachments if o.owner == entity]
+    p = np.concatenate(local, axis=1)
+    body = np.zeros(n)
+    body[1:] = np.linalg.norm(np.diff(p, axis=0), axis=-1).max(axis=1) * fps
+    root = _fixed(rows[f"{entity}.root_world"], 3)
+    speed = np.zeros(n)
+    speed[1:] = np.linalg.norm(np.diff(root[:, [0, 2]], axis=0), axis=-1) * fps
+    return speed, body
+
+
+def token_classes(corpus: Corpus, entity: str) -> tuple[list[str], list[str]]:
+    """Per entity token: its vocab class and kind ("none" for token 0)."""
+    tokens = ActionTokens.from_corpus(corpus)
+    i = tokens.entities.index(entity)
+    types = corpus.vocab["entity_types"]
+    cls, kind = [], []
+    for t in range(tokens.sizes[i]):
+        key, v = tokens.type_token(i, t)
+        a = next((a for a in types.get(key, {}).get("actions", []) if a["token"] == v), {}) if t else {}
+        cls.append(a.get("class", "none"))
+        kind.append(a.get("kind", "none"))
+    return cls, kind
+
+
+def _complies(layout: Layout, entity: str, rows: pa.Table, runs: Sequence[Force], kinds: list[str], classes: list[str],
+              fps: float) -> list[tuple[str, bool]]:  # fmt: skip
+    """(class, complies) per run; ``rows`` = last seed row + horizon rows."""
+    speed, body = _motion_stats(layout, entity, rows, fps)
+    out = []
+    for _, s, t, tok in runs:  # predicted frames [s, t) are rows s + 1 .. t
+        inst = [[float(speed[s + 1 : t + 1].mean()), float(body[s + 1 : t + 1].max()), int(t - s)]]
+        out.append((classes[tok], classify(kinds[tok], inst) == classes[tok]))
+    return out
+
+
+def controllability_probe(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *, entity: str = "hunter",
+                          temperature: float = 0.0, seed: int = 0, rules: str | Sequence[str] = "auto",
+                          free: Sequence[pa.Table] | None = None) -> dict[str, Any]:  # fmt: skip
+    """Free / Force-GT / Force-Shuf over ``windows`` (module doc); ``free`` reuses Free rollouts already run
+    with the same ``rules``. Returns RA-MPJPE summaries and per-window values per condition, the Force-GT <
+    Force-Shuf count and per-class compliance."""
+    c = _as_corpus(corpus)
+    L = c.layout
+    names = [e.name for e in L.articulated]
+    if entity not in names:
+        raise ValueError(f"probe entity {entity!r} is not an articulated entity of scene {L.scene!r} ({names})")
+    fps = model_fps(ckpt)
+    tokens = ActionTokens.from_corpus(c)
+    i = tokens.entities.index(entity)
+    rec = [recorded_rows(c, w, fps) for w in windows]
+    gt_streams = [tokens.encode(L, r, where=str(c.path))[0][:, i] for r in rec]
+    gt = [force_windows(entity, s) for s in gt_streams]
+    shuf = [force_windows(entity, s[np.random.default_rng([seed, k]).permutation(len(s))]) for k, s in enumerate(gt_streams)]
+    run = dict(temperature=temperature, seed=seed, rules=rules)
+    tables = {
+        "free": list(free) if free is not None else run_windows(ckpt, c, windows, **run)[0],
+        "force_gt": run_windows(ckpt, c, windows, force=gt, **run)[0],
+        "force_shuf": run_windows(ckpt, c, windows, force=shuf, **run)[0],
+    }
+    conditions = {}
+    for cond, tabs in tables.items():
+        vals = [
+            M.ra_mpjpe(world_of_rows(L, predicted(t, w))[entity], world_of_rows(L, r)[entity])
+            for t, w, r in zip(tabs, windows, rec)
+        ]
+        conditions[cond] = {**summarise(vals), "per_window": vals}
+    g, s = np.array(conditions["force_gt"]["per_window"]), np.array(conditions["force_shuf"]["per_window"])
+    classes, kinds = token_classes(c, entity)
+    counts: dict[str, dict[str, list[bool]]] = {}
+    for k, w in enumerate(windows):
+        last_seed = tables["free"][k].slice(w.seed_frames - 1, 1)
+        sources = {"recorded": pa.concat_tables([last_seed, rec[k].cast(last_seed.schema)])}
+        sources.update({cond: tables[cond][k].slice(w.seed_frames - 1, w.horizon + 1) for cond in ("free", "force_gt")})
+        for src, rows in sources.items():
+            for cls, ok in _complies(L, entity, rows, gt[k], kinds, classes, fps):
+                counts.setdefault(cls, {}).setdefault(src, []).append(ok)
+    per_class = {
+        cls: {"runs": len(v["recorded"]), **{src: float(np.mean(v[src])) for src in ("free", "force_gt", "recorded")}}
+        for cls, v in sorted(counts.items(), key=lambda kv: CLASSES.index(kv[0]) if kv[0] in CLASSES else len(CLASSES))
+    }
+    return {
+        "entity": entity,
+        "windows": [asdict(w) for w in windows],
+        "conditions": conditions,
+        "force_gt_beats_shuf": int((g < s).sum()),
+        "compared": int(len(g)),
+        "compliance": per_class,
+        "temperature": temperature,
+        "seed": seed,
+    }
+
+
+# -- the rule ablation -------------------------------------------------------------------------------------------
+
+
+def _ablation_row(layout: Layout, pairs: Sequence[tuple[pa.Table, Any]], fps: float) -> dict[str, Any]:
+    """CFR, MMP, skate per articulated entity (window means) and the horizontal separation of (rows, field) pairs."""
+    per: dict[str, dict[str, list[float]]] = {e.name: {"cfr": [], "mmp_m": [], "skate_mps": []} for e in layout.articulated}
+    sep = []
+    for rows, field in pairs:
+        w = world_of_rows(layout, rows)
+        for e in layout.articulated:
+            j = w[e.name]
+            clear = M.key_joint_clearances(j, e.rig, field) if field is not None else np.full((len(j), 1), np.nan)
+            per[e.name]["cfr"].append(M.contact_failure_rate(clear))
+            per[e.name]["mmp_m"].append(M.mean_max_penetration(clear))
+            per[e.name]["skate_mps"].append(M.foot_skate(j[:, foot_joints(e.rig)], fps))
+        if len(layout.articulated) == 2:
+            a, b = (e.name for e in layout.articulated)
+            sep.append(float(M.separation(w[a][:, 0], w[b][:, 0])[1].mean()))
+    entity = {n: {k: summarise(v)["mean"] for k, v in d.items()} for n, d in per.items()}
+    row = {k: _nanmean([entity[n][k] for n in entity]) for k in ("cfr", "mmp_m", "skate_mps")}
+    return {**row, "sep_m": summarise(sep)["mean"], "per_entity": entity}
+
+
+def _nanmean(v: Sequence[float]) -> float:
+    a = np.asarray(v, np.float64)
+    return float(a[np.isfinite(a)].mean()) if np.isfinite(a).any() else float("nan")
+
+
+def rule_ablation(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *, temperature: float = 0.0,
+                  seed: int = 0) -> dict[str, Any]:  # fmt: skip
+    """Recorded / no rule / + collider / + collider + cap on the same windows: CFR, MMP, skate, separation per
+    condition, the rules that actually ran and a note where a rule could not (no terrain scan, one entity)."""
+    c = _as_corpus(corpus)
+    fps = model_fps(ckpt)
+    fields = {w.stage: open_terrain_field(c, w.segment) for w in windows}
+    rec = [recorded_rows(c, w, fps) for w in windows]
+    rows = [
+        {
+            "condition": "recorded",
+            "rules": None,
+            "ran": {},
+            "note": "",
+            **_ablation_row(c.layout, [(r, fields[w.stage]) for r, w in zip(rec, windows)], fps),
+        }
+    ]
+    for name, rules in ABLATION:
+        tables, ran = run_windows(ckpt, c, windows, rules=rules or "none", temperature=temperature, seed=seed)
+        missing = {st: [r for r in rules if r not in got] for st, got in ran.items()}
+        why = {"collider": "no terrain scan", "cap": "not two articulated entities"}
+        note = "; ".join(f"stage {st}: " + ", ".join(f"{r} inactive ({why[r]})" for r in m) for st, m in missing.items() if m)
+        pairs = [(predicted(t, w), fields[w.stage]) for t, w in zip(tables, windows)]
+        rows.append({"condition": name, "rules": list(rules), "ran": {k: list(v) for k, v in ran.items()}, "note": note,
+                     **_ablation_row(c.layout, pairs, fps)})  # fmt: skip
+    return {"conditions": rows, "windows": [asdict(w) for w in windows]}

@@ -1,0 +1,346 @@
+"""The evaluation report (issue 7): run the protocol on a checkpoint and write a directory of tables and plots.
+
+``evaluate`` runs, on the same held-out windows (``protocol.select_windows``), the state-layer metrics of
+the Free rollouts (rules "auto") beside the recorded rows, the controllability probe, the rule ablation
+and, with an observation model, proxy-FVD; then writes ``<out>/report.md``, ``report.json`` and PNG
+plots. The directory is built beside ``out`` and renamed into place, so a reader never sees half a
+report; an existing ``out`` is replaced only if it holds a previous report (or nothing).
+
+Observation layer (``observation_fvd``): the observation model paints each held-out video chunk of the
+windows' segments from its *recorded* pose-control video and first frame (relayed over the chunk), and
+proxy-FVD (``fvd.ProxyExtractor``, never called FVD) compares those clips with the recorded RGB, over the
+whole clip and per model chunk. It measures the observation layer alone: rollouts rendered through a
+camera that starts at the recorded view are not part of it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from marionette.corpus import Corpus
+from marionette.eval import fvd
+from marionette.eval.protocol import (
+    controllability_probe,
+    model_fps,
+    rule_ablation,
+    run_windows,
+    select_windows,
+    state_layer,
+)
+from marionette.io import write_bytes, write_json
+
+PLOTS = ("ablation", "compliance", "drift", "fvd_per_chunk")
+
+
+# -- the observation layer ------------------------------------------------------------------------------
+
+
+def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor]], steps: int = 20, seed: int = 0,
+                    resamples: int = 200) -> dict[str, Any]:  # fmt: skip
+    """Proxy-FVD of RGB the observation ``model`` paints from recorded pose clips against the recorded RGB.
+
+    ``clips``: (rgb (T, 3, H, W) in [−1, 1], pose (T, 3, H, W) in [0, 1]) at the model's size, T ≥ the
+    model's frames; each is relayed over as many model chunks as fit (1 + n·(frames − 1) frames)."""
+    from marionette.observation.model import generate
+
+    if len(clips) < 2:
+        raise ValueError(f"proxy-FVD needs at least 2 clips, got {len(clips)}")
+    f = model.config.frames
+    n = min((len(rgb) - 1) // (f - 1) for rgb, _ in clips)
+    if n < 1:
+        raise ValueError(f"clips of {min(len(r) for r, _ in clips)} frames are shorter than the model's {f}")
+    T = 1 + n * (f - 1)
+    real, gen = [], []
+    with torch.inference_mode():
+        for k, (rgb, pose) in enumerate(clips):
+            real.append(rgb[:T])
+            gen.append(generate(model, pose[:T], rgb[0], chunks=n, steps=steps, seed=seed + k).clamp(-1, 1))
+    real_v, gen_v = torch.stack(real), torch.stack(gen)
+    ex = fvd.ProxyExtractor()
+    whole = fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed)
+    chunks = fvd.fvd_per_chunk(real_v, gen_v, ex, frames=f, resamples=resamples, seed=seed)
+    return {"run": True, "clips": len(clips), "frames": T, "steps": steps, "whole": whole, "per_chunk": chunks,
+            "what": "observation model on recorded pose-control chunks vs recorded RGB"}  # fmt: skip
+
+
+def _corpus_clips(c: Corpus, segments: set[str], frames: int, size: tuple[int, int], limit: int) -> tuple[list, dict]:
+    """Up to ``limit`` whole video chunks (rgb, pose) of ``segments`` at the model's size, and why others were skipped."""
+    from marionette.observation.data import ClipSource
+
+    src = ClipSource(c, "test", frames, size)
+    src.segments = set(segments)
+    out = []
+    for clip in src.chunks():
+        out.append((clip.rgb, clip.pose))
+        if len(out) >= limit:
+            break
+    return out, dict(src.skipped)
+
+
+# -- writing ---------------------------------------------------------------------------------------------------
+
+
+def _plain(x: Any) -> Any:
+    """JSON-ready: arrays to lists, NaN/inf to None, tuples to lists."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return _plain(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _num(x: float | None, digits: int = 4) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _pm(s: dict) -> str:
+    return "n/a" if s["mean"] is None or not math.isfinite(s["mean"]) else f"{s['mean']:.4f} ± {s['std']:.4f}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
+
+
+def render_markdown(report: dict) -> str:
+    """The report's markdown: the state-layer, probe, ablation and observation tables."""
+    st, pr, ab, ob = report["state_layer"], report["probe"], report["ablation"], report["observation"]
+    ws = report["windows"]
+    out = [f"# Evaluation of `{report['dynamics']}`", "",
+           f"Corpus `{report['corpus']}`; {len(ws)} windows of {report['seed_frames']} seed + {report['horizon']} predicted "
+           f"frames at {report['fps']:g} fps (split {report['split']!r}, window seed {report['seed']}, temperature "
+           f"{report['temperature']:g}).", "",
+           "## State layer (Free rollouts, rules auto)", ""]  # fmt: skip
+    rows = [[k.split("/")[0], k.split("/")[1], _pm(v["generated"]), _pm(v["recorded"]), str(v["generated"]["n"])]
+            for k, v in st["metrics"].items()]  # fmt: skip
+    out += [_table(["metric", "entity", "generated", "recorded", "windows"], rows), ""]
+    out += [f"- {n}" for n in st["notes"]] + ["- RA-MPJPE and root drift compare with the recorded rows: 0 on the recorded side by definition.",
+                                             "- body share: follow camera, pose-control frame rendered at "
+                                             f"{report['render_size'][0]}×{report['render_size'][1]}, weapon counted for its owner.", ""]  # fmt: skip
+    out += [f"## Controllability probe ({pr['entity']})", ""]
+    names = {"free": "Free", "force_gt": "Force-GT", "force_shuf": "Force-Shuf"}
+    out += [_table(["condition", f"{pr['entity']} RA-MPJPE (m)", "windows"],
+                   [[names[k], _pm(v), str(v["n"])] for k, v in pr["conditions"].items()]), ""]  # fmt: skip
+    out += [f"Force-GT < Force-Shuf on {pr['force_gt_beats_shuf']} of {pr['compared']} windows.", "",
+            "Per-class compliance: share of the recorded action runs (forced run by run in Force-GT) whose motion the "
+            "corpus's own class rule puts in the forced class.", ""]  # fmt: skip
+    out += [_table(["class", "runs", "Free", "Force-GT", "recorded"],
+                   [[c, str(v["runs"]), _num(v["free"], 2), _num(v["force_gt"], 2), _num(v["recorded"], 2)]
+                    for c, v in pr["compliance"].items()]), ""]  # fmt: skip
+    out += ["## Rule ablation", ""]
+    out += [_table(["condition", "CFR", "MMP (m)", "Skate (m/s)", "Sep (m)", "note"],
+                   [[r["condition"], _num(r["cfr"], 3), _num(r["mmp_m"]), _num(r["skate_mps"]), _num(r["sep_m"], 2), r["note"]]
+                    for r in ab["conditions"]]), ""]  # fmt: skip
+    out += ["CFR, MMP and skate are means over the articulated entities (per entity in report.json); Sep is the "
+            "horizontal root separation.", "", "## Observation layer", ""]  # fmt: skip
+    if ob.get("run"):
+        w = ob["whole"]
+        out += [f"{ob['what']}: {ob['clips']} clips of {ob['frames']} frames, {ob['steps']} sampling steps.", "",
+                _table(["clips", "metric", "value", "95 % interval", "extractor"],
+                       [["whole", w["metric"], _num(w["value"], 3), f"[{_num(w['low'], 3)}, {_num(w['high'], 3)}]", w["extractor"]]]
+                       + [[f"chunk {r['chunk']} (frames {r['start_frame']}–{r['end_frame']})", r["metric"], _num(r["value"], 3),
+                           f"[{_num(r['low'], 3)}, {_num(r['high'], 3)}]", r["extractor"]] for r in ob["per_chunk"]]), ""]  # fmt: skip
+    else:
+        out += [f"Not run: {ob['reason']}.", ""]
+    out += ["## Plots", ""] + [f"![{k}]({v})" for k, v in report["plots"].items()] + [""]
+    return "\n".join(out)
+
+
+def _save(fig: Any, path: Path) -> None:
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    write_bytes(path, buf.getvalue())
+
+
+def plot_all(report: dict, drift: dict[str, np.ndarray], out: Path) -> dict[str, str]:
+    """The report's PNG plots in ``out`` (matplotlib's Agg canvas, no global backend): name → file name."""
+    from matplotlib.figure import Figure
+
+    files = {}
+    ab = report["ablation"]["conditions"]
+    rec, conds = ab[0], ab[1:]
+    fig = Figure(figsize=(12, 3.2))
+    for k, (key, label) in enumerate((("cfr", "CFR"), ("mmp_m", "MMP (m)"), ("skate_mps", "Skate (m/s)"), ("sep_m", "Sep (m)"))):
+        ax = fig.add_subplot(1, 4, k + 1)
+        vals = [np.nan if c[key] is None else c[key] for c in conds]
+        ax.bar(range(len(conds)), np.nan_to_num(vals), color="tab:blue")
+        for i, v in enumerate(vals):
+            if not np.isfinite(v):
+                ax.text(i, 0, "n/a", ha="center", va="bottom")
+        if rec[key] is not None and np.isfinite(rec[key]):
+            ax.axhline(rec[key], color="k", ls="--", label="recorded")
+            ax.legend(fontsize=7)
+        ax.set_xticks(range(len(conds)), [c["condition"] for c in conds], rotation=20, fontsize=7)
+        ax.set_title(label)
+    _save(fig, out / "ablation.png")
+    files["ablation"] = "ablation.png"
+
+    comp = report["probe"]["compliance"]
+    fig = Figure(figsize=(6, 3.2))
+    ax = fig.add_subplot(1, 1, 1)
+    x = np.arange(len(comp))
+    for j, (src, label) in enumerate((("free", "Free"), ("force_gt", "Force-GT"), ("recorded", "recorded"))):
+        ax.bar(x + (j - 1) * 0.27, [comp[c][src] for c in comp], width=0.27, label=label)
+    ax.set_xticks(x, [f"{c} ({comp[c]['runs']})" for c in comp])
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("compliant share of runs")
+    ax.set_title(f"per-class compliance ({report['probe']['entity']})")
+    ax.legend(fontsize=7)
+    _save(fig, out / "compliance.png")
+    files["compliance"] = "compliance.png"
+
+    fig = Figure(figsize=(5 * len(drift), 3.2))
+    for k, (name, d) in enumerate(drift.items()):
+        ax = fig.add_subplot(1, len(drift), k + 1)
+        t = (np.arange(d.shape[1]) + 1) / report["fps"]
+        for row in d:
+            ax.plot(t, row, color="tab:blue", alpha=0.25, lw=0.8)
+        ax.plot(t, d.mean(axis=0), color="tab:blue", lw=2.5, label=f"mean of {len(d)}")
+        ax.set_xlabel("horizon (s)")
+        ax.set_ylabel("root drift (m)")
+        ax.set_title(name)
+        ax.legend(fontsize=7)
+    _save(fig, out / "drift.png")
+    files["drift"] = "drift.png"
+
+    ob = report["observation"]
+    if ob.get("run") and ob["per_chunk"]:
+        fig = Figure(figsize=(6, 3.2))
+        ax = fig.add_subplot(1, 1, 1)
+        ch = ob["per_chunk"]
+        ax.errorbar([r["chunk"] for r in ch], [r["value"] for r in ch],
+                    yerr=[[r["value"] - r["low"] for r in ch], [r["high"] - r["value"] for r in ch]], marker="o", capsize=3)  # fmt: skip
+        ax.set_xlabel("chunk")
+        ax.set_ylabel(ch[0]["metric"])
+        ax.set_title("per-chunk " + ch[0]["metric"])
+        _save(fig, out / "fvd_per_chunk.png")
+        files["fvd_per_chunk"] = "fvd_per_chunk.png"
+    return files
+
+
+def _check_replaceable(out: Path) -> None:
+    """Fail unless ``out`` is absent, empty, or a previous report directory."""
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "report.json").exists())):
+        raise FileExistsError(f"{out}: exists and is not a previous report; refusing to replace it")
+
+
+def _swap_in(tmp: Path, out: Path) -> None:
+    """Rename the finished report directory ``tmp`` to ``out``, replacing a previous report there."""
+    _check_replaceable(out)
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+        os.replace(out, old / out.name)
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, out)
+
+
+def headline(report: dict) -> dict[str, float | int | None]:
+    """The few numbers a dashboard shows: probe means, the Force-GT win count, ablation CFR/MMP, proxy-FVD."""
+    pr = report["probe"]
+    h: dict[str, Any] = {"windows": len(report["windows"])}
+    for k, v in pr["conditions"].items():
+        h[f"{pr['entity']}_ra_mpjpe_{k}_m"] = v["mean"]
+    h["force_gt_beats_shuf"] = pr["force_gt_beats_shuf"]
+    for k, v in report["state_layer"]["metrics"].items():
+        if k.startswith("root_drift_final_m/"):
+            h[f"{k.split('/')[1]}_root_drift_final_m"] = v["generated"]["mean"]
+    for r in report["ablation"]["conditions"]:
+        slug = r["condition"].replace("+ ", "").replace(" ", "_")
+        h[f"cfr_{slug}"], h[f"mmp_{slug}_m"] = r["cfr"], r["mmp_m"]
+    if report["observation"].get("run"):
+        h["proxy_fvd"] = report["observation"]["whole"]["value"]
+    return _plain(h)
+
+
+def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, *, observation: Path | str | None = None,
+             segments: int = 8, seed_frames: int = 64, horizon: int = 120, seed: int = 0, log: Callable[[str], Any] = print,
+             temperature: float = 0.0, entity: str = "hunter", render_size: tuple[int, int] = (72, 128),
+             fvd_steps: int = 20) -> dict[str, Any]:  # fmt: skip
+    """Run the protocol (module doc) and write the report directory ``out_dir``.
+
+    Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number),
+    "windows" (count)}."""
+    c = Corpus(Path(corpus))
+    out = Path(out_dir)
+    _check_replaceable(out)  # before any compute
+    fps = model_fps(dynamics_dir)
+    split = "test" if c.segment_ids("test") else "train"
+    windows = select_windows(c, segments, seed_frames, horizon, seed, split=split, fps=fps)
+    names = [e.name for e in c.layout.articulated]
+    entity = entity if entity in names else names[-1]
+    log(f"evaluate: {len(windows)} windows of {seed_frames} + {horizon} frames from split {split!r}")
+    free, ran = run_windows(dynamics_dir, c, windows, rules="auto", temperature=temperature, seed=seed)
+    log(f"evaluate: Free rollouts done (rules per stage {ran}); state-layer metrics")
+    state = state_layer(dynamics_dir, c, windows, free, render_size=render_size)
+    log("evaluate: controllability probe")
+    probe = controllability_probe(dynamics_dir, c, windows, entity=entity, temperature=temperature, seed=seed, free=free)
+    log("evaluate: rule ablation")
+    ablation = rule_ablation(dynamics_dir, c, windows, temperature=temperature, seed=seed)
+    if observation is None:
+        obs: dict[str, Any] = {"run": False, "reason": "no observation model given (--observation)"}
+    else:
+        from marionette.observation.train import load_model
+
+        model = load_model(observation)
+        clips, skipped = _corpus_clips(c, {w.segment for w in windows}, model.config.frames, model.config.size, max(segments, 2))
+        if len(clips) < 2:
+            obs = {"run": False, "reason": f"{len(clips)} usable video chunks in the windows' segments, 2 needed "
+                                           f"(skipped: {dict(list(skipped.items())[:3])})"}  # fmt: skip
+        else:
+            log(f"evaluate: proxy-FVD over {len(clips)} video chunks")
+            obs = observation_fvd(model, clips, steps=fvd_steps, seed=seed)
+        obs["observation"] = str(observation)
+    report = {
+        "dynamics": str(dynamics_dir), "corpus": str(c.path), "split": split, "fps": fps, "seed": seed,
+        "seed_frames": seed_frames, "horizon": horizon, "temperature": temperature, "render_size": list(render_size),
+        "windows": [asdict(w) for w in windows], "rules_free": ran,
+        "state_layer": state,
+        "probe": probe, "ablation": ablation, "observation": obs,
+    }  # fmt: skip
+    report = _plain(report)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes 0700; reports are read by other users and services
+    try:
+        report["plots"] = plot_all(report, state["drift"], tmp)
+        report["headline"] = headline(report)
+        write_json(tmp / "report.json", report)
+        write_bytes(tmp / "report.md", render_markdown(report).encode())
+        _swap_in(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    log(f"evaluate: report in {out}")
+    return {
+        "out_dir": str(out),
+        "report_md": str(out / "report.md"),
+        "report_json": str(out / "report.json"),
+        "plots": {k: str(out / v) for k, v in report["plots"].items()},
+        "headline": report["headline"],
+        "windows": len(windows),
+    }
+
+
+def load_report(out_dir: Path | str) -> dict[str, Any]:
+    """A written report's report.json."""
+    return json.loads((Path(out_dir) / "report.json").read_text())
