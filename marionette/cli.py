@@ -242,7 +242,7 @@ def cmd_eval(a: argparse.Namespace) -> int:
     from marionette.eval.report import evaluate
 
     s = evaluate(a.dynamics, a.corpus, a.out, observation=a.observation, segments=a.segments, seed_frames=a.seed_frames,
-                 horizon=a.horizon, seed=a.seed)  # fmt: skip
+                 horizon=a.horizon, seed=a.seed, fvd_steps=a.fvd_steps, fvd_frames=a.fvd_frames)  # fmt: skip
     print(f"report: {s['report_md']}")
     return 0
 
@@ -279,7 +279,7 @@ def cmd_demo(a: argparse.Namespace) -> int:
     _demo_observation(c, out, a.observation_steps)
     print("[9/9] evaluation: state-layer metrics beside the recorded state, controllability probe, rule ablation, proxy-FVD")
     report = evaluate(out / "dynamics", corpus, out / "evaluation", observation=out / "observation", segments=4, seed_frames=32,
-                      horizon=80, log=lambda m: print("   ", m))  # fmt: skip
+                      horizon=80, fvd_steps=8, fvd_frames=41, log=lambda m: print("   ", m))  # fmt: skip
     print(f"    report: {report['report_md']} (plots beside it)")
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
     return 0
@@ -454,6 +454,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed-frames", type=int, default=64, help="recorded context frames of each window")
     s.add_argument("--horizon", type=int, default=120, help="predicted frames of each window")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--fvd-steps", type=int, default=20, help="sampling steps of the observation model for proxy-FVD")
+    s.add_argument("--fvd-frames", type=int, default=None, help="at most this many video frames per proxy-FVD clip (default: whole)")
     s.set_defaults(fn=cmd_eval)
 
     s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")

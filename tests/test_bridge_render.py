@@ -277,6 +277,54 @@ def test_follow_camera_is_causal_and_frames_the_pair():
         assert np.all(depth > 0) and np.all((uv >= 0) & (uv <= [W, H])), (i, uv)  # both roots in view
 
 
+def test_follow_camera_seeded_from_a_start_camera():
+    from marionette.bridge.camera import FOLLOW_TAU_S, follow_cameras
+
+    n, fps = 240, 30.0
+    t = np.arange(n) / fps
+    a = np.stack([np.cos(t), np.zeros(n), np.sin(t)], -1) * 10 + [1e5, 20.0, -1e5]
+    b = a + np.stack([8 * np.ones(n), np.zeros(n), 4 * np.sin(3 * t)], -1)
+    fwd = np.tile([0.0, 0.0, 1.0], (n, 1))
+    ok = np.ones(n, bool)
+    plain = follow_cameras([a, b], fwd, [ok, ok], fps, W, H)
+    # unseeded: the docstring's closed form, frame by frame
+    d = (b - a) * [1.0, 0.0, 1.0]
+    s = np.linalg.norm(d, axis=-1)
+    f = d / s[:, None]
+    D = np.maximum(6.0, 0.6 * s + 4.0)
+    eye_w = a - D[:, None] * f + np.outer(0.35 * D + 2.0, [0.0, 1.0, 0.0])
+    tgt_w = (a + b) / 2 + [0.0, 0.5, 0.0]
+    alpha = 1 - np.exp(-1 / (fps * FOLLOW_TAU_S))
+    e, g = eye_w[0], tgt_w[0]
+    for i in range(n):
+        if i:
+            e, g = e + alpha * (eye_w[i] - e), g + alpha * (tgt_w[i] - g)
+        np.testing.assert_allclose(plain.pos[i], e, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(plain.rot[i], look_at(e, g), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(plain.K, np.tile(intrinsics_for(W, H), (n, 1)))
+    # seeded from a rolled, zoomed camera elsewhere: frame 0 is that camera, then it eases to the plain one
+    roll = np.array([[np.cos(0.2), -np.sin(0.2), 0.0], [np.sin(0.2), np.cos(0.2), 0.0], [0.0, 0.0, 1.0]])
+    R0 = look_at(a[0] + [-3.0, 4.0, -9.0], a[0]) @ roll
+    K0 = np.array([180.0, 180.0, 120.0, 70.0])
+    start = Cameras(K0[None], (a[0] + [-3.0, 4.0, -9.0])[None], R0[None], np.ones(1, bool), W, H)
+    seeded = follow_cameras([a, b], fwd, [ok, ok], fps, W, H, start=start)
+    np.testing.assert_allclose(seeded.pos[0], start.pos[0], atol=1e-12)
+    np.testing.assert_allclose(seeded.rot[0], R0, atol=1e-12)
+    np.testing.assert_allclose(seeded.K[0], K0, atol=1e-12)
+    R = seeded.rot
+    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+    gap = np.linalg.norm(seeded.pos - plain.pos, axis=-1)
+    assert gap[0] > 1.0 and np.all(np.diff(gap[:60]) < 0) and gap[-1] < 1e-4 * gap[0]
+    np.testing.assert_allclose(seeded.rot[-1], plain.rot[-1], atol=1e-4)
+    np.testing.assert_allclose(seeded.K[-1], plain.K[-1], atol=1e-4)
+    for k in (1, 30):  # still causal
+        part = follow_cameras([a[:k], b[:k]], fwd[:k], [ok[:k], ok[:k]], fps, W, H, start=start)
+        np.testing.assert_array_equal(part.pos, seeded.pos[:k])
+        np.testing.assert_array_equal(part.rot, seeded.rot[:k])
+    with pytest.raises(ValueError, match="start camera"):
+        follow_cameras([a, b], fwd, [ok, ok], fps, W + 2, H, start=start)
+
+
 def test_the_fast_code_path_equals_the_float_path(rast, tmp_path):
     from marionette.bridge.gbuffer import HALF_TO_CODE, iter_codes
 

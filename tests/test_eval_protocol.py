@@ -1,10 +1,12 @@
 """The evaluation protocol end to end on the session's dynamics corpus with its tiny checkpoint: windows,
 the state layer beside the recorded rows, the controllability probe, the rule ablation, the report
-directory, the observation layer's proxy-FVD on a small model, and clear errors on bad input."""
+directory, the observation layer's proxy-FVD on a small model (recorded pose-control chunks, and the rollouts
+rendered through the bridge from the recorded view), and clear errors on bad input."""
 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,7 @@ import torch
 
 from marionette.corpus import Corpus, world_of_rows
 from marionette.eval import metrics as M
+from marionette.eval import report as R
 from marionette.eval.protocol import (
     PROBE_CONDITIONS,
     controllability_probe,
@@ -25,7 +28,7 @@ from marionette.eval.protocol import (
     state_layer,
     window_metrics,
 )
-from marionette.eval.report import evaluate, observation_fvd
+from marionette.eval.report import evaluate, observation_fvd, rollout_clip, rollout_clips, rollout_fvd
 from marionette.schema import load_scene, state_schema
 
 SEED, HORIZON, N = 16, 32, 3
@@ -50,6 +53,14 @@ def windows(corpus):
 @pytest.fixture(scope="module")
 def free(ckpt, corpus, windows):
     return run_windows(ckpt, corpus, windows)
+
+
+@pytest.fixture(scope="module")
+def obs_model():
+    """An untrained observation model (fixed seed), small enough to paint every window's clip in seconds."""
+    from marionette.observation.model import ObservationConfig, VideoDiT
+
+    return VideoDiT(ObservationConfig(frames=5, height=36, width_px=64, patch=4, width=32, layers=1, heads=2), seed=0).eval()
 
 
 def test_windows_are_held_out_deterministic_and_fit(corpus, windows):
@@ -179,3 +190,106 @@ def test_observation_fvd_on_a_small_model():
     assert [c["chunk"] for c in r["per_chunk"]] == [0]
     with pytest.raises(ValueError, match="at least 2 clips"):
         observation_fvd(model, clips[:1])
+
+
+def test_rollout_clips_start_from_the_recorded_view(corpus, windows, free):
+    from marionette.corpus import _fixed
+    from marionette.geometry import quat_to_matrix
+    from marionette.ingest.video import decode_frames
+
+    clips, skipped, T = rollout_clips(corpus, windows, free[0], 5, (36, 64))
+    assert not skipped and [k for k, _ in clips] == list(range(N))
+    assert (T - 1) % 4 == 0 and HORIZON / 20 * 30 - 4 < T <= HORIZON / 20 * 30 + 1  # the horizon's 30 fps video frames
+    for k, clip in clips:
+        w, table = windows[k], free[0][k]
+        assert clip.rgb.shape == clip.pose.shape == (T, 3, 36, 64)
+        assert clip.rgb.min() >= -1 and clip.rgb.max() <= 1 and clip.pose.min() >= 0 and clip.pose.max() <= 1
+        a, b = clip.source_frames
+        assert b - a == T
+        rows = corpus.read_segment(w.segment)
+        i = int(np.flatnonzero(rows["frame"].to_numpy() == a)[0])
+        t_seed, t_first = float(table["t"][w.seed_frames - 1].as_py()), float(rows["t"][i].as_py())
+        assert t_seed - 1e-6 <= t_first < t_seed + 1 / 30  # the first video frame at or after the last (recorded) seed row
+        # the bridge camera's first frame is the recorded camera of that frame (the chunk's intrinsics) ...
+        chunk = next(r for r in R.segment_chunks(corpus, w.segment) if r["frames"][0] <= a < r["frames"][1])
+        np.testing.assert_allclose(clip.cameras.pos[0], _fixed(rows["camera.pos"], 3)[i], atol=1e-9)
+        np.testing.assert_allclose(clip.cameras.rot[0], quat_to_matrix(_fixed(rows["camera.rot"], 4)[i]), atol=1e-9)
+        np.testing.assert_allclose(clip.cameras.K[0], chunk["K"][a - chunk["frames"][0]], atol=1e-9)
+        assert clip.cameras.valid.all() and (clip.cameras.width, clip.cameras.height) == (64, 36)
+        # ... and it frames the generated bodies; the RGB is the recorded frame of the chunk
+        assert (clip.pose[0, 1] > 0).any() and (clip.pose[-1, 1] > 0).any()
+        first = decode_frames(chunk["rgb"], {a - chunk["frames"][0]})[a - chunk["frames"][0]]
+        np.testing.assert_allclose(clip.rgb[0].numpy(), first.transpose(2, 0, 1) / 127.5 - 1.0, atol=1e-6)
+
+
+def test_rollout_windows_without_video_are_skipped_with_reasons(corpus, windows, free, monkeypatch):
+    gone = windows[0].segment
+    real = R.segment_chunks
+    monkeypatch.setattr(R, "segment_chunks", lambda c, s: [] if s == gone else real(c, s))
+    clips, skipped, T = rollout_clips(corpus, windows, free[0], 5, (36, 64))
+    lost = [k for k, w in enumerate(windows) if w.segment == gone]
+    assert [r["window"] for r in skipped] == lost and [k for k, _ in clips] == [k for k in range(N) if k not in lost]
+    assert all("are not all in the segment's video chunks" in r["reason"] and r["segment"] == gone for r in skipped)
+    w = windows[1]
+    rows, chunks = corpus.read_segment(w.segment), real(corpus, w.segment)
+    with pytest.raises(R.WindowSkipped, match="has no rgb.mp4"):
+        rollout_clip(corpus, w, free[0][1], T, (36, 64), rows, [{**r, "rgb": None} for r in chunks])
+    with pytest.raises(R.WindowSkipped, match="fewer than the clip's"):
+        rollout_clip(corpus, w, free[0][1], 10 * T, (36, 64), rows, chunks)
+    with pytest.raises(R.WindowSkipped, match="does not reduce"):
+        rollout_clip(corpus, w, free[0][1], T, (20, 64), rows, chunks)
+
+
+def test_rollout_fvd_rows_are_finite_and_seeded(corpus, windows, free, obs_model):
+    r = rollout_fvd(obs_model, corpus, windows, free[0], steps=1, seed=0, resamples=20)
+    assert r["run"] and r["clips"] == N and not r["skipped"]
+    w = r["whole"]
+    assert w["metric"] == "proxy-FVD (not FVD)" and np.isfinite(w["value"]) and w["value"] > 0 and 0 <= w["low"] <= w["high"]
+    assert [c["chunk"] for c in r["per_chunk"]] == list(range(r["frames"] // 5))
+    assert all(np.isfinite(c["value"]) and c["metric"] == "proxy-FVD (not FVD)" for c in r["per_chunk"])
+    print(f"\nrollout proxy-FVD over {N} windows of {r['frames']} frames: {w['value']:.2f} [{w['low']:.2f}, {w['high']:.2f}]")
+    again = rollout_fvd(obs_model, corpus, windows, free[0], steps=1, seed=0, resamples=20)
+    assert again["whole"] == w and again["per_chunk"] == r["per_chunk"]  # same seed, same numbers
+
+
+def test_report_with_an_observation_model(ckpt, dynamics_corpus, windows, free, obs_model, tmp_path):
+    import tarfile
+
+    from marionette.bridge.gbuffer import CODE_MAX, iter_codes
+    from marionette.bridge.targets import render_pose_targets
+    from marionette.dynamics.checkpoint import save_checkpoint
+
+    # a copy whose held-out video shards carry pose targets (the other shards dropped: nothing here reads them)
+    copy = tmp_path / "corpus"
+    shutil.copytree(dynamics_corpus, copy)
+    c = Corpus(copy)
+    keep = {c.segment_row(s)["shard"] for s in c.segment_ids("test")}
+    for shard in c.shard_ids():
+        if shard not in keep:
+            c.video_path(shard).unlink(missing_ok=True)
+    render_pose_targets(copy)
+    # a rollout clip's first pose frame (recorded state, recorded camera) is the recorded pose target of that frame
+    clips, _, _ = rollout_clips(c, windows, free[0], 5, (36, 64))
+    for k, clip in clips:
+        a = clip.source_frames[0]
+        chunk = next(r for r in R.segment_chunks(c, windows[k].segment) if r["frames"][0] <= a < r["frames"][1])
+        with tarfile.open(c.video_path(c.segment_row(windows[k].segment)["shard"])) as tar:
+            target = list(iter_codes(tar.extractfile(f"{chunk['key']}.pose.mkv").read()))[a - chunk["frames"][0]]
+        ours, theirs = clip.pose[0, 1].numpy() > 0, target[..., 1] > 0
+        assert (ours & theirs).sum() >= 0.6 * (ours | theirs).sum() > 0, k  # bone pixels' IoU (the time may differ by < 1/30 s)
+        assert clip.pose[0].numpy().max() <= 1 and np.abs(clip.pose[0, 1].numpy() * CODE_MAX - target[..., 1]).mean() < 5
+    obs = tmp_path / "observation"
+    save_checkpoint(obs, 0, obs_model, meta={"kind": "observation", "observation_config": obs_model.config.to_json()})
+    out = tmp_path / "report"
+    run = dict(segments=N, seed_frames=SEED, horizon=HORIZON, fvd_steps=1, log=lambda *_: None)
+    s = evaluate(ckpt, copy, out, observation=obs, **run)
+    rep = json.loads((out / "report.json").read_text())
+    ob, ro = rep["observation"], rep["observation"]["rollouts"]
+    assert ob["run"] and ro["run"] and ro["clips"] == N and ro["skipped"] == []
+    for r in (ob, ro):
+        assert r["whole"]["metric"] == "proxy-FVD (not FVD)" and r["whole"]["value"] > 0 and r["per_chunk"]
+    md = (out / "report.md").read_text()
+    assert "### Recorded pose-control video" in md and "### Rollouts" in md and md.count("proxy-FVD (not FVD)") >= 4
+    assert set(s["plots"]) == {"ablation", "compliance", "drift", "fvd_per_chunk"}
+    assert Path(s["plots"]["fvd_per_chunk"]).read_bytes()[:8] == PNG
+    assert s["headline"]["proxy_fvd_rollouts"] == ro["whole"]["value"] and s["headline"]["proxy_fvd"] == ob["whole"]["value"]

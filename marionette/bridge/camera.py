@@ -19,6 +19,14 @@ with one entity or coincident roots, A's forward axis):
 
 Invalid (absent) entities hold their last valid root; before the first valid root the other
 entity alone is framed.
+
+**Seeded start** (``start``, a camera of one frame, e.g. the recorded camera where a rollout begins):
+the smoothing state is seeded from it instead of from the wanted pose, so the first framed frame *is*
+that camera and the follow camera eases away from it with the same α: e_0 = the start position;
+g_0 = e_0 + d·(its −Z axis) with d = max(1, |g*_0 − e_0|) (its view ray, as far as the wanted target);
+an up vector u_0 = its +Y axis eases to world +Y (u_t = u_{t−1} + α (Y − u_{t−1}), so a rolled start
+unrolls); the intrinsics ease from its (fx, fy, cx, cy) to the follow camera's. Without ``start`` the
+camera is exactly the unseeded one above.
 """
 
 from __future__ import annotations
@@ -105,9 +113,12 @@ def _hold(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 
 def follow_cameras(roots: list[np.ndarray], forward: np.ndarray, valid: list[np.ndarray], fps: float, width: int,
-                   height: int) -> Cameras:  # fmt: skip
+                   height: int, start: Cameras | None = None) -> Cameras:  # fmt: skip
     """The follow camera of the module docstring: roots [(N, 3)] of the articulated entities (A first),
-    A's world forward vectors (N, 3), their validity [(N,)], the frame rate and the output size."""
+    A's world forward vectors (N, 3), their validity [(N,)], the frame rate and the output size; ``start``
+    (frame 0 of a valid camera of the same output size) seeds the smoothing (module doc, "Seeded start")."""
+    if start is not None and (not len(start) or not start.valid[0] or (start.width, start.height) != (width, height)):
+        raise ValueError(f"follow_cameras: the start camera must be a valid camera of the output size {width}×{height}")
     n = len(roots[0])
     a = _hold(np.asarray(roots[0], np.float64), np.asarray(valid[0], bool))
     b = _hold(np.asarray(roots[1], np.float64), np.asarray(valid[1], bool)) if len(roots) > 1 else np.full((n, 3), np.nan)
@@ -129,15 +140,28 @@ def follow_cameras(roots: list[np.ndarray], forward: np.ndarray, valid: list[np.
     tgt_w = np.where(pair[:, None], (a + np.nan_to_num(b)) / 2, a + 2.0 * f) + 0.5 * up
     alpha = 1.0 - np.exp(-1.0 / (fps * FOLLOW_TAU_S))
     eye, tgt = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    K_w = intrinsics_for(width, height)
+    K = np.tile(K_w, (n, 1))
+    ups = np.tile(up, (n, 1))
     e = g = None
+    u, k = up, K_w
     for t in range(n):
         if not np.isfinite(eye_w[t]).all():
             continue
-        e = eye_w[t] if e is None else e + alpha * (eye_w[t] - e)
-        g = tgt_w[t] if g is None else g + alpha * (tgt_w[t] - g)
+        if e is None and start is not None:  # the first framed frame is the start camera
+            e = start.pos[0].astype(np.float64)
+            g = e - max(1.0, float(np.linalg.norm(tgt_w[t] - e))) * start.rot[0][:, 2]
+            u, k = start.rot[0][:, 1].astype(np.float64), start.K[0].astype(np.float64)
+        elif start is not None:
+            e, g = e + alpha * (eye_w[t] - e), g + alpha * (tgt_w[t] - g)
+            u, k = u + alpha * (up - u), k + alpha * (K_w - k)
+        else:
+            e = eye_w[t] if e is None else e + alpha * (eye_w[t] - e)
+            g = tgt_w[t] if g is None else g + alpha * (tgt_w[t] - g)
+        if start is not None:
+            ups[t], K[t] = u, k
         eye[t], tgt[t] = e, g
     ok = np.isfinite(eye).all(-1)
     R = np.tile(np.eye(3), (n, 1, 1))
-    R[ok] = look_at(eye[ok], tgt[ok])
-    K = np.tile(intrinsics_for(width, height), (n, 1))
+    R[ok] = look_at(eye[ok], tgt[ok]) if start is None else look_at(eye[ok], tgt[ok], ups[ok])
     return Cameras(K, eye, R, ok, int(width), int(height))

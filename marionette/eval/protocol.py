@@ -228,6 +228,41 @@ def body_share_frames(
     return M.body_shares(np.stack(ids), layout, include_attachments=True)
 
 
+def rollout_pose_codes(layout: Layout, rows: pa.Table, times: np.ndarray, start: Any,
+                       terrain: Any = None) -> tuple[np.ndarray, Any]:  # fmt: skip
+    """The pose-control video of rollout ``rows`` (a rollout table, or any state rows) at ``times`` (s, inside
+    the rows' span; e.g. the recorded video's frame times): skeletons interpolated in time, seen through the
+    follow camera seeded at ``start`` (a one-frame ``Cameras``, e.g. the recorded camera of the first time;
+    its size is the render's). Returns the G-buffer codes (T, H, W, 3) uint16 (R, G, B: what a ``pose.mkv``
+    decodes to) and the cameras used."""
+    from marionette.bridge.camera import follow_cameras
+    from marionette.bridge.gbuffer import to_codes
+    from marionette.bridge.kinematics import bone_segments, world_skeletons
+    from marionette.bridge.render import Rasterizer
+    from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, height_range
+
+    terrain = terrain or TerrainScene.empty()
+    settings = RenderSettings()
+    state, anchors, valid, t = chunk_inputs(layout, rows)
+    times = np.asarray(times, np.float64)
+    if len(times) < 2 or not np.all(np.diff(times) > 0) or times[0] < t[0] - 1e-6 or times[-1] > t[-1] + 1e-6:
+        span = f"[{t[0]:.4f}, {t[-1]:.4f}] s"
+        raise ValueError(f"render times {times[:1]}..{times[-1:]} s must increase inside the rows' span {span}")
+    skel = world_skeletons(layout, state, anchors, valid, t, times)
+    ents = layout.articulated
+    fwd = skel.rot[ents[0].name] @ np.asarray(ents[0].rig.forward_axis, np.float64)
+    fps = 1.0 / float(np.median(np.diff(times)))
+    W, H = start.width, start.height
+    roots = [skel.joints[e.name][:, 0] for e in ents]
+    cams = follow_cameras(roots, fwd, [skel.valid[e.name] for e in ents], fps, W, H, start=start)
+    h = height_range(terrain, np.concatenate([r[:, 1] for r in roots]), settings)
+    with Rasterizer(W, H) as rast:
+        rast.set_terrain(terrain.vertices, terrain.faces)
+        codes = [to_codes(rast.render(cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far,
+                                      settings.cull_m)) for i in range(len(times))]  # fmt: skip
+    return np.stack(codes), cams
+
+
 def window_metrics(layout: Layout, generated: pa.Table, recorded: pa.Table, fps: float, field: Any = None,
                    terrain: Any = None, render_size: tuple[int, int] | None = (72, 128)) -> dict[str, Any]:  # fmt: skip
     """The state-layer metrics of one window: ``generated`` and ``recorded`` are the horizon rows (equal

@@ -6,11 +6,20 @@ and, with an observation model, proxy-FVD; then writes ``<out>/report.md``, ``re
 plots. The directory is built beside ``out`` and renamed into place, so a reader never sees half a
 report; an existing ``out`` is replaced only if it holds a previous report (or nothing).
 
-Observation layer (``observation_fvd``): the observation model paints each held-out video chunk of the
-windows' segments from its *recorded* pose-control video and first frame (relayed over the chunk), and
-proxy-FVD (``fvd.ProxyExtractor``, never called FVD) compares those clips with the recorded RGB, over the
-whole clip and per model chunk. It measures the observation layer alone: rollouts rendered through a
-camera that starts at the recorded view are not part of it.
+Observation layer, two rows of proxy-FVD (``fvd.ProxyExtractor``, never called FVD), each over the whole
+clips and per model chunk with clip-level bootstrap intervals:
+
+- recorded pose (``observation_fvd``): the observation model paints each held-out video chunk of the
+  windows' segments from its *recorded* pose-control video and first frame (relayed over the chunk) — the
+  observation layer alone;
+- rollouts (``rollout_fvd``): per window, the Free rollout is rendered through the bridge at the video's
+  rate and the chunk's size, with a camera that starts at the recorded camera of the clip's first frame
+  (the first video frame at or after the last seed row, whose state is recorded) and then follows the
+  generated characters (``follow_cameras`` seeded at it); the model paints it from the recorded RGB of that
+  frame and it is compared with the recorded RGB of the same frames, found in the segment's video chunks by
+  their json "frames" [a, b) (consecutive chunks may share a clip). A window whose frames are not all in
+  the chunks (or lack RGB or a recorded camera) is skipped and listed with its reason. Every window's clip
+  has the same length: as many model chunks as every horizon holds.
 """
 
 from __future__ import annotations
@@ -21,16 +30,18 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 import torch
 
 from marionette.corpus import Corpus
 from marionette.eval import fvd
 from marionette.eval.protocol import (
+    Window,
     controllability_probe,
     model_fps,
     rule_ablation,
@@ -47,17 +58,20 @@ PLOTS = ("ablation", "compliance", "drift", "fvd_per_chunk")
 
 
 def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor]], steps: int = 20, seed: int = 0,
-                    resamples: int = 200) -> dict[str, Any]:  # fmt: skip
+                    resamples: int = 200, max_frames: int | None = None) -> dict[str, Any]:  # fmt: skip
     """Proxy-FVD of RGB the observation ``model`` paints from recorded pose clips against the recorded RGB.
 
     ``clips``: (rgb (T, 3, H, W) in [−1, 1], pose (T, 3, H, W) in [0, 1]) at the model's size, T ≥ the
-    model's frames; each is relayed over as many model chunks as fit (1 + n·(frames − 1) frames)."""
+    model's frames; each is relayed over as many model chunks as fit (1 + n·(frames − 1) frames, at most
+    ``max_frames``)."""
     from marionette.observation.model import generate
 
     if len(clips) < 2:
         raise ValueError(f"proxy-FVD needs at least 2 clips, got {len(clips)}")
     f = model.config.frames
     n = min((len(rgb) - 1) // (f - 1) for rgb, _ in clips)
+    if max_frames is not None:
+        n = min(n, (int(max_frames) - 1) // (f - 1))
     if n < 1:
         raise ValueError(f"clips of {min(len(r) for r, _ in clips)} frames are shorter than the model's {f}")
     T = 1 + n * (f - 1)
@@ -86,6 +100,178 @@ def _corpus_clips(c: Corpus, segments: set[str], frames: int, size: tuple[int, i
         if len(out) >= limit:
             break
     return out, dict(src.skipped)
+
+
+class WindowSkipped(ValueError):
+    """A window whose rollout clip cannot be made (its reason is the message); the report lists it."""
+
+
+@dataclass
+class RolloutClip:
+    """One window's rollout clip at the observation model's size: ``rgb`` (T, 3, h, w) the recorded frames in
+    [−1, 1], ``pose`` (T, 3, h, w) the rollout's pose-control frames in [0, 1], ``cameras`` the bridge camera
+    per frame (the chunk's size), ``start`` the recorded camera it starts from, the source frames [a, b) and
+    the video chunks they came from."""
+
+    rgb: torch.Tensor
+    pose: torch.Tensor
+    cameras: Any
+    start: Any
+    source_frames: tuple[int, int]
+    chunks: list[str]
+
+
+def segment_chunks(c: Corpus, segment: str) -> list[dict[str, Any]]:
+    """The video chunks of a segment in frame order: each chunk json's record with "key" and "rgb" (the
+    rgb.mp4 bytes, None if the shard lacks it)."""
+    import tarfile
+
+    vpath = c.video_path(c.segment_row(segment)["shard"])
+    if not vpath.exists():
+        return []
+    recs: dict[str, dict] = {}
+    rgb: dict[str, bytes] = {}
+    with tarfile.open(vpath) as tar:
+        for m in tar:
+            if not m.isfile() or not m.name.startswith(f"{segment}__c"):
+                continue
+            key, _, ext = m.name.partition(".")
+            if ext == "json":
+                recs[key] = json.loads(tar.extractfile(m).read())
+            elif ext == "rgb.mp4":
+                rgb[key] = tar.extractfile(m).read()
+    return sorted(({**r, "key": k, "rgb": rgb.get(k)} for k, r in recs.items()), key=lambda r: r["frames"][0])
+
+
+def _horizon_times(table: pa.Table, seed_frames: int, seg_t: np.ndarray) -> tuple[int, int]:
+    """(first row, count) of the segment's source rows whose times lie in the rollout's predicted span, from
+    the last seed row (recorded state) to the last predicted row."""
+    t = table["t"].to_numpy()
+    t0, t1 = float(t[seed_frames - 1]), float(t[-1])
+    i0 = int(np.searchsorted(seg_t, t0 - 1e-6))
+    return i0, int(np.searchsorted(seg_t, t1 + 1e-6)) - i0
+
+
+def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: tuple[int, int], seg_rows: pa.Table,
+                 chunks: Sequence[dict], terrain: Any = None) -> RolloutClip:  # fmt: skip
+    """The window's rollout rendered through the bridge and the recorded RGB of the same ``frames`` video frames.
+
+    The clip starts at the first source video frame at or after the last seed row (whose state is the recorded
+    one) and runs at the video's rate; the camera is the recorded camera of that frame (the chunk's
+    intrinsics), then follows the generated characters (``follow_cameras`` seeded at it). Rendered at the
+    chunk's size and reduced to ``size`` like the training clips (``reduce_codes``, area-averaged RGB). Raises
+    ``WindowSkipped`` when the frames are not all in the segment's video chunks (or lack RGB, or a camera)."""
+    from marionette.bridge.camera import recorded_cameras
+    from marionette.bridge.gbuffer import CODE_MAX
+    from marionette.corpus import _fixed
+    from marionette.eval.protocol import rollout_pose_codes
+    from marionette.ingest.video import decode_frames
+    from marionette.observation.data import _reduce_rgb, check_size, reduce_codes
+
+    seg_t, seg_f = seg_rows["t"].to_numpy(), seg_rows["frame"].to_numpy()
+    i0, avail = _horizon_times(table, window.seed_frames, seg_t)
+    if avail < frames:
+        raise WindowSkipped(f"the horizon holds {avail} video frames, fewer than the clip's {frames}")
+    idx = np.arange(i0, i0 + frames)
+    src = seg_f[idx]
+    if not np.array_equal(src, np.arange(src[0], src[0] + frames)):
+        raise WindowSkipped(f"source frames from {src[0]} are not consecutive rows of the segment")
+    which = []
+    for f in src:
+        k = next((i for i, r in enumerate(chunks) if r["frames"][0] <= f < r["frames"][1]), None)
+        if k is None:
+            spans = [tuple(r["frames"]) for r in chunks]
+            raise WindowSkipped(f"source frames [{src[0]}, {src[-1] + 1}) are not all in the segment's video chunks {spans}")
+        if chunks[k]["rgb"] is None:
+            raise WindowSkipped(f"video chunk {chunks[k]['key']} has no rgb.mp4")
+        which.append(k)
+    used = sorted(set(which))
+    H, W = (int(v) for v in chunks[used[0]]["resize"])
+    try:
+        factor = check_size((H, W), size, chunks[used[0]]["key"])
+    except ValueError as err:
+        raise WindowSkipped(str(err)) from err
+    rgb = np.empty((frames, H, W, 3), np.uint8)
+    for k in used:
+        a = chunks[k]["frames"][0]
+        mine = [j for j, kk in enumerate(which) if kk == k]
+        got = decode_frames(chunks[k]["rgb"], {int(src[j] - a) for j in mine})
+        if len(got) != len(mine):
+            raise WindowSkipped(f"video chunk {chunks[k]['key']} decodes to fewer frames than its json spans")
+        for j in mine:
+            rgb[j] = got[int(src[j] - a)]
+    first = chunks[which[0]]
+    K = np.asarray(first["K"], np.float64)[int(src[0] - first["frames"][0])][None]
+    row = seg_rows.slice(int(idx[0]), 1)
+    start = recorded_cameras(K, _fixed(row["camera.pos"], 3), _fixed(row["camera.rot"], 4),
+                             row["valid"].to_numpy(zero_copy_only=False), W, H)  # fmt: skip
+    if not start.valid[0]:
+        raise WindowSkipped(f"no valid recorded camera at source frame {src[0]}")
+    codes, cams = rollout_pose_codes(c.layout, table, seg_t[idx], start, terrain)
+    pose = reduce_codes(codes, factor).astype(np.float32) / CODE_MAX
+    rgb_f = _reduce_rgb(rgb, factor) / 127.5 - 1.0
+    return RolloutClip(torch.from_numpy(np.ascontiguousarray(rgb_f.transpose(0, 3, 1, 2))),
+                       torch.from_numpy(np.ascontiguousarray(pose.transpose(0, 3, 1, 2))), cams, start,
+                       (int(src[0]), int(src[-1]) + 1), [chunks[k]["key"] for k in used])  # fmt: skip
+
+
+def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], model_frames: int,
+                  size: tuple[int, int]) -> tuple[list[tuple[int, RolloutClip]], list[dict[str, Any]], int]:  # fmt: skip
+    """(window index, clip) of every window whose clip can be made, the skipped ones with their reasons, and
+    the clip length T = 1 + n·(model_frames − 1) (the most model chunks every window's horizon holds; 0: none)."""
+    from marionette.eval.protocol import _terrain_scene
+
+    rows = {s: c.read_segment(s) for s in {w.segment for w in windows}}
+    avail = [_horizon_times(t, w.seed_frames, rows[w.segment]["t"].to_numpy())[1] for w, t in zip(windows, tables)]
+    n = (min(avail) - 1) // (model_frames - 1)
+    if n < 1:
+        return [], [{"window": k, "segment": w.segment, "start": w.start,
+                     "reason": f"the horizon holds {min(avail)} video frames, fewer than one model chunk's {model_frames}"}
+                    for k, w in enumerate(windows)], 0  # fmt: skip
+    T = 1 + n * (model_frames - 1)
+    chunks = {s: segment_chunks(c, s) for s in rows}
+    scenes: dict[str, Any] = {}
+    out, skipped = [], []
+    for k, (w, table) in enumerate(zip(windows, tables)):
+        if w.stage not in scenes:
+            scenes[w.stage] = _terrain_scene(c, w.segment)
+        try:
+            out.append((k, rollout_clip(c, w, table, T, size, rows[w.segment], chunks[w.segment], scenes[w.stage])))
+        except WindowSkipped as err:
+            skipped.append({"window": k, "segment": w.segment, "start": w.start, "reason": str(err)})
+    return out, skipped, T
+
+
+def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], steps: int = 20, seed: int = 0,
+                resamples: int = 200, max_frames: int | None = None) -> dict[str, Any]:  # fmt: skip
+    """Proxy-FVD of the observation ``model`` painting each window's *rollout* (``rollout_clip``: bridge camera
+    starting from the recorded view) from the recorded first frame, relayed over model chunks, against the
+    recorded RGB of the same video frames: whole clips and per model chunk, with bootstrap intervals (the first
+    ``max_frames`` frames of each clip, a whole number of model chunks, when given)."""
+    from marionette.observation.model import generate
+
+    f = model.config.frames
+    clips, skipped, T = rollout_clips(c, windows, tables, f, model.config.size)
+    base = {"what": "observation model on the rollouts' pose-control video (bridge camera from the recorded view) vs recorded RGB",
+            "skipped": skipped, "steps": steps}  # fmt: skip
+    if len(clips) < 2:
+        return {"run": False, "reason": f"{len(clips)} windows with a rollout clip, 2 needed", **base}
+    n = (T - 1) // (f - 1) if max_frames is None else min((T - 1) // (f - 1), (int(max_frames) - 1) // (f - 1))
+    if n < 1:
+        return {"run": False, "reason": f"max_frames {max_frames} is shorter than one model chunk ({f})", **base}
+    T = 1 + n * (f - 1)
+    real, gen = [], []
+    with torch.inference_mode():
+        for k, clip in clips:
+            real.append(clip.rgb[:T])
+            painted = generate(model, clip.pose[:T], clip.rgb[0], chunks=n, steps=steps, seed=seed + k)
+            gen.append(painted.clamp(-1, 1))
+    real_v, gen_v = torch.stack(real), torch.stack(gen)
+    ex = fvd.ProxyExtractor()
+    return {"run": True, **base, "clips": len(clips), "frames": T,
+            "windows": [{"window": k, "source_frames": list(cl.source_frames), "chunks": cl.chunks} for k, cl in clips],
+            "whole": fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed),
+            "per_chunk": fvd.fvd_per_chunk(real_v, gen_v, ex, frames=f, resamples=resamples, seed=seed)}  # fmt: skip
 
 
 # -- writing ---------------------------------------------------------------------------------------------------
@@ -150,17 +336,32 @@ def render_markdown(report: dict) -> str:
                     for r in ab["conditions"]]), ""]  # fmt: skip
     out += ["CFR, MMP and skate are means over the articulated entities (per entity in report.json); Sep is the "
             "horizontal root separation.", "", "## Observation layer", ""]  # fmt: skip
-    if ob.get("run"):
-        w = ob["whole"]
-        out += [f"{ob['what']}: {ob['clips']} clips of {ob['frames']} frames, {ob['steps']} sampling steps.", "",
-                _table(["clips", "metric", "value", "95 % interval", "extractor"],
-                       [["whole", w["metric"], _num(w["value"], 3), f"[{_num(w['low'], 3)}, {_num(w['high'], 3)}]", w["extractor"]]]
-                       + [[f"chunk {r['chunk']} (frames {r['start_frame']}–{r['end_frame']})", r["metric"], _num(r["value"], 3),
-                           f"[{_num(r['low'], 3)}, {_num(r['high'], 3)}]", r["extractor"]] for r in ob["per_chunk"]]), ""]  # fmt: skip
-    else:
-        out += [f"Not run: {ob['reason']}.", ""]
+    if "rollouts" in ob:
+        out += ["Proxy-FVD uses a fixed random feature extractor (not I3D): comparable only with itself; it is not FVD.", "",
+                "### Recorded pose-control video (the observation model alone)", ""]  # fmt: skip
+    out += _fvd_section(ob)
+    if "rollouts" in ob:
+        ro = ob["rollouts"]
+        out += ["### Rollouts (dynamics → bridge → observation model)", ""]
+        out += _fvd_section(ro)
+        if ro.get("skipped"):
+            out += ["Windows without a rollout clip:", ""]
+            out += [f"- window {r['window']} ({r['segment']}, dynamics frame {r['start']}): {r['reason']}" for r in ro["skipped"]]
+            out += [""]
     out += ["## Plots", ""] + [f"![{k}]({v})" for k, v in report["plots"].items()] + [""]
     return "\n".join(out)
+
+
+def _fvd_section(ob: dict) -> list[str]:
+    """The lines of one proxy-FVD result: what it measures, the whole-clip row and one row per chunk."""
+    if not ob.get("run"):
+        return [f"Not run: {ob['reason']}.", ""]
+    w = ob["whole"]
+    return [f"{ob['what']}: {ob['clips']} clips of {ob['frames']} frames, {ob['steps']} sampling steps.", "",
+            _table(["clips", "metric", "value", "95 % interval", "extractor"],
+                   [["whole", w["metric"], _num(w["value"], 3), f"[{_num(w['low'], 3)}, {_num(w['high'], 3)}]", w["extractor"]]]
+                   + [[f"chunk {r['chunk']} (frames {r['start_frame']}–{r['end_frame']})", r["metric"], _num(r["value"], 3),
+                       f"[{_num(r['low'], 3)}, {_num(r['high'], 3)}]", r["extractor"]] for r in ob["per_chunk"]]), ""]  # fmt: skip
 
 
 def _save(fig: Any, path: Path) -> None:
@@ -223,15 +424,20 @@ def plot_all(report: dict, drift: dict[str, np.ndarray], out: Path) -> dict[str,
     files["drift"] = "drift.png"
 
     ob = report["observation"]
-    if ob.get("run") and ob["per_chunk"]:
+    series = [(label, r["per_chunk"]) for label, r in (("recorded pose", ob), ("rollouts", ob.get("rollouts", {})))
+              if r.get("run") and r["per_chunk"]]  # fmt: skip
+    if series:
         fig = Figure(figsize=(6, 3.2))
         ax = fig.add_subplot(1, 1, 1)
-        ch = ob["per_chunk"]
-        ax.errorbar([r["chunk"] for r in ch], [r["value"] for r in ch],
-                    yerr=[[r["value"] - r["low"] for r in ch], [r["high"] - r["value"] for r in ch]], marker="o", capsize=3)  # fmt: skip
-        ax.set_xlabel("chunk")
-        ax.set_ylabel(ch[0]["metric"])
-        ax.set_title("per-chunk " + ch[0]["metric"])
+        for j, (label, ch) in enumerate(series):
+            x = np.array([r["chunk"] for r in ch]) + 0.08 * (j - (len(series) - 1) / 2)  # side by side, not on top
+            ax.errorbar(x, [r["value"] for r in ch], yerr=[[r["value"] - r["low"] for r in ch], [r["high"] - r["value"] for r in ch]],
+                        marker="o", capsize=3, label=f"{label} ({len(ch)} chunks)")  # fmt: skip
+        metric = series[0][1][0]["metric"]
+        ax.set_xlabel("chunk (model clip) of the video")
+        ax.set_ylabel(metric)
+        ax.set_title("per-chunk " + metric + ", 95 % bootstrap intervals")
+        ax.legend(fontsize=7)
         _save(fig, out / "fvd_per_chunk.png")
         files["fvd_per_chunk"] = "fvd_per_chunk.png"
     return files
@@ -270,17 +476,20 @@ def headline(report: dict) -> dict[str, float | int | None]:
         h[f"cfr_{slug}"], h[f"mmp_{slug}_m"] = r["cfr"], r["mmp_m"]
     if report["observation"].get("run"):
         h["proxy_fvd"] = report["observation"]["whole"]["value"]
+    if report["observation"].get("rollouts", {}).get("run"):
+        h["proxy_fvd_rollouts"] = report["observation"]["rollouts"]["whole"]["value"]
     return _plain(h)
 
 
 def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, *, observation: Path | str | None = None,
              segments: int = 8, seed_frames: int = 64, horizon: int = 120, seed: int = 0, log: Callable[[str], Any] = print,
              temperature: float = 0.0, entity: str = "hunter", render_size: tuple[int, int] = (72, 128),
-             fvd_steps: int = 20) -> dict[str, Any]:  # fmt: skip
+             fvd_steps: int = 20, fvd_frames: int | None = None) -> dict[str, Any]:  # fmt: skip
     """Run the protocol (module doc) and write the report directory ``out_dir``.
 
     Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number),
-    "windows" (count)}."""
+    "windows" (count)}. ``fvd_steps``: sampling steps of the observation model; ``fvd_frames``: at most this many
+    video frames of each proxy-FVD clip (None: whole chunks and whole rollouts)."""
     c = Corpus(Path(corpus))
     out = Path(out_dir)
     _check_replaceable(out)  # before any compute
@@ -309,7 +518,9 @@ def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, 
                                            f"(skipped: {dict(list(skipped.items())[:3])})"}  # fmt: skip
         else:
             log(f"evaluate: proxy-FVD over {len(clips)} video chunks")
-            obs = observation_fvd(model, clips, steps=fvd_steps, seed=seed)
+            obs = observation_fvd(model, clips, steps=fvd_steps, seed=seed, max_frames=fvd_frames)
+        log("evaluate: proxy-FVD of the Free rollouts through the bridge")
+        obs["rollouts"] = rollout_fvd(model, c, windows, free, steps=fvd_steps, seed=seed, max_frames=fvd_frames)
         obs["observation"] = str(observation)
     report = {
         "dynamics": str(dynamics_dir), "corpus": str(c.path), "split": split, "fps": fps, "seed": seed,
