@@ -242,7 +242,7 @@ def cmd_eval(a: argparse.Namespace) -> int:
     from marionette.eval.report import evaluate
 
     s = evaluate(a.dynamics, a.corpus, a.out, observation=a.observation, segments=a.segments, seed_frames=a.seed_frames,
-                 horizon=a.horizon, seed=a.seed, fvd_steps=a.fvd_steps, fvd_frames=a.fvd_frames)  # fmt: skip
+                 horizon=a.horizon, seed=a.seed, fvd_steps=a.fvd_steps, fvd_frames=a.fvd_frames, i3d=a.i3d)  # fmt: skip
     print(f"report: {s['report_md']}")
     return 0
 
@@ -456,6 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--fvd-steps", type=int, default=20, help="sampling steps of the observation model for proxy-FVD")
     s.add_argument("--fvd-frames", type=int, default=None, help="at most this many video frames per proxy-FVD clip (default: whole)")
+    s.add_argument("--i3d", type=Path, default=None, help="Inception-I3D weights (safetensors) for FVD proper (default: the labelled proxy)")
     s.set_defaults(fn=cmd_eval)
 
     s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")

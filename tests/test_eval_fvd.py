@@ -204,13 +204,13 @@ def test_report_labels_say_proxy(extractor, real, other):
     assert fvd_report(real, other, FakeI3D(), resamples=5)["metric"] == "FVD"
 
 
-def test_extractor_for_without_weights_is_the_proxy(tmp_path):
+def test_extractor_for_without_weights_is_the_proxy_and_a_bad_file_is_named(tmp_path):
     assert isinstance(extractor_for(None), ProxyExtractor) and not extractor_for(None).is_fvd
     with pytest.raises(FileNotFoundError, match="missing.safetensors"):
         extractor_for(tmp_path / "missing.safetensors")
     weights = tmp_path / "i3d.safetensors"
     weights.write_bytes(b"")
-    with pytest.raises(NotImplementedError, match="proxy"):
+    with pytest.raises(ValueError, match="i3d.safetensors: not a safetensors file"):
         extractor_for(weights)
 
 

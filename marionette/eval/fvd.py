@@ -12,8 +12,8 @@ Videos are float tensors (N, T, 3, H, W) in [-1, 1]: N clips of T RGB frames. An
 - ``ProxyExtractor``: no trained weights — a fixed, seeded bank of 3-D convolution kernels at two scales
   plus per-frame colour and frame-difference statistics. Its numbers are labelled "proxy-FVD (not FVD)"
   and are comparable only with numbers from the same extractor (same seed and working size).
-- The standard I3D extractor is not implemented here: ``extractor_for(path)`` with a path raises
-  NotImplementedError rather than guess an architecture the published weights might not fit.
+- The standard I3D extractor lives in ``i3d`` (Inception-I3D from a local safetensors file, loaded strictly);
+  ``extractor_for(path)`` returns it for a path and the proxy otherwise.
 - ``fvd_report`` / ``fvd_per_chunk``: one labelled report for two sets of clips, or one per chunk of
   T consecutive frames of long videos (chunk k of the generated set against chunk k of the real set).
 """
@@ -251,15 +251,16 @@ def _log_energy(e: torch.Tensor) -> torch.Tensor:
 
 
 def extractor_for(path: Path | None) -> VideoFeatureExtractor:
-    """The feature extractor for an optional I3D safetensors path: the proxy when no path is given."""
+    """The feature extractor for an optional I3D safetensors path (``i3d.I3DExtractor``, FVD proper): the proxy
+    when no path is given."""
     if path is None:
         return ProxyExtractor()
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"I3D weights not found: {path}")
-    raise NotImplementedError(
-        f"{path}: loading the standard I3D extractor is not implemented; pass no path to use the proxy (labelled {PROXY_LABEL!r})"
-    )
+    from marionette.eval.i3d import I3DExtractor
+
+    return I3DExtractor.from_safetensors(path)
 
 
 # -- reports ---------------------------------------------------------------------------------------------

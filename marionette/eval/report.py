@@ -57,9 +57,19 @@ PLOTS = ("ablation", "compliance", "drift", "fvd_per_chunk")
 # -- the observation layer ------------------------------------------------------------------------------
 
 
+def _chunk_frames(frames: int, extractor: Any, length: int) -> int:
+    """Frames of the per-chunk pieces: the model's chunk, or for I3D (which needs 9) whole model chunks enough for it."""
+    from marionette.eval.i3d import MIN_FRAMES
+
+    if not extractor.is_fvd or frames >= MIN_FRAMES:
+        return frames
+    k = -(-(MIN_FRAMES - 1) // (frames - 1))  # model chunks spanning ≥ 9 frames
+    return min(1 + k * (frames - 1), length)
+
+
 def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor]], steps: int = 20, seed: int = 0,
-                    resamples: int = 200, max_frames: int | None = None) -> dict[str, Any]:  # fmt: skip
-    """Proxy-FVD of RGB the observation ``model`` paints from recorded pose clips against the recorded RGB.
+                    resamples: int = 200, max_frames: int | None = None, extractor: Any = None) -> dict[str, Any]:  # fmt: skip
+    """FVD (I3D ``extractor``) or proxy-FVD (default) of RGB the observation ``model`` paints from recorded pose clips against the recorded RGB.
 
     ``clips``: (rgb (T, 3, H, W) in [−1, 1], pose (T, 3, H, W) in [0, 1]) at the model's size, T ≥ the
     model's frames; each is relayed over as many model chunks as fit (1 + n·(frames − 1) frames, at most
@@ -81,9 +91,9 @@ def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor
             real.append(rgb[:T])
             gen.append(generate(model, pose[:T], rgb[0], chunks=n, steps=steps, seed=seed + k).clamp(-1, 1))
     real_v, gen_v = torch.stack(real), torch.stack(gen)
-    ex = fvd.ProxyExtractor()
+    ex = extractor or fvd.ProxyExtractor()
     whole = fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed)
-    chunks = fvd.fvd_per_chunk(real_v, gen_v, ex, frames=f, resamples=resamples, seed=seed)
+    chunks = fvd.fvd_per_chunk(real_v, gen_v, ex, frames=_chunk_frames(f, ex, T), resamples=resamples, seed=seed)
     return {"run": True, "clips": len(clips), "frames": T, "steps": steps, "whole": whole, "per_chunk": chunks,
             "what": "observation model on recorded pose-control chunks vs recorded RGB"}  # fmt: skip
 
@@ -243,7 +253,7 @@ def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Tabl
 
 
 def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], steps: int = 20, seed: int = 0,
-                resamples: int = 200, max_frames: int | None = None) -> dict[str, Any]:  # fmt: skip
+                resamples: int = 200, max_frames: int | None = None, extractor: Any = None) -> dict[str, Any]:  # fmt: skip
     """Proxy-FVD of the observation ``model`` painting each window's *rollout* (``rollout_clip``: bridge camera
     starting from the recorded view) from the recorded first frame, relayed over model chunks, against the
     recorded RGB of the same video frames: whole clips and per model chunk, with bootstrap intervals (the first
@@ -267,11 +277,11 @@ def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequen
             painted = generate(model, clip.pose[:T], clip.rgb[0], chunks=n, steps=steps, seed=seed + k)
             gen.append(painted.clamp(-1, 1))
     real_v, gen_v = torch.stack(real), torch.stack(gen)
-    ex = fvd.ProxyExtractor()
+    ex = extractor or fvd.ProxyExtractor()
     return {"run": True, **base, "clips": len(clips), "frames": T,
             "windows": [{"window": k, "source_frames": list(cl.source_frames), "chunks": cl.chunks} for k, cl in clips],
             "whole": fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed),
-            "per_chunk": fvd.fvd_per_chunk(real_v, gen_v, ex, frames=f, resamples=resamples, seed=seed)}  # fmt: skip
+            "per_chunk": fvd.fvd_per_chunk(real_v, gen_v, ex, frames=_chunk_frames(f, ex, T), resamples=resamples, seed=seed)}  # fmt: skip
 
 
 # -- writing ---------------------------------------------------------------------------------------------------
@@ -474,25 +484,26 @@ def headline(report: dict) -> dict[str, float | int | None]:
     for r in report["ablation"]["conditions"]:
         slug = r["condition"].replace("+ ", "").replace(" ", "_")
         h[f"cfr_{slug}"], h[f"mmp_{slug}_m"] = r["cfr"], r["mmp_m"]
-    if report["observation"].get("run"):
-        h["proxy_fvd"] = report["observation"]["whole"]["value"]
-    if report["observation"].get("rollouts", {}).get("run"):
-        h["proxy_fvd_rollouts"] = report["observation"]["rollouts"]["whole"]["value"]
+    for part, suffix in ((report["observation"], ""), (report["observation"].get("rollouts", {}), "_rollouts")):
+        if part.get("run"):  # "fvd" only from the I3D extractor, else "proxy_fvd"
+            h[("fvd" if part["whole"]["metric"] == fvd.FVD_LABEL else "proxy_fvd") + suffix] = part["whole"]["value"]
     return _plain(h)
 
 
 def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, *, observation: Path | str | None = None,
              segments: int = 8, seed_frames: int = 64, horizon: int = 120, seed: int = 0, log: Callable[[str], Any] = print,
              temperature: float = 0.0, entity: str = "hunter", render_size: tuple[int, int] = (72, 128),
-             fvd_steps: int = 20, fvd_frames: int | None = None) -> dict[str, Any]:  # fmt: skip
+             fvd_steps: int = 20, fvd_frames: int | None = None, i3d: Path | str | None = None) -> dict[str, Any]:  # fmt: skip
     """Run the protocol (module doc) and write the report directory ``out_dir``.
 
     Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number),
     "windows" (count)}. ``fvd_steps``: sampling steps of the observation model; ``fvd_frames``: at most this many
-    video frames of each proxy-FVD clip (None: whole chunks and whole rollouts)."""
+    video frames of each proxy-FVD clip (None: whole chunks and whole rollouts); ``i3d``: an Inception-I3D safetensors
+    file, for FVD proper instead of the proxy."""
     c = Corpus(Path(corpus))
     out = Path(out_dir)
     _check_replaceable(out)  # before any compute
+    extractor = fvd.extractor_for(Path(i3d)) if i3d is not None else None  # a bad I3D file fails here too
     fps = model_fps(dynamics_dir)
     split = "test" if c.segment_ids("test") else "train"
     windows = select_windows(c, segments, seed_frames, horizon, seed, split=split, fps=fps)
@@ -518,9 +529,9 @@ def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, 
                                            f"(skipped: {dict(list(skipped.items())[:3])})"}  # fmt: skip
         else:
             log(f"evaluate: proxy-FVD over {len(clips)} video chunks")
-            obs = observation_fvd(model, clips, steps=fvd_steps, seed=seed, max_frames=fvd_frames)
+            obs = observation_fvd(model, clips, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor)
         log("evaluate: proxy-FVD of the Free rollouts through the bridge")
-        obs["rollouts"] = rollout_fvd(model, c, windows, free, steps=fvd_steps, seed=seed, max_frames=fvd_frames)
+        obs["rollouts"] = rollout_fvd(model, c, windows, free, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor)
         obs["observation"] = str(observation)
     report = {
         "dynamics": str(dynamics_dir), "corpus": str(c.path), "split": split, "fps": fps, "seed": seed,
