@@ -347,8 +347,10 @@ def render_markdown(report: dict) -> str:
     out += ["CFR, MMP and skate are means over the articulated entities (per entity in report.json); Sep is the "
             "horizontal root separation.", "", "## Observation layer", ""]  # fmt: skip
     if "rollouts" in ob:
-        out += ["Proxy-FVD uses a fixed random feature extractor (not I3D): comparable only with itself; it is not FVD.", "",
-                "### Recorded pose-control video (the observation model alone)", ""]  # fmt: skip
+        i3d = ob.get("whole", {}).get("metric") == fvd.FVD_LABEL
+        note = ("FVD: features of the Inception-I3D weights given (--i3d)." if i3d else
+                "Proxy-FVD uses a fixed random feature extractor (not I3D): comparable only with itself; it is not FVD.")  # fmt: skip
+        out += [note, "", "### Recorded pose-control video (the observation model alone)", ""]
     out += _fvd_section(ob)
     if "rollouts" in ob:
         ro = ob["rollouts"]
