@@ -28,7 +28,7 @@ from marionette.ingest.video import tar_add
 from marionette.io import atomic_path, text_sha256
 from marionette.schema import Layout
 
-from .camera import Cameras, recorded_cameras
+from .camera import Cameras, follow_cameras, recorded_cameras
 from .gbuffer import GBufferMeta, write_gbuffer
 from .kinematics import bone_segments, world_skeletons
 from .render import TERRAIN_CULL_M, Rasterizer
@@ -130,6 +130,14 @@ def chunk_inputs(layout: Layout, rows: pa.Table) -> tuple[np.ndarray, dict, dict
     valid = rows["valid"].to_numpy(zero_copy_only=False).astype(bool)
     anchors = {e.name: _fixed(rows[f"{e.name}.root_world"], 3)[0] for e in layout.articulated}
     return state, anchors, {e.name: valid for e in layout.articulated}, rows["t"].to_numpy().astype(np.float64)
+
+
+def follow_view(layout: Layout, skel, fps: float, width: int, height: int, start: Cameras | None = None) -> Cameras:
+    """The follow camera (``camera.follow_cameras``) framing a ``Skeletons``' articulated entities, optionally seeded."""
+    ents = layout.articulated
+    fwd = skel.rot[ents[0].name] @ np.asarray(ents[0].rig.forward_axis, np.float64)
+    return follow_cameras([skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, width, height,
+                          start=start)  # fmt: skip
 
 
 def render_frames(rast: Rasterizer, layout: Layout, skel, cams: Cameras, h: tuple[float, float], settings: RenderSettings):
@@ -297,8 +305,6 @@ def render_rows(layout: Layout, rows: pa.Table, out: Path, terrain: TerrainScene
     from marionette.geometry import resample_positions, resample_quats
     from marionette.ingest.video import CropResize
 
-    from .camera import follow_cameras
-
     settings = settings or RenderSettings()
     if rows.num_rows == 0:
         raise ValueError(f"{out}: no rows to render")
@@ -321,9 +327,7 @@ def render_rows(layout: Layout, rows: pa.Table, out: Path, terrain: TerrainScene
         # a frame with an invalid recorded camera (NaN position) makes the frames interpolated from it invalid: black
         cams = recorded_cameras(K, pos, rot, np.ones(n_out, bool), W, H, crop=cr)
     elif camera == "follow":
-        ents = layout.articulated
-        fwd = [skel.rot[e.name] @ np.asarray(e.rig.forward_axis, np.float64) for e in ents][0]
-        cams = follow_cameras([skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, W, H)
+        cams = follow_view(layout, skel, fps, W, H)
     else:
         raise ValueError(f"camera must be 'recorded' or 'follow', not {camera!r}")
     roots_y = np.concatenate([skel.joints[e.name][:, 0, 1] for e in layout.articulated])

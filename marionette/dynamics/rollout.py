@@ -400,6 +400,17 @@ def _state_after(layout, prev_roots: dict[str, np.ndarray], joints: dict[str, np
     return state.astype(np.float32)
 
 
+def forced_at(force: Sequence[Force], t: int, names: Sequence[str]) -> tuple[dict[int, int], list[int]]:
+    """At predicted frame ``t``: the forced token per entity index, and the entities whose window starts here."""
+    forced, restart = {}, []
+    for name, first, end, token in force:
+        if int(first) <= t < int(end):
+            forced[names.index(name)] = int(token)
+            if t == int(first):
+                restart.append(names.index(name))
+    return forced, restart
+
+
 def force_windows(entity: str, tokens: Sequence[int]) -> list[Force]:
     """A token stream (one per predicted frame) as force windows, one per run of equal tokens; token 0
     ("no valid action") is left to the model. Forcing the recorded stream this way is Force-GT."""
@@ -471,12 +482,7 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
     ro.start(seed_rows)
     states, roots, quats, toks, progs = [], [], [], [], []
     for t in range(horizon):
-        forced, restart = {}, []
-        for name, first, end, token in force:
-            if int(first) <= t < int(end):
-                forced[names.index(name)] = int(token)
-                if t == int(first):
-                    restart.append(names.index(name))
+        forced, restart = forced_at(force, t, names)
         states.append(ro.step(forced, None if scripted is None else scripted[t], restart))
         roots.append(ro.roots_world)
         quats.append(ro.quats.copy())

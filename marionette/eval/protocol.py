@@ -46,7 +46,15 @@ from marionette.bridge.rules import enabled_rules
 from marionette.corpus import Corpus, _fixed, world_of_rows
 from marionette.dynamics.checkpoint import read_meta
 from marionette.dynamics.data import ActionTokens, _as_corpus
-from marionette.dynamics.rollout import Force, Rollout, checkpoint_dir, force_windows, open_terrain_field, rollout_table
+from marionette.dynamics.rollout import (
+    Force,
+    Rollout,
+    checkpoint_dir,
+    force_windows,
+    forced_at,
+    open_terrain_field,
+    rollout_table,
+)
 from marionette.eval import metrics as M
 from marionette.ingest.finalize import classify
 from marionette.schema import Layout
@@ -161,17 +169,8 @@ def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
             H = windows[part[0]].horizon
             rec = {k: [[] for _ in part] for k in ("state", "roots", "quats", "tok", "prog")}
             for t in range(H):
-                forced, restart = [], []
-                for i in part:
-                    f, r = {}, []
-                    for name, first, end, token in force[i]:
-                        if int(first) <= t < int(end):
-                            f[names.index(name)] = int(token)
-                            if t == int(first):
-                                r.append(names.index(name))
-                    forced.append(f)
-                    restart.append(r)
-                states = ro.step_batch(forced, None, restart)
+                forced, restart = zip(*(forced_at(force[i], t, names) for i in part))
+                states = ro.step_batch(list(forced), None, list(restart))
                 for b, sc in enumerate(ro.scenes):
                     for k, v in (("state", states[b]), ("roots", ro.roots_of(sc)), ("quats", sc.quats.copy()), ("tok", sc.tok.copy()),
                                  ("prog", sc.progress.copy())):  # fmt: skip
@@ -195,37 +194,40 @@ def foot_joints(entity_rig) -> list[int]:
     return feet or list(entity_rig.contact_index)
 
 
+def _follow_codes(layout: Layout, rows: pa.Table, times: np.ndarray | None, size: tuple[int, int], terrain: Any = None,
+                  start: Any = None) -> tuple[np.ndarray, Any, Any]:  # fmt: skip
+    """G-buffer codes (T, H, W, 3) uint16 (R, G, B) of ``rows`` at ``times`` (s; None: the rows' own) through the follow
+    camera (``start``-seeded when given), with the cameras and the ``GBufferMeta`` to decode them."""
+    from marionette.bridge.gbuffer import GBufferMeta
+    from marionette.bridge.kinematics import world_skeletons
+    from marionette.bridge.render import Rasterizer
+    from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, follow_view, height_range, render_frames
+
+    terrain = terrain or TerrainScene.empty()
+    settings = RenderSettings()
+    state, anchors, valid, t = chunk_inputs(layout, rows)
+    times = t if times is None else np.asarray(times, np.float64)
+    skel = world_skeletons(layout, state, anchors, valid, t, times)
+    fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 20.0
+    H, W = size
+    cams = follow_view(layout, skel, fps, W, H, start=start)
+    h = height_range(terrain, np.concatenate([skel.joints[e.name][:, 0, 1] for e in layout.articulated]), settings)
+    with Rasterizer(W, H) as rast:
+        rast.set_terrain(terrain.vertices, terrain.faces)
+        planes = np.stack(list(render_frames(rast, layout, skel, cams, h, settings)))  # (T, 3, H, W) in G, B, R order
+    meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, W, H, fps)
+    return np.ascontiguousarray(planes[:, [2, 0, 1]].transpose(0, 2, 3, 1)), cams, meta
+
+
 def body_share_frames(
     layout: Layout, rows: pa.Table, terrain: Any = None, size: tuple[int, int] = (72, 128)
 ) -> dict[str, np.ndarray]:
     """Per articulated entity, its share (N,) of each pose-control frame of ``rows`` (follow camera, the rows'
     own rate, ``size`` H × W, the weapon counted for its owner); ``terrain`` a ``TerrainScene`` (none: empty)."""
-    from marionette.bridge.camera import follow_cameras
-    from marionette.bridge.gbuffer import GBufferMeta, decode_codes, to_codes
-    from marionette.bridge.kinematics import bone_segments, world_skeletons
-    from marionette.bridge.render import Rasterizer
-    from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, height_range
+    from marionette.bridge.gbuffer import decode_codes
 
-    terrain = terrain or TerrainScene.empty()
-    settings = RenderSettings()
-    state, anchors, valid, t = chunk_inputs(layout, rows)
-    skel = world_skeletons(layout, state, anchors, valid, t, t)
-    ents = layout.articulated
-    fwd = skel.rot[ents[0].name] @ np.asarray(ents[0].rig.forward_axis, np.float64)
-    fps = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else 20.0
-    H, W = size
-    cams = follow_cameras([skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, W, H)
-    h = height_range(terrain, np.concatenate([skel.joints[e.name][:, 0, 1] for e in ents]), settings)
-    meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, W, H, fps)
-    ids = []
-    with Rasterizer(W, H) as rast:
-        rast.set_terrain(terrain.vertices, terrain.faces)
-        for i in range(len(t)):
-            rgb = rast.render(
-                cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m
-            )
-            ids.append(decode_codes(to_codes(rgb), meta).id)
-    return M.body_shares(np.stack(ids), layout, include_attachments=True)
+    codes, _, meta = _follow_codes(layout, rows, None, size, terrain)
+    return M.body_shares(np.stack([decode_codes(c, meta).id for c in codes]), layout, include_attachments=True)
 
 
 def rollout_pose_codes(layout: Layout, rows: pa.Table, times: np.ndarray, start: Any,
@@ -235,32 +237,13 @@ def rollout_pose_codes(layout: Layout, rows: pa.Table, times: np.ndarray, start:
     follow camera seeded at ``start`` (a one-frame ``Cameras``, e.g. the recorded camera of the first time;
     its size is the render's). Returns the G-buffer codes (T, H, W, 3) uint16 (R, G, B: what a ``pose.mkv``
     decodes to) and the cameras used."""
-    from marionette.bridge.camera import follow_cameras
-    from marionette.bridge.gbuffer import to_codes
-    from marionette.bridge.kinematics import bone_segments, world_skeletons
-    from marionette.bridge.render import Rasterizer
-    from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, height_range
-
-    terrain = terrain or TerrainScene.empty()
-    settings = RenderSettings()
-    state, anchors, valid, t = chunk_inputs(layout, rows)
+    t = rows["t"].to_numpy().astype(np.float64)
     times = np.asarray(times, np.float64)
     if len(times) < 2 or not np.all(np.diff(times) > 0) or times[0] < t[0] - 1e-6 or times[-1] > t[-1] + 1e-6:
         span = f"[{t[0]:.4f}, {t[-1]:.4f}] s"
         raise ValueError(f"render times {times[:1]}..{times[-1:]} s must increase inside the rows' span {span}")
-    skel = world_skeletons(layout, state, anchors, valid, t, times)
-    ents = layout.articulated
-    fwd = skel.rot[ents[0].name] @ np.asarray(ents[0].rig.forward_axis, np.float64)
-    fps = 1.0 / float(np.median(np.diff(times)))
-    W, H = start.width, start.height
-    roots = [skel.joints[e.name][:, 0] for e in ents]
-    cams = follow_cameras(roots, fwd, [skel.valid[e.name] for e in ents], fps, W, H, start=start)
-    h = height_range(terrain, np.concatenate([r[:, 1] for r in roots]), settings)
-    with Rasterizer(W, H) as rast:
-        rast.set_terrain(terrain.vertices, terrain.faces)
-        codes = [to_codes(rast.render(cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far,
-                                      settings.cull_m)) for i in range(len(times))]  # fmt: skip
-    return np.stack(codes), cams
+    codes, cams, _ = _follow_codes(layout, rows, times, (start.height, start.width), terrain, start)
+    return codes, cams
 
 
 def window_metrics(layout: Layout, generated: pa.Table, recorded: pa.Table, fps: float, field: Any = None,

@@ -67,6 +67,25 @@ def _chunk_frames(frames: int, extractor: Any, length: int) -> int:
     return min(1 + k * (frames - 1), length)
 
 
+def _paint_and_score(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor, int]], chunks: int, steps: int, seed: int,
+                     resamples: int, extractor: Any) -> dict[str, Any]:  # fmt: skip
+    """Paint each (rgb, pose, seed) clip's first 1 + chunks·(frames − 1) frames from its first RGB frame and score them
+    against the recorded RGB: the whole clips and per chunk, with bootstrap intervals (proxy extractor by default)."""
+    from marionette.observation.model import generate
+
+    f = model.config.frames
+    T = 1 + chunks * (f - 1)
+    real, gen = [], []
+    with torch.inference_mode():
+        for rgb, pose, k in clips:
+            real.append(rgb[:T])
+            gen.append(generate(model, pose[:T], rgb[0], chunks=chunks, steps=steps, seed=k).clamp(-1, 1))
+    real_v, gen_v = torch.stack(real), torch.stack(gen)
+    ex = extractor or fvd.ProxyExtractor()
+    return {"frames": T, "whole": fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed),
+            "per_chunk": fvd.fvd_per_chunk(real_v, gen_v, ex, frames=_chunk_frames(f, ex, T), resamples=resamples, seed=seed)}  # fmt: skip
+
+
 def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor]], steps: int = 20, seed: int = 0,
                     resamples: int = 200, max_frames: int | None = None, extractor: Any = None) -> dict[str, Any]:  # fmt: skip
     """FVD (I3D ``extractor``) or proxy-FVD (default) of RGB the observation ``model`` paints from recorded pose clips against the recorded RGB.
@@ -74,8 +93,6 @@ def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor
     ``clips``: (rgb (T, 3, H, W) in [−1, 1], pose (T, 3, H, W) in [0, 1]) at the model's size, T ≥ the
     model's frames; each is relayed over as many model chunks as fit (1 + n·(frames − 1) frames, at most
     ``max_frames``)."""
-    from marionette.observation.model import generate
-
     if len(clips) < 2:
         raise ValueError(f"proxy-FVD needs at least 2 clips, got {len(clips)}")
     f = model.config.frames
@@ -84,17 +101,9 @@ def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor
         n = min(n, (int(max_frames) - 1) // (f - 1))
     if n < 1:
         raise ValueError(f"clips of {min(len(r) for r, _ in clips)} frames are shorter than the model's {f}")
-    T = 1 + n * (f - 1)
-    real, gen = [], []
-    with torch.inference_mode():
-        for k, (rgb, pose) in enumerate(clips):
-            real.append(rgb[:T])
-            gen.append(generate(model, pose[:T], rgb[0], chunks=n, steps=steps, seed=seed + k).clamp(-1, 1))
-    real_v, gen_v = torch.stack(real), torch.stack(gen)
-    ex = extractor or fvd.ProxyExtractor()
-    whole = fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed)
-    chunks = fvd.fvd_per_chunk(real_v, gen_v, ex, frames=_chunk_frames(f, ex, T), resamples=resamples, seed=seed)
-    return {"run": True, "clips": len(clips), "frames": T, "steps": steps, "whole": whole, "per_chunk": chunks,
+    scored = _paint_and_score(model, [(rgb, pose, seed + k) for k, (rgb, pose) in enumerate(clips)], n, steps, seed, resamples,
+                              extractor)  # fmt: skip
+    return {"run": True, "clips": len(clips), "steps": steps, **scored,
             "what": "observation model on recorded pose-control chunks vs recorded RGB"}  # fmt: skip
 
 
@@ -258,8 +267,6 @@ def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequen
     starting from the recorded view) from the recorded first frame, relayed over model chunks, against the
     recorded RGB of the same video frames: whole clips and per model chunk, with bootstrap intervals (the first
     ``max_frames`` frames of each clip, a whole number of model chunks, when given)."""
-    from marionette.observation.model import generate
-
     f = model.config.frames
     clips, skipped, T = rollout_clips(c, windows, tables, f, model.config.size)
     base = {"what": "observation model on the rollouts' pose-control video (bridge camera from the recorded view) vs recorded RGB",
@@ -269,19 +276,9 @@ def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequen
     n = (T - 1) // (f - 1) if max_frames is None else min((T - 1) // (f - 1), (int(max_frames) - 1) // (f - 1))
     if n < 1:
         return {"run": False, "reason": f"max_frames {max_frames} is shorter than one model chunk ({f})", **base}
-    T = 1 + n * (f - 1)
-    real, gen = [], []
-    with torch.inference_mode():
-        for k, clip in clips:
-            real.append(clip.rgb[:T])
-            painted = generate(model, clip.pose[:T], clip.rgb[0], chunks=n, steps=steps, seed=seed + k)
-            gen.append(painted.clamp(-1, 1))
-    real_v, gen_v = torch.stack(real), torch.stack(gen)
-    ex = extractor or fvd.ProxyExtractor()
-    return {"run": True, **base, "clips": len(clips), "frames": T,
-            "windows": [{"window": k, "source_frames": list(cl.source_frames), "chunks": cl.chunks} for k, cl in clips],
-            "whole": fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed),
-            "per_chunk": fvd.fvd_per_chunk(real_v, gen_v, ex, frames=_chunk_frames(f, ex, T), resamples=resamples, seed=seed)}  # fmt: skip
+    scored = _paint_and_score(model, [(cl.rgb, cl.pose, seed + k) for k, cl in clips], n, steps, seed, resamples, extractor)
+    return {"run": True, **base, "clips": len(clips), **scored,
+            "windows": [{"window": k, "source_frames": list(cl.source_frames), "chunks": cl.chunks} for k, cl in clips]}  # fmt: skip
 
 
 # -- writing ---------------------------------------------------------------------------------------------------
