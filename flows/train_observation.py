@@ -64,10 +64,13 @@ def train_observation(
     seed: int = 0,
     control: str = "pose",
     checkpoint_every: int = 250,
+    reference_swap: float | None = None,
 ) -> dict:
-    """Pose targets up to date, then train the observation model (or the pixel-AR baseline, control="actions")."""
+    """Pose targets up to date, then train the observation model (or the pixel-AR baseline, control="actions");
+    ``reference_swap`` None: the trainer's default (0.2 under pose control, 0 for the baseline)."""
     config = ObservationTrainConfig(preset=preset, steps=steps, batch_size=batch_size, frames=frames, reduce=reduce, patch=patch, lr=lr,
-                                    seed=seed, control=control, checkpoint_every=checkpoint_every)  # fmt: skip
+                                    seed=seed, control=control, checkpoint_every=checkpoint_every,
+                                    reference_swap=reference_swap)  # fmt: skip
     pose_targets(corpus)
     summary = train_model(corpus, out, config)
     create_markdown_artifact(key="train-observation-report", markdown=report_markdown(corpus, summary))

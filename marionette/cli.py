@@ -212,7 +212,8 @@ def cmd_train_observation(a: argparse.Namespace) -> int:
     """Train the observation model on a corpus's video shards (resuming from --out)."""
     from marionette.observation.train import ObservationTrainConfig, train, train_in_processes
 
-    keys = ("preset", "steps", "batch_size", "frames", "reduce", "patch", "lr", "warmup", "seed", "checkpoint_every", "control")
+    keys = ("preset", "steps", "batch_size", "frames", "reduce", "patch", "lr", "warmup", "seed", "checkpoint_every", "control",
+            "reference_swap")
     config = ObservationTrainConfig(**{k: getattr(a, k) for k in keys if getattr(a, k) is not None})
     if a.nproc > 1:
         train_in_processes(a.corpus, a.out, config, a.nproc)
@@ -430,6 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
     for flag, kind in (("--steps", int), ("--batch-size", int), ("--frames", int), ("--reduce", int), ("--patch", int),
                        ("--lr", float), ("--warmup", int), ("--seed", int), ("--checkpoint-every", int)):  # fmt: skip
         s.add_argument(flag, type=kind, default=None)
+    s.add_argument("--reference-swap", type=float, default=None,
+                   help="probability that a training clip's first frame comes from another chunk (pose control; teaches pose-following)")  # fmt: skip
     s.add_argument("--nproc", type=int, default=1, help="processes: > 1 trains under torchrun (DDP)")
     s.set_defaults(fn=cmd_train_observation)
 

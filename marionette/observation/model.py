@@ -5,15 +5,23 @@ H × W enters as one token per (frame, p × p patch): each token concatenates, p
 
 - the noisy RGB x_s (3 channels),
 - the pose-control frame (3: the bridge's height, identity, inverse depth in [0, 1]),
-- the first frame (3, the same for every frame of the clip) and a mask (1 on frame 0, else 0),
+- the given video and its mask, as Wan-Fun-Control's masked-video latents: on frame 0 the first frame (3)
+  and 1, on every other frame zeros,
 
 projected to ``width``, plus fixed sine–cosine embeddings of the frame index and of the patch row
 and column. Blocks are pre-norm self-attention over all T·(H/p)·(W/p) tokens and an MLP, each
 modulated (shift, scale, gate; zero-initialised gates, "adaLN-Zero") by an embedding of the noise
 level s. A linear head returns, per patch, the velocity (3 channels per pixel).
 
+Why the first frame sits on frame 0 only: a token of frame t then has no local copy of the first frame,
+so where a body is comes from its pose pixels and what it looks like from attention to frame 0. Given the
+first frame on every frame's tokens (as this model first did), it learnt to redraw the first frame's
+bodies under any pose (docs/tradeoffs.md, "does the model follow the pose?").
+
 Objective: rectified flow. x_s = (1 − s)·x₀ + s·ε with ε ~ N(0, I), s ~ U(0, 1); the network predicts
-v = ε − x₀; the loss is the MSE of v over frames 1..T−1 (frame 0 is given). Sampling integrates
+v = ε − x₀; the loss is the MSE of v over frames 1..T−1 (frame 0 is given). Training may give a clip
+another clip's frame as its first frame (``flow_loss(..., first=)``, the trainer's ``reference_swap``):
+its targets stay its own frames, so the pose, not the first frame, must say where bodies are. Sampling integrates
 dx/ds = v from s = 1 to 0 with ``steps`` Euler steps on a uniform grid, with frame 0 held at the
 first frame's noised value x_s = (1 − s)·first + s·ε₀ so that it is consistent with every step.
 
@@ -181,10 +189,9 @@ class VideoDiT(nn.Module):
         first (B, 3, H, W); s (B,) → velocity (B, T, 3, H, W)."""
         c = self.config
         B, T = x_s.shape[:2]
-        mask = torch.zeros(B, T, 1, *x_s.shape[3:], dtype=x_s.dtype, device=x_s.device)
-        mask[:, 0] = 1.0
-        cond_first = first[:, None].expand(B, T, *first.shape[1:])
-        parts = [x_s, control, cond_first, mask] if c.control == "pose" else [x_s, cond_first, mask]
+        given = torch.zeros(B, T, RGB + 1, *x_s.shape[3:], dtype=x_s.dtype, device=x_s.device)  # Wan's masked video + mask
+        given[:, 0, :RGB], given[:, 0, RGB] = first, 1.0
+        parts = [x_s, control, given] if c.control == "pose" else [x_s, given]
         tokens = self.embed(self.patchify(torch.cat(parts, dim=2))) + self.pos
         if self.actions is not None:
             per_frame = sum(emb(control[..., i]) for i, emb in enumerate(self.actions))  # (B, T, width)
@@ -216,9 +223,12 @@ def check_inputs(config: ObservationConfig, control: Tensor, first: Tensor) -> N
         raise ValueError(f"first frame {tuple(first.shape)}: the model takes ({RGB}, {h}, {w})")
 
 
-def flow_loss(model: VideoDiT, rgb: Tensor, control: Tensor, generator: torch.Generator) -> Tensor:
-    """Rectified-flow loss of a batch of clips (B, T, 3, H, W) under their control, frames 1..T−1 (module doc)."""
+def flow_loss(model: VideoDiT, rgb: Tensor, control: Tensor, generator: torch.Generator, first: Tensor | None = None) -> Tensor:
+    """Rectified-flow loss of a batch of clips (B, T, 3, H, W) under their control, frames 1..T−1 (module doc);
+    ``first`` (B, 3, H, W): the given first frames, if not the clips' own frame 0."""
     B = rgb.shape[0]
+    if first is not None:
+        rgb = torch.cat([first[:, None], rgb[:, 1:]], dim=1)
     s = torch.rand(B, generator=generator).to(rgb.device)
     eps = torch.randn(rgb.shape, generator=generator).to(rgb.device)
     x_s = (1 - s)[:, None, None, None, None] * rgb + s[:, None, None, None, None] * eps

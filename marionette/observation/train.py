@@ -4,7 +4,8 @@ Data: the train split's chunks (``data.ClipSource.chunks``), decoded once per ru
 at the model's size (the corpus's chunk size divided by ``reduce``); step s draws its batch of clips
 (chunk, start) from ``numpy.random.default_rng([seed, s])``, so a resumed run sees the same batches.
 Objective: the rectified-flow loss of ``model.flow_loss`` with noise from a generator seeded by
-(seed, s). AdamW, linear warm-up then cosine decay to a tenth, gradient clipping at 1.
+(seed, s); with probability ``reference_swap`` a clip's given first frame is a random frame of another
+train chunk (its targets unchanged), which teaches the model to place bodies by the pose. AdamW, linear warm-up then cosine decay to a tenth, gradient clipping at 1.
 Evaluation, on the held-out split ("test", or the train split when there is none): the flow loss of
 every held-out chunk's first clip at 8 fixed (s, ε) draws (seed 1234), so successive evaluations
 compare like with like. Checkpoints: ``dynamics.checkpoint`` (safetensors + JSON, atomic, ``latest``).
@@ -38,6 +39,7 @@ from marionette.observation.model import OBS_PRESETS, ObservationConfig, VideoDi
 
 HELD_OUT = "test"
 EVAL_DRAWS = 8
+REFERENCE_SWAP = 0.2  # the default under pose control (docs/tradeoffs.md: reference swap against quality)
 
 
 @dataclass(frozen=True)
@@ -55,10 +57,24 @@ class ObservationTrainConfig:
     seed: int = 0
     checkpoint_every: int = 0
     control: str = "pose"  # "pose", or "actions": the pixel-AR baseline (first frame + action schedule)
+    # probability that a clip's given first frame is a frame of another chunk; None: 0.2 under pose control, 0 for the
+    # baseline (which can learn where bodies are only from its first frame)
+    reference_swap: float | None = None
 
     def __post_init__(self) -> None:
         if self.preset not in OBS_PRESETS:
             raise ValueError(f"unknown observation preset {self.preset!r}; known: {sorted(OBS_PRESETS)}")
+        if self.reference_swap is not None and not 0.0 <= self.reference_swap < 1.0:
+            raise ValueError(f"reference_swap {self.reference_swap} is not a probability in [0, 1)")
+        if self.reference_swap and self.control != "pose":
+            raise ValueError("reference_swap needs pose control: the baseline learns where bodies are from its first frame")
+
+    @property
+    def swap(self) -> float:
+        """The reference-swap probability in effect."""
+        if self.reference_swap is not None:
+            return self.reference_swap
+        return REFERENCE_SWAP if self.control == "pose" else 0.0
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -97,14 +113,21 @@ def _lr(step: int, config: ObservationTrainConfig) -> float:
     return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str,
-           rank: int = 0) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str, rank: int = 0,
+           swap: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Step ``step``'s clips, their controls and their given first frames: with probability ``swap``, a clip's
+    is a random frame of another chunk (reference swap), else its own frame 0."""
     rng = np.random.default_rng([seed, step] if rank == 0 else [seed, step, rank])
     picks = rng.integers(0, len(chunks), size)
     starts = [int(rng.integers(0, chunks[i].rgb.shape[0] - frames + 1)) for i in picks]
     rgb = torch.stack([chunks[i].rgb[s : s + frames] for i, s in zip(picks, starts)])
     ctrl = torch.stack([control_of(chunks[i], control)[s : s + frames] for i, s in zip(picks, starts)])
-    return rgb, ctrl
+    first = rgb[:, 0].clone()
+    if swap and len(chunks) > 1:
+        for b in np.flatnonzero(rng.random(size) < swap):
+            other = chunks[(picks[b] + 1 + rng.integers(0, len(chunks) - 1)) % len(chunks)].rgb
+            first[b] = other[rng.integers(0, len(other))]
+    return rgb, ctrl, first
 
 
 @torch.no_grad()
@@ -167,9 +190,9 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     started = step
     model.train()
     while step < end:
-        rgb, ctrl = _batch(chunks, mc.frames, config.batch_size, config.seed, step, config.control, rank)
+        rgb, ctrl, first = _batch(chunks, mc.frames, config.batch_size, config.seed, step, config.control, rank, config.swap)
         noise = torch.Generator().manual_seed(config.seed * 1_000_003 + step if rank == 0 else hash((config.seed, step, rank)) % 2**62)
-        loss = flow_loss(net, rgb, ctrl, noise)
+        loss = flow_loss(net, rgb, ctrl, noise, first)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
