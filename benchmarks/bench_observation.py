@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_observation.py [--corpus DIR] [--train-steps 300,1000] [--sampling-steps 2,4,8,16,32]
 
 Input (made in a temp dir unless given): the tests' observation corpus — three 10 s synthetic
-recordings (seed 7) ingested at 72×128, pose targets rendered (no terrain scan), recording
+recordings (seed 7) ingested at 72×128, terrain scanned, pose targets rendered, recording
 ``data_part1/rec0001`` held out. The model: the tiny preset at 18×32 (``reduce`` 4), 5-frame clips,
 patch 2, batch 4, lr 1e-3 (as ``tests/test_observation.py``), trained for each ``--train-steps``; the
 pixel-AR baseline (``control="actions"``) alike. Quality: per held-out chunk, one chunk generated
@@ -31,8 +31,8 @@ from marionette.observation.train import ObservationTrainConfig, load_model, tra
 CONFIG = ObservationTrainConfig(preset="tiny", batch_size=4, frames=5, reduce=4, patch=2, lr=1e-3, warmup=20)
 
 
-def make_corpus(root: Path, scan: bool = False) -> Path:
-    """The benchmark corpus under ``root`` (module doc); ``scan``: scan its terrain before rendering pose targets."""
+def make_corpus(root: Path) -> Path:
+    """The benchmark corpus under ``root`` (module doc)."""
     import pyarrow as pa
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
@@ -40,14 +40,12 @@ def make_corpus(root: Path, scan: bool = False) -> Path:
     from marionette.bridge.targets import render_pose_targets
     from marionette.ingest import IngestOptions, VideoSettings, build_corpus
     from marionette.synth import generate as synth
+    from terrain_scan.scan import scan_stages
 
     synth(root / "recordings", recordings=3, seconds=10.0, seed=7, width=160, height=90, workers=2)
     build_corpus(root / "recordings", root / "corpus", IngestOptions(video=VideoSettings(height=72, width=128, crf=23)),
                  workers=2, progress=False)  # fmt: skip
-    if scan:
-        from terrain_scan.scan import scan_stages
-
-        scan_stages(root / "corpus", incremental=True, log=lambda *_: None)
+    scan_stages(root / "corpus", incremental=True, log=lambda *_: None)
     render_pose_targets(root / "corpus")
     path = root / "corpus" / "meta" / "segments.parquet"
     seg = pq.read_table(path)

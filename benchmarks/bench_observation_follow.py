@@ -72,6 +72,8 @@ def main() -> None:
         t0 = time.perf_counter()
         seg = Segmenter(train_chunks)
         pairs = swap_pairs(held, T, a.pairs)
+        if not pairs:
+            raise SystemExit("no two held-out chunks both show bodies: nothing to swap")
         print(f"{len(train_chunks)} train / {len(held)} held-out chunks; segmenter fitted in {time.perf_counter() - t0:.0f} s, IoU on "
               f"held-out recorded frames {seg.iou_on(held):.3f}; {len(pairs)} swap pairs, id-mask overlap "
               f"{min(p.overlap for p in pairs):.3f}–{max(p.overlap for p in pairs):.3f}")  # fmt: skip

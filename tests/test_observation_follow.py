@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from marionette.observation.data import Clip, ClipSource
-from marionette.observation.model import VideoDiT
+from marionette.observation.model import ObservationConfig, VideoDiT
 from marionette.observation.quality import Segmenter, bodies, copy_error, follow_scores, iou, relay_error, swap_pairs
 from marionette.observation.train import ObservationTrainConfig, _batch, load_model, train
 
@@ -59,6 +59,9 @@ def test_reference_swap_draws_first_frames_from_other_chunks():
     assert all(float(f[0, 0, 0]) != float(r[0, 0, 0]) for f, r in zip(first[~own], rgb[~own, 0]))  # always another chunk
     again = _batch(chunks, 5, 64, seed=3, step=7, control="pose", swap=0.5)
     assert all(torch.equal(x, y) for x, y in zip((rgb, first), (again[0], again[2])))
+    assert torch.equal(_batch(chunks, 5, 64, seed=3, step=7, control="pose")[0], rgb)  # swapping never changes the clips drawn
+    other_rank = _batch(chunks, 5, 64, seed=3, step=7, control="pose", rank=1, swap=0.5)
+    assert not torch.equal(other_rank[0], rgb) and not torch.equal(other_rank[2], first)
     assert torch.equal(_batch(chunks, 5, 8, seed=3, step=7, control="pose")[2], _batch(chunks, 5, 8, seed=3, step=7, control="pose")[0][:, 0])
     with pytest.raises(ValueError, match="pose control"):
         ObservationTrainConfig(control="actions", reference_swap=0.1)
@@ -106,3 +109,24 @@ def test_quality_measures_on_hand_built_frames():
     assert bodies(pose).sum() == 2 and bodies(pose).shape == (2, 1, 4, 4)
     still = Clip(rgb=torch.ones(9, 3, 4, 4) * 0.5, pose=pose.repeat(5, 1, 1, 1)[:9], key="k", start=0)
     assert copy_error([still], 5) == 0.0
+    ramp = Clip(rgb=torch.arange(11.0)[:, None, None, None].expand(11, 3, 4, 4) / 10, pose=pose.repeat(6, 1, 1, 1)[:11], key="r", start=0)
+    assert copy_error([ramp], 5) == pytest.approx(0.45)  # frames 1–8 (two whole 5-frame chunks), |k/10 − 0| on average
+    moved = Clip(rgb=still.rgb, pose=still.pose.roll(2, dims=-1), key="m", start=0)
+    empty = Clip(rgb=still.rgb, pose=torch.zeros_like(still.pose), key="e", start=0)
+    pairs = swap_pairs([still, empty, moved, still], 5, 10)
+    assert {(p.a, p.b) for p in pairs} == {(0, 2), (2, 0), (0, 3), (3, 0), (2, 3), (3, 2)}  # the chunk without bodies in none
+    assert [p.overlap for p in pairs] == [0.0] * 4 + [1.0] * 2 and (pairs[0].a, pairs[0].b) == (0, 2)
+
+
+def test_the_first_frame_reaches_only_frame_0s_tokens():
+    """Wan-Fun-Control's masked video: the given frame and its mask are on frame 0 and zeros after, so no later token
+    holds a local copy of the first frame (docs/architecture.md)."""
+    c = ObservationConfig(frames=5, height=4, width_px=4, patch=2, width=16, layers=1, heads=2)
+    model = VideoDiT(c)
+    seen = []
+    model.embed.register_forward_pre_hook(lambda _, args: seen.append(args[0]))
+    first = torch.rand(2, 3, 4, 4) + 0.5
+    model(torch.randn(2, 5, 3, 4, 4), torch.rand(2, 5, 3, 4, 4), first, torch.full((2,), 0.5))
+    x = seen[0].view(2, 5, 2, 2, 10, 2, 2)  # (B, T, rows, cols, channels, p, p): noisy RGB, pose, given frame, mask
+    assert torch.equal(x[:, 0, :, :, 6:9].permute(0, 3, 1, 4, 2, 5).reshape(2, 3, 4, 4), first)
+    assert (x[:, 0, :, :, 9] == 1).all() and (x[:, 1:, :, :, 6:] == 0).all()

@@ -48,6 +48,7 @@ from marionette.io import check_json_fields
 
 RGB, POSE = 3, 3
 CONTROLS = ("pose", "actions")
+FORMAT = 2
 
 
 @dataclass(frozen=True)
@@ -64,8 +65,13 @@ class ObservationConfig:
     mlp_ratio: int = 4
     control: str = "pose"  # "pose": pose-control frames; "actions": the pixel-AR baseline's action schedule
     vocab_sizes: tuple[int, ...] = ()  # per articulated entity, for control "actions"
+    # what the inputs mean. 2: the first frame on frame 0's tokens only. A checkpoint without it gave the first
+    # frame to every frame's tokens: its parameters have the same shapes but would paint wrong video here.
+    format: int = FORMAT
 
     def __post_init__(self) -> None:
+        if self.format != FORMAT:
+            raise ValueError(f"observation config: format {self.format}; this version reads format {FORMAT} (retrain the model)")
         if self.control not in CONTROLS:
             raise ValueError(f"observation config: control {self.control!r} is not one of {CONTROLS}")
         if self.control == "actions" and not self.vocab_sizes:
@@ -87,7 +93,8 @@ class ObservationConfig:
 
     @property
     def in_channels(self) -> int:
-        """Per pixel: noisy RGB, the pose frame (pose control only), the first frame, its mask."""
+        """Per pixel: noisy RGB, the pose frame (pose control only), the given frame (the first frame on frame 0,
+        zeros after) and its mask."""
         return RGB + (POSE if self.control == "pose" else 0) + RGB + 1
 
     def to_json(self) -> dict:
@@ -98,6 +105,9 @@ class ObservationConfig:
     @classmethod
     def from_json(cls, d: dict) -> ObservationConfig:
         check_json_fields(cls, d, "observation config")
+        if "format" not in d:
+            raise ValueError("observation config JSON has no format: a model from before format 2 (first frame on every frame's "
+                             "tokens), which this version would run wrongly; retrain it")  # fmt: skip
         return cls(**{**d, "vocab_sizes": tuple(d.get("vocab_sizes", ()))})
 
 

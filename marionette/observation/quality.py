@@ -23,7 +23,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from marionette.observation.data import Clip
-from marionette.observation.model import VideoDiT, sample_chunk
+from marionette.observation.model import VideoDiT, generate, sample_chunk
+from marionette.observation.train import control_of
 
 
 def bodies(pose: Tensor) -> Tensor:
@@ -37,23 +38,12 @@ def iou(a: Tensor, b: Tensor) -> float:
     return float((a * b).sum()) / union if union else 1.0
 
 
-def control_of(clip: Clip, model: VideoDiT) -> Tensor:
-    return clip.pose if model.config.control == "pose" else clip.actions
-
-
 def relay_error(model: VideoDiT, chunks: list[Clip], steps: int = 16, seed: int = 0) -> float:
     """Mean |generated − recorded| over every chunk's frames after the first, relayed from its first frame."""
-    T = model.config.frames
-    g = torch.Generator().manual_seed(int(seed))
     errs = []
     for ch in chunks:
-        n = (len(ch.rgb) - 1) // (T - 1)
-        ctrl, cur, out = control_of(ch, model), ch.rgb[0], []
-        for k in range(n):
-            clip = sample_chunk(model, ctrl[None, k * (T - 1) : k * (T - 1) + T], cur[None], steps, g)[0]
-            out.append(clip[1:])
-            cur = clip[-1]
-        errs.append(float((torch.cat(out) - ch.rgb[1 : 1 + n * (T - 1)]).abs().mean()))
+        video = generate(model, control_of(ch, model.config.control), ch.rgb[0], steps=steps, seed=seed)
+        errs.append(float((video[1:] - ch.rgb[1 : len(video)]).abs().mean()))
     return float(np.mean(errs))
 
 
@@ -107,14 +97,16 @@ class SwapPair:
     a: int  # the chunk that gives the first frame
     b: int  # the chunk that gives the pose frames
     start: int
+    frames: int  # the clip: frames start … start + frames − 1, the first given
     overlap: float  # IoU of A's and B's id masks over the generated frames
 
 
 def swap_pairs(chunks: list[Clip], frames: int, count: int, start: int = 0) -> list[SwapPair]:
     """The ``count`` ordered pairs of distinct chunks whose id masks over frames start+1 … start+frames−1
-    overlap least (ties in index order)."""
+    overlap least (ties in index order); a chunk with no bone in those frames is in no pair."""
     masks = [bodies(c.pose[start + 1 : start + frames]) for c in chunks]
-    pairs = [SwapPair(a, b, start, iou(masks[a], masks[b])) for a in range(len(chunks)) for b in range(len(chunks)) if a != b]
+    seen = [k for k, m in enumerate(masks) if m.any()]
+    pairs = [SwapPair(a, b, start, frames, iou(masks[a], masks[b])) for a in seen for b in seen if a != b]
     return sorted(pairs, key=lambda p: (p.overlap, p.a, p.b))[:count]
 
 
@@ -124,6 +116,8 @@ def follow_scores(model: VideoDiT, chunks: list[Clip], pairs: list[SwapPair], se
     if model.config.control != "pose":
         raise ValueError("follow_scores: the model takes no pose video")
     T = model.config.frames
+    if not pairs or any(p.frames != T for p in pairs):
+        raise ValueError(f"follow_scores: needs pairs chosen for the model's {T}-frame clips")
     g = torch.Generator().manual_seed(int(seed))
     to_b, to_a = [], []
     for p in pairs:

@@ -39,7 +39,7 @@ from marionette.observation.model import OBS_PRESETS, ObservationConfig, VideoDi
 
 HELD_OUT = "test"
 EVAL_DRAWS = 8
-REFERENCE_SWAP = 0.2  # the default under pose control (docs/tradeoffs.md: reference swap against quality)
+REFERENCE_SWAP = 0.2  # the default under pose control (docs/tradeoffs.md, "Observation: reference swap ...")
 
 
 @dataclass(frozen=True)
@@ -151,6 +151,7 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     rank, world = rank_world()
     log = log if rank == 0 else (lambda *_: None)
     out_dir = Path(out_dir)
+    config = replace(config, reference_swap=config.swap)  # saved and compared on resume as the probability in effect
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
     mc = model_config(corpus, config)
     actions = config.control == "actions"
