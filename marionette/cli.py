@@ -471,7 +471,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--height", type=int, default=180)
     s.add_argument("--workers", type=int, default=2)
     s.add_argument("--dynamics-steps", type=int, default=1000, help="training steps of the demo's tiny dynamics model")
-    s.add_argument("--observation-steps", type=int, default=300, help="training steps of the demo's tiny observation model")
+    s.add_argument("--observation-steps", type=int, default=1000, help="training steps of the demo's tiny observation model")
     s.set_defaults(fn=cmd_demo)
     return p
 
