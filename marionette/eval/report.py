@@ -181,11 +181,10 @@ def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: 
     chunk's size and reduced to ``size`` like the training clips (``reduce_codes``, area-averaged RGB). Raises
     ``WindowSkipped`` when the frames are not all in the segment's video chunks (or lack RGB, or a camera)."""
     from marionette.bridge.camera import recorded_cameras
-    from marionette.bridge.gbuffer import CODE_MAX
     from marionette.corpus import _fixed
     from marionette.eval.protocol import rollout_pose_codes
     from marionette.ingest.video import decode_frames
-    from marionette.observation.data import _reduce_rgb, check_size, reduce_codes
+    from marionette.observation.data import check_size, pose_frames, rgb_frames
 
     seg_t, seg_f = seg_rows["t"].to_numpy(), seg_rows["frame"].to_numpy()
     i0, avail = _horizon_times(table, window.seed_frames, seg_t)
@@ -227,11 +226,8 @@ def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: 
     if not start.valid[0]:
         raise WindowSkipped(f"no valid recorded camera at source frame {src[0]}")
     codes, cams = rollout_pose_codes(c.layout, table, seg_t[idx], start, terrain)
-    pose = reduce_codes(codes, factor).astype(np.float32) / CODE_MAX
-    rgb_f = _reduce_rgb(rgb, factor) / 127.5 - 1.0
-    return RolloutClip(torch.from_numpy(np.ascontiguousarray(rgb_f.transpose(0, 3, 1, 2))),
-                       torch.from_numpy(np.ascontiguousarray(pose.transpose(0, 3, 1, 2))), cams, start,
-                       (int(src[0]), int(src[-1]) + 1), [chunks[k]["key"] for k in used])  # fmt: skip
+    return RolloutClip(rgb_frames(rgb, factor), pose_frames(codes, factor), cams, start, (int(src[0]), int(src[-1]) + 1),
+                       [chunks[k]["key"] for k in used])  # fmt: skip
 
 
 def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], model_frames: int,

@@ -63,6 +63,18 @@ def reduce_codes(codes: np.ndarray, factor: int) -> np.ndarray:
     return np.take_along_axis(blocks, pick[..., None, None], axis=3)[:, :, :, 0]
 
 
+def rgb_frames(frames: np.ndarray, factor: int) -> torch.Tensor:
+    """(T, H·f, W·f, 3) uint8 → the model's RGB frames (T, 3, H, W) float32 in [−1, 1] (area means)."""
+    rgb = _reduce_rgb(frames, factor) / 127.5 - 1.0
+    return torch.from_numpy(np.ascontiguousarray(rgb.transpose(0, 3, 1, 2)))
+
+
+def pose_frames(codes: np.ndarray, factor: int) -> torch.Tensor:
+    """(T, H·f, W·f, 3) G-buffer codes → the model's pose frames (T, 3, H, W) float32 in [0, 1] (``reduce_codes``)."""
+    pose = reduce_codes(codes, factor).astype(np.float32) / CODE_MAX
+    return torch.from_numpy(np.ascontiguousarray(pose.transpose(0, 3, 1, 2)))
+
+
 def check_size(src_hw: tuple[int, int], size: tuple[int, int], where: str) -> int:
     """The reduction factor from a chunk's (H, W) to the model's, or a ValueError naming ``where``."""
     (sh, sw), (h, w) = src_hw, size
@@ -81,14 +93,7 @@ def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) ->
     if start + frames > len(rgb):
         raise ValueError(f"{key}: a clip of {frames} frames from {start} exceeds the chunk's {len(rgb)}")
     f = check_size(rgb.shape[1:3], size, key)
-    rgb = _reduce_rgb(rgb[start : start + frames], f) / 127.5 - 1.0
-    pose = reduce_codes(codes[start : start + frames], f).astype(np.float32) / CODE_MAX
-    return Clip(
-        rgb=torch.from_numpy(np.ascontiguousarray(rgb.transpose(0, 3, 1, 2))),
-        pose=torch.from_numpy(np.ascontiguousarray(pose.transpose(0, 3, 1, 2))),
-        key=key,
-        start=start,
-    )
+    return Clip(rgb=rgb_frames(rgb[start : start + frames], f), pose=pose_frames(codes[start : start + frames], f), key=key, start=start)
 
 
 def _frame_count(sample: dict) -> int:

@@ -17,10 +17,10 @@ import av
 import numpy as np
 import torch
 
-from marionette.bridge.gbuffer import CODE_MAX, iter_codes, read_meta
+from marionette.bridge.gbuffer import iter_codes, read_meta
 from marionette.ingest.video import VideoSettings, encode_mp4
 from marionette.io import write_bytes
-from marionette.observation.data import _reduce_rgb, check_size, reduce_codes
+from marionette.observation.data import check_size, pose_frames, rgb_frames
 from marionette.observation.model import generate
 from marionette.observation.train import load_model
 
@@ -55,10 +55,7 @@ def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tup
     if first.shape[:2] != (meta.height, meta.width):
         raise ValueError(f"{first_path}: a {first.shape[0]}×{first.shape[1]} first frame for a {meta.height}×{meta.width} pose video")
     f = check_size((meta.height, meta.width), size, str(pose_path))
-    codes = reduce_codes(np.stack(list(iter_codes(pose_path))), f)
-    pose = torch.from_numpy(codes.astype(np.float32).transpose(0, 3, 1, 2) / CODE_MAX)
-    rgb = _reduce_rgb(first[None], f)[0] / 127.5 - 1.0
-    return pose, torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+    return pose_frames(np.stack(list(iter_codes(pose_path))), f), rgb_frames(first[None], f)[0]
 
 
 def main(args: argparse.Namespace) -> Path:

@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from marionette.bridge.gbuffer import CODE_MAX
 from marionette.observation.data import Clip
 from marionette.observation.model import VideoDiT, generate, sample_chunk
 from marionette.observation.train import control_of
@@ -29,7 +30,7 @@ from marionette.observation.train import control_of
 
 def bodies(pose: Tensor) -> Tensor:
     """(…, 3, H, W) pose frames → (…, 1, H, W) float mask, 1 where a bone is drawn (identity code > 0)."""
-    return (pose.narrow(-3, 1, 1) > 0.5 / 1023).float()
+    return (pose.narrow(-3, 1, 1) > 0.5 / CODE_MAX).float()
 
 
 def iou(a: Tensor, b: Tensor) -> float:
