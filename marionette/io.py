@@ -88,3 +88,26 @@ def check_json_fields(cls: type, d: dict, what: str) -> None:
     unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
     if unknown:
         raise ValueError(f"{what} JSON has unknown fields {unknown}")
+
+
+def read_json(path: Path, max_bytes: int = 64 << 20):
+    """A JSON file's value; a ValueError naming the file when it is too large or not JSON."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise ValueError(f"{path}: {size} bytes, over the {max_bytes}-byte limit for a JSON file")
+    try:
+        return json.loads(path.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+
+
+def read_tensors(path: Path) -> dict:
+    """The tensors of a safetensors file (never a pickle); a ValueError naming the file if it is not one."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError) as exc:
+        raise ValueError(f"{path}: not a readable safetensors file ({exc})") from None

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from marionette.corpus.paths import CorpusPathError, inside
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import MAX_LAYERS, Observations, drop_aliases, merge
@@ -30,12 +31,54 @@ from terrain_scan.trn2 import FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, sp
 MANIFEST_FORMAT = "marionette-terrain-stage"
 MANIFEST_VERSION = 1
 FILL_ROUNDS = 2
+CHUNK_NAME = re.compile(r"(-?\d{1,9})_(-?\d{1,9})")
 
 
 def recording_key(recording: str) -> str:
     """File-safe, collision-free name of a recording's contribution."""
     clean = re.sub(r"[^A-Za-z0-9_-]", "-", recording)
     return f"{clean}--{hashlib.sha256(recording.encode()).hexdigest()[:8]}"
+
+
+def contribution_file(recording: str) -> str:
+    """``contributions/<key>.npz``: where a recording's contribution lives, relative to the stage."""
+    return f"contributions/{recording_key(recording)}.npz"
+
+
+def chunk_file(cx: int, cz: int) -> str:
+    """``chunks/chunk_<cx>_<cz>.trn2``, relative to the stage."""
+    return f"chunks/{chunk_filename(cx, cz)}"
+
+
+def parse_chunk_name(name: object, where: str) -> tuple[int, int]:
+    """(cx, cz) of a manifest chunk name ``"<cx>_<cz>"``, else CorpusPathError naming ``where``."""
+    m = CHUNK_NAME.fullmatch(name) if isinstance(name, str) else None
+    if m is None:
+        raise CorpusPathError(f"{where}: chunk name {name!r} is not <cx>_<cz>")
+    return int(m[1]), int(m[2])
+
+
+def check_manifest(manifest: object, path: Path) -> dict:
+    """A stage manifest read from disk, checked: its format, and every file it names is the one its
+    recording or chunk name gives (so no entry can point outside the stage); else an error naming the entry."""
+    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
+        raise ValueError(f"{path}: not a terrain stage manifest")
+    recs, chunks = manifest.get("recordings"), manifest.get("chunks")
+    if not isinstance(recs, dict) or not isinstance(chunks, dict):
+        raise ValueError(f"{path}: a stage manifest needs 'recordings' and 'chunks' objects")
+    for name, rec in recs.items():
+        if not isinstance(rec, dict) or rec.get("file") != contribution_file(name):
+            got = rec.get("file") if isinstance(rec, dict) else rec
+            raise CorpusPathError(f"{path}: recordings.{name}.file is {got!r}, not {contribution_file(name)!r}")
+        for i, c in enumerate(rec.get("chunks", [])):
+            if not (isinstance(c, list) and len(c) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in c)):
+                raise ValueError(f"{path}: recordings.{name}.chunks[{i}] is not [cx, cz]")
+    for name, rec in chunks.items():
+        cx, cz = parse_chunk_name(name, str(path))
+        if not isinstance(rec, dict) or rec.get("file") != chunk_file(cx, cz):
+            got = rec.get("file") if isinstance(rec, dict) else rec
+            raise CorpusPathError(f"{path}: chunks.{name}.file is {got!r}, not {chunk_file(cx, cz)!r}")
+    return manifest
 
 
 @dataclass
@@ -57,12 +100,22 @@ class Stage:
         self.max_layers = max_layers
         self.fill_rounds = fill_rounds
         path = self.dir / "manifest.json"
-        self.manifest = json.loads(path.read_text()) if path.exists() else {
-            "format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "max_layers": max_layers,
-            "fill_rounds": fill_rounds, "recordings": {}, "chunks": {},
-        }  # fmt: skip
-        if self.manifest.get("format") != MANIFEST_FORMAT:
-            raise ValueError(f"{path}: not a terrain stage manifest")
+        if path.exists():
+            try:
+                self.manifest = check_manifest(json.loads(path.read_text()), path)
+            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+                raise ValueError(f"{path}: not a terrain stage manifest ({exc})") from None
+        else:
+            self.manifest = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "max_layers": max_layers,
+                             "fill_rounds": fill_rounds, "recordings": {}, "chunks": {}}  # fmt: skip
+
+    def file(self, rel: str) -> Path:
+        """A file of the stage named by its (checked) manifest, resolved inside the stage directory."""
+        return inside(self.dir, self.dir / rel, str(self.dir / "manifest.json"))
+
+    def chunk_files(self) -> dict[str, tuple[Path, str]]:
+        """Manifest chunk name "cx_cz" → (its TRN2 file, its sha256), in name order."""
+        return {name: (self.file(rec["file"]), rec["sha256"]) for name, rec in sorted(self.manifest["chunks"].items())}
 
     # -- contributions --------------------------------------------------------------------------
 
@@ -77,15 +130,14 @@ class Stage:
         ``ts`` (unix seconds); takes effect at the next rebuild."""
         obs = Observations(obs.gx, obs.gz, obs.h, obs.n, obs.hits, np.full(len(obs), int(ts), np.int64))
         obs = merge(obs, max_layers=self.max_layers)
-        key = recording_key(recording)
-        path = self.dir / "contributions" / f"{key}.npz"
+        path = self.dir / contribution_file(recording)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, gx=obs.gx, gz=obs.gz, h=obs.h, n=obs.n, hits=obs.hits, ts=obs.ts)
         cx, cz, _ = split_cell(obs.gx, obs.gz)
         chunks = sorted({(int(a), int(b)) for a, b in zip(cx, cz)})
         self.manifest["recordings"][recording] = {
             "input_hash": input_hash, "ts": int(ts), "observations": len(obs),
-            "file": f"contributions/{key}.npz", "chunks": [list(c) for c in chunks],
+            "file": contribution_file(recording), "chunks": [list(c) for c in chunks],
         }  # fmt: skip
         write_json(self.dir / "manifest.json", self.manifest)
 
@@ -94,10 +146,10 @@ class Stage:
         rec = self.manifest["recordings"].pop(recording, None)
         if rec is not None:
             write_json(self.dir / "manifest.json", self.manifest)
-            (self.dir / rec["file"]).unlink(missing_ok=True)
+            self.file(rec["file"]).unlink(missing_ok=True)
 
     def _load(self, rec: dict) -> Observations:
-        with np.load(self.dir / rec["file"], allow_pickle=False) as z:
+        with np.load(self.file(rec["file"]), allow_pickle=False) as z:
             return Observations(z["gx"], z["gz"], z["h"], z["n"], z["hits"], z["ts"])
 
     # -- chunks ---------------------------------------------------------------------------------
@@ -115,7 +167,7 @@ class Stage:
         report.layers, report.filled = len(layers), int(filled.sum())
         chunks = _to_chunks(layers, filled, self.max_layers)
         contributors = self._contributors()
-        old = {tuple(int(v) for v in k.split("_")) for k in self.manifest["chunks"]}
+        old = {parse_chunk_name(k, str(self.dir / "manifest.json")) for k in self.manifest["chunks"]}
         new_manifest_chunks = {}
         for (cx, cz), chunk in sorted(chunks.items()):
             data = chunk.to_bytes()
@@ -126,7 +178,7 @@ class Stage:
                 write_bytes(path, data)
                 report.written.append((cx, cz))
             new_manifest_chunks[f"{cx}_{cz}"] = {
-                "file": f"chunks/{chunk_filename(cx, cz)}",
+                "file": chunk_file(cx, cz),
                 "sha256": hashlib.sha256(data).hexdigest(),
                 "recordings": sorted(contributors.get((cx, cz), [])),
             }

@@ -16,16 +16,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import tarfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 
-from marionette.corpus import Corpus, _fixed
-from marionette.ingest.video import tar_add
-from marionette.io import atomic_path, text_sha256
+from marionette.corpus import Corpus, _fixed, paths, video_shards
+from marionette.corpus.lock import corpus_lock
+from marionette.io import text_sha256
 from marionette.schema import Layout
 
 from .camera import Cameras, follow_cameras, recorded_cameras
@@ -70,15 +69,14 @@ class TerrainScene:
         """Read a stage's TRN2 chunks (as listed by its manifest) into a mesh, boxes and hashes."""
         from terrain_scan.layers import Observations
         from terrain_scan.mesh import tessellate
+        from terrain_scan.store import Stage
         from terrain_scan.trn2 import CELLS, read_chunk
 
-        man_path = Path(stage_dir) / "manifest.json"
-        if not man_path.exists():
+        if not (Path(stage_dir) / "manifest.json").exists():
             return TerrainScene.empty()
-        man = json.loads(man_path.read_text())
         parts, boxes, hashes = [], {}, {}
-        for name, rec in sorted(man.get("chunks", {}).items()):
-            ch = read_chunk(Path(stage_dir) / rec["file"])
+        for name, (file, digest) in Stage(stage_dir).chunk_files().items():
+            ch = read_chunk(file)
             ok = ch.valid() & np.isfinite(ch.cells["h"])
             cell, slot = np.nonzero(ok)
             if not len(cell):
@@ -88,7 +86,7 @@ class TerrainScene:
                                       ch.cells["n"][cell, slot].astype(np.float64), np.ones(len(h), np.int64),
                                       np.zeros(len(h), np.int64)))  # fmt: skip
             boxes[name] = (np.array([ch.cx * CELLS, h.min(), ch.cz * CELLS]), np.array([(ch.cx + 1) * CELLS, h.max(), (ch.cz + 1) * CELLS]))
-            hashes[name] = rec["sha256"]
+            hashes[name] = digest
         if not parts:
             return TerrainScene.empty()
         layers = Observations.concat(parts)
@@ -146,112 +144,141 @@ def render_frames(rast: Rasterizer, layout: Layout, skel, cams: Cameras, h: tupl
         yield rast.render_planes(cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m)
 
 
-def _read_tar(path: Path) -> list[tuple[str, bytes]]:
-    """Members (name, bytes) of a tar, in order; only regular files, read into memory (never extracted)."""
-    out = []
-    with tarfile.open(path) as tar:
-        for m in tar:
-            if m.isfile():
-                out.append((m.name, tar.extractfile(m).read()))
-    return out
-
-
-def _write_tar(path: Path, members: list[tuple[str, bytes]]) -> None:
-    with atomic_path(path) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
-        for name, data in members:
-            tar_add(tar, name, data)
-
-
 @dataclass
 class TargetsReport:
     chunks: int = 0
     rendered: list[str] = field(default_factory=list)  # chunk names rendered in this pass
     shards_rewritten: list[int] = field(default_factory=list)
     frames_rendered: int = 0
+    failed: dict[str, str] = field(default_factory=dict)  # chunk key or shard → why it has no target
 
 
-def render_pose_targets(corpus_path: Path, settings: RenderSettings | None = None) -> TargetsReport:
-    """Bring every video chunk's pose target up to date (module docstring); returns what was done."""
-    from terrain_scan.scan import stage_dir
+class _Pass:
+    """One pose-target pass's caches: terrain per stage, a rasterizer per size, rows per segment."""
 
-    settings = settings or RenderSettings()
-    corpus = Corpus(Path(corpus_path))
-    layout = corpus.layout
-    out_dir = corpus.path / "derived" / "pose"
-    report = TargetsReport()
-    segs = {r["segment"]: r for r in corpus.segments.to_pylist()}
-    terrains: dict[str, TerrainScene] = {}
-    rasts: dict[tuple[int, int], Rasterizer] = {}
-    uploaded: dict[tuple[int, int], str] = {}
-    keep_files: set[str] = set()
-    segment_rows: dict[str, pa.Table] = {}
-    try:
-        for shard in corpus.shard_ids():
-            vpath = corpus.video_path(shard)
-            if not vpath.exists():
+    def __init__(self, corpus: Corpus, settings: RenderSettings, report: TargetsReport):
+        self.corpus, self.settings, self.report = corpus, settings, report
+        self.segments = {r["segment"]: r for r in corpus.segments.to_pylist()}
+        self.terrains: dict[str, TerrainScene] = {}
+        self.rasts: dict[tuple[int, int], Rasterizer] = {}
+        self.uploaded: dict[tuple[int, int], str] = {}
+        self.rows: dict[str, pa.Table] = {}
+        self.keep: set[str] = set()
+
+    def terrain(self, stage: str) -> TerrainScene:
+        if stage not in self.terrains:
+            self.terrains[stage] = TerrainScene.of_stage(paths.stage_dir(self.corpus.path, stage))
+        return self.terrains[stage]
+
+    def target(self, vpath: Path, key: str, rec: dict) -> Path:
+        """The chunk's pose target (rendered if its inputs changed); sets ``rec["pose"]``."""
+        layout, settings = self.corpus.layout, self.settings
+        segment = paths.parse_chunk_key(key, str(vpath))[0]
+        if segment not in self.segments:
+            raise ValueError(f"{vpath}: chunk {key} belongs to no segment of the corpus")
+        stage = self.segments[segment]["stage"]
+        terrain = self.terrain(stage)
+        if segment not in self.rows:
+            self.rows = {segment: self.corpus.read_segment(segment)}  # chunks of a segment are consecutive
+        rows = self.rows[segment]
+        frames = rows["frame"].to_numpy()
+        a, b = rec["frames"]
+        rows = rows.take(np.flatnonzero((frames >= a) & (frames < b)))
+        if rows.num_rows != b - a:
+            raise ValueError(f"{vpath}: chunk {key} spans frames [{a}, {b}) but its segment has {rows.num_rows} of them")
+        out_h, out_w = rec["resize"]
+        cams = recorded_cameras(np.asarray(rec["K"], np.float64), _fixed(rows["camera.pos"], 3),
+                                _fixed(rows["camera.rot"], 4), rows["valid"].to_numpy(zero_copy_only=False),
+                                out_w, out_h)  # fmt: skip
+        roots_y = np.concatenate([_fixed(rows[f"{e.name}.root_world"], 3)[:, 1] for e in layout.articulated])
+        h = height_range(terrain, roots_y, settings)
+        seen = terrain.seen_chunks(cams, settings.z_near, settings.z_far)
+        digest = text_sha256(_rows_hash(layout, rows), json.dumps([[s, terrain.hashes[s]] for s in seen]), json.dumps(h),
+                             json.dumps(rec["K"]), f"{out_h}x{out_w}", BRIDGE_VERSION, settings.key())[:16]  # fmt: skip
+        path = paths.pose_target(self.corpus.path, key, digest)
+        self.keep.add(path.name)
+        if not path.exists():
+            size = (out_w, out_h)
+            if size not in self.rasts:
+                self.rasts[size] = Rasterizer(out_w, out_h)
+            rast = self.rasts[size]
+            if self.uploaded.get(size) != stage:
+                rast.set_terrain(terrain.vertices, terrain.faces)
+                self.uploaded[size] = stage
+            state, anchors, valid, t = chunk_inputs(layout, rows)
+            skel = world_skeletons(layout, state, anchors, valid, t)
+            meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, out_w, out_h, float(rec["fps"]))
+            self.report.frames_rendered += write_gbuffer(path, render_frames(rast, layout, skel, cams, h, settings), meta)
+            self.report.rendered.append(key)
+        rec["pose"] = {"key": digest, "terrain_chunks": seen, "frames": b - a}
+        return path
+
+    def shard(self, vpath: Path, members: list[tuple[str, bytes]], progress) -> list[tuple[str, bytes]]:
+        """A shard's members with every chunk's pose target brought up to date; a chunk whose target cannot
+        be rendered keeps its RGB and record (without ``pose``) and is listed in ``report.failed``."""
+        out: list[tuple[str, bytes]] = []
+        for name, data in members:
+            key, kind = video_shards.parse_member(name, str(vpath))
+            if kind == "pose.mkv":
                 continue
-            members = _read_tar(vpath)
-            new_members: list[tuple[str, bytes]] = []
-            for name, data in members:
-                if name.endswith(".pose.mkv"):
-                    continue
-                if not name.endswith(".json"):
-                    new_members.append((name, data))
-                    continue
-                chunk = name[: -len(".json")]
-                rec = json.loads(data)
+            if kind != "json":
+                out.append((name, data))
+                continue
+            rec = video_shards.chunk_record(data, key, str(vpath))
+            rec.pop("pose", None)
+            self.report.chunks += 1
+            try:
+                target = self.target(vpath, key, rec)
+            except Exception as exc:  # one chunk's failure is recorded; the pass goes on
                 rec.pop("pose", None)
-                seg = segs[rec["segment"]]
-                stage = seg["stage"]
-                if stage not in terrains:
-                    terrains[stage] = TerrainScene.of_stage(stage_dir(corpus.path, stage))
-                terrain = terrains[stage]
-                if rec["segment"] not in segment_rows:
-                    segment_rows[rec["segment"]] = corpus.read_segment(rec["segment"])
-                rows = segment_rows[rec["segment"]]
-                frames = rows["frame"].to_numpy()
-                a, b = rec["frames"]
-                rows = rows.take(np.flatnonzero((frames >= a) & (frames < b)))
-                if rows.num_rows != b - a:
-                    raise ValueError(f"{vpath}: chunk {chunk} spans frames [{a}, {b}) but its segment has {rows.num_rows} of them")
-                out_h, out_w = rec["resize"]
-                cams = recorded_cameras(np.asarray(rec["K"], np.float64), _fixed(rows["camera.pos"], 3),
-                                        _fixed(rows["camera.rot"], 4), rows["valid"].to_numpy(zero_copy_only=False),
-                                        out_w, out_h)  # fmt: skip
-                roots_y = np.concatenate([_fixed(rows[f"{e.name}.root_world"], 3)[:, 1] for e in layout.articulated])
-                h = height_range(terrain, roots_y, settings)
-                seen = terrain.seen_chunks(cams, settings.z_near, settings.z_far)
-                key = text_sha256(_rows_hash(layout, rows), json.dumps([[s, terrain.hashes[s]] for s in seen]), json.dumps(h),
-                                  json.dumps(rec["K"]), f"{out_h}x{out_w}", BRIDGE_VERSION, settings.key())[:16]  # fmt: skip
-                path = out_dir / f"{chunk}-{key}.mkv"
-                keep_files.add(path.name)
-                report.chunks += 1
-                if not path.exists():
-                    size = (out_w, out_h)
-                    if size not in rasts:
-                        rasts[size] = Rasterizer(out_w, out_h)
-                    rast = rasts[size]
-                    if uploaded.get(size) != stage:
-                        rast.set_terrain(terrain.vertices, terrain.faces)
-                        uploaded[size] = stage
-                    state, anchors, valid, t = chunk_inputs(layout, rows)
-                    skel = world_skeletons(layout, state, anchors, valid, t)
-                    meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, out_w, out_h, float(rec["fps"]))
-                    report.frames_rendered += write_gbuffer(path, render_frames(rast, layout, skel, cams, h, settings), meta)
-                    report.rendered.append(chunk)
-                rec["pose"] = {"key": key, "terrain_chunks": seen, "frames": b - a}
-                new_members.append((name, json.dumps(rec, sort_keys=True).encode()))
-                new_members.append((f"{chunk}.pose.mkv", path.read_bytes()))
-            if new_members != members:
-                _write_tar(vpath, new_members)
-                report.shards_rewritten.append(shard)
-    finally:
-        for r in rasts.values():
+                self.report.failed[key] = f"{type(exc).__name__}: {exc}"
+                target = None
+            out.append((name, json.dumps(rec, sort_keys=True).encode()))
+            if target is not None:
+                out.append((video_shards.member_name(key, "pose.mkv"), target.read_bytes()))
+            progress(1)
+        return out
+
+    def release(self) -> None:
+        for r in self.rasts.values():
             r.release()
-    if out_dir.exists():
-        for old in out_dir.glob("*.mkv"):
-            if old.name not in keep_files:
-                old.unlink(missing_ok=True)
+
+
+def render_pose_targets(corpus_path: Path, settings: RenderSettings | None = None, progress: bool = False) -> TargetsReport:
+    """Bring every video chunk's pose target up to date (module docstring), holding the corpus lock; a chunk
+    or shard that fails is recorded in ``failed`` and the pass goes on. ``progress`` shows a bar over chunks."""
+    corpus = Corpus(Path(corpus_path))
+    report = TargetsReport()
+    out_dir = corpus.path / "derived" / "pose"
+    with corpus_lock(corpus.path, "pose targets"):
+        run = _Pass(corpus, settings or RenderSettings(), report)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=int(corpus.info.get("total_chunks", 0)), desc="pose targets", unit="chunk")
+        try:
+            for shard in corpus.shard_ids():
+                vpath = corpus.video_path(shard)
+                if not vpath.exists():
+                    continue
+                try:
+                    members = video_shards.read_members(vpath)
+                    new_members = run.shard(vpath, members, bar.update if bar else lambda n: None)
+                except (ValueError, OSError) as exc:  # an unreadable or untrusted shard: named, left untouched
+                    report.failed[paths.shard_name(shard)] = str(exc)
+                    continue
+                if new_members != members:
+                    video_shards.write_members(vpath, new_members)
+                    report.shards_rewritten.append(shard)
+        finally:
+            run.release()
+            if bar:
+                bar.close()
+        if out_dir.exists():
+            for old in out_dir.glob("*.mkv"):
+                if old.name not in run.keep:
+                    old.unlink(missing_ok=True)
     return report
 
 
@@ -278,11 +305,9 @@ def source_size(corpus: Corpus, segment: str) -> tuple[int, int]:
     row = corpus.segment_row(segment)
     vpath = corpus.video_path(row["shard"])
     if vpath.exists():
-        with tarfile.open(vpath) as tar:
-            for m in tar:
-                if m.isfile() and m.name.startswith(f"{segment}__c") and m.name.endswith(".json"):
-                    h, w = json.loads(tar.extractfile(m).read())["source_size"]
-                    return int(h), int(w)
+        for key, m in video_shards.read_chunks(vpath, segment, kinds=("json",)).items():
+            h, w = video_shards.chunk_record(m["json"], key, str(vpath))["source_size"]
+            return int(h), int(w)
     sample = corpus.samples.filter(pa.compute.equal(corpus.samples["sample"], row["sample"])).to_pylist()
     if sample and sample[0]["source"]:
         import av

@@ -12,6 +12,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from marionette import geometry as geo
+from marionette.corpus import paths
 from marionette.io import read_ipc, text_sha256, write_ipc
 from marionette.schema import Layout, SchemaError, check_layout, layout_from_json, load_scene, state_schema
 
@@ -62,13 +63,14 @@ class Corpus:
         return float(self.info["fps"] if not isinstance(self.info["fps"], list) else self.info["fps"][0])
 
     def state_path(self, shard: int) -> Path:
-        return self.path / "state" / f"shard-{shard:06d}.arrow"
+        return paths.state_shard(self.path, shard)
 
     def video_path(self, shard: int) -> Path:
-        return self.path / "video" / f"shard-{shard:06d}.tar"
+        return paths.video_shard(self.path, shard)
 
     def shard_ids(self) -> list[int]:
-        return sorted(self.info["shards"])
+        where = str(self.path / "meta" / "info.json")
+        return sorted(paths.check_shard(n, where) for n in self.info["shards"])
 
     def read_shard(self, shard: int) -> pa.Table:
         """A state shard, its layout checked against the corpus layout (the last two read are kept,

@@ -20,17 +20,19 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 
-from marionette.io import write_bytes
+from marionette.io import read_json, read_tensors, write_bytes
 
 CHECKPOINT_VERSION = 1
+STEP_DIR = re.compile(r"step-\d{8}")
 
 
 def _json_safe(v: Any) -> Any:
@@ -83,17 +85,21 @@ def latest_checkpoint(out: Path) -> Path | None:
     p = Path(out) / "latest"
     if not p.exists():
         return None
-    d = Path(out) / p.read_text().strip()
-    if "/" in p.read_text().strip() or not (d / "meta.json").exists():
-        raise ValueError(f"{p}: names {d.name!r}, which is not a complete checkpoint in {out}")
+    if p.stat().st_size > 64:
+        raise ValueError(f"{p}: {p.stat().st_size} bytes, not a one-line checkpoint name")
+    name = p.read_text(errors="replace").strip()
+    d = Path(out) / name
+    if not STEP_DIR.fullmatch(name) or d.is_symlink() or not (d / "meta.json").is_file():
+        raise ValueError(f"{p}: names {name!r}, which is not a complete checkpoint step-NNNNNNNN in {out}")
     return d
 
 
 def read_meta(ckpt: Path) -> dict:
     """A checkpoint's meta.json."""
-    d = json.loads((Path(ckpt) / "meta.json").read_text())
-    if d.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{ckpt}: checkpoint version {d.get('version')!r}, this reader knows {CHECKPOINT_VERSION}")
+    d = read_json(Path(ckpt) / "meta.json")
+    version = d.get("version") if isinstance(d, dict) else None
+    if version != CHECKPOINT_VERSION:
+        raise ValueError(f"{ckpt}: checkpoint version {version!r}, this reader knows {CHECKPOINT_VERSION}")
     return d
 
 
@@ -102,11 +108,11 @@ def load_checkpoint(ckpt: Path, model: torch.nn.Module, optimizer: torch.optim.O
     """Load weights (and optimizer, scheduler and RNG state) into the given objects; returns meta.json."""
     ckpt = Path(ckpt)
     meta = read_meta(ckpt)
-    weights = load_file(str(ckpt / "model.safetensors"))
+    weights = read_tensors(ckpt / "model.safetensors")
     missing, unexpected = model.load_state_dict(weights, strict=False)
     if missing or unexpected:
         raise ValueError(f"{ckpt}: weights do not fit the model (missing {missing[:3]}, unexpected {unexpected[:3]})")
-    tensors = load_file(str(ckpt / "optimizer.safetensors"))
+    tensors = read_tensors(ckpt / "optimizer.safetensors")
     if optimizer is not None:
         if "optimizer" not in meta:
             raise ValueError(f"{ckpt}: holds no optimizer state")

@@ -11,7 +11,8 @@ import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-from marionette.ingest.finalize import corpus_lock, finalize, finish_pending
+from marionette.corpus.lock import corpus_lock
+from marionette.ingest.finalize import finalize, finish_pending
 from marionette.ingest.sample import (
     IngestOptions,
     SampleResult,
@@ -34,6 +35,7 @@ __all__ = [
     "VideoSettings",
     "build_corpus",
     "check_corpus_options",
+    "check_source",
     "corpus_lock",
     "finish_pending",
     "discover",
@@ -82,14 +84,28 @@ def _ingest_one(args: tuple[SampleRef, str, IngestOptions]) -> SampleResult:
 def build_corpus(source: Path, corpus: Path, options: IngestOptions, workers: int = 1, progress: bool = True) -> dict:
     """Discover, ingest every sample (in ``workers`` processes), finalize; returns a build report."""
     corpus = Path(corpus)
-    with corpus_lock(corpus):
+    with corpus_lock(corpus, "ingest"):
         check_corpus_options(corpus, options)
         finish_pending(corpus)  # a finalize that crashed completes before anything is re-ingested
         return _build(source, corpus, options, workers, progress)
 
 
+def check_source(source: Path, refs: list[SampleRef]) -> None:
+    """Fail, naming ``source``, when it holds no sample (with a hint when it is itself a sample directory)."""
+    if refs:
+        return
+    source = Path(source)
+    hint = ""
+    if any((source / f).exists() for f in ("state.csv", "rgb.mp4", "skeleton.npz")):
+        hint = f": it is a sample directory itself; pass the directory above its part, e.g. {source.parent.parent}"
+    elif source.is_dir() and not any(p.is_dir() and p.name.startswith("data_part") for p in source.iterdir()):
+        hint = ": it holds no data_part*/ directory (a WildWorld tree is <root>/data_part<x>/<sample>/)"
+    raise ValueError(f"{source}: no samples to ingest{hint}")
+
+
 def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, progress: bool) -> dict:
     refs = discover(source)
+    check_source(source, refs)
     results: list[SampleResult] = []
     bar = None
     if progress:

@@ -8,8 +8,6 @@ records in ``meta/samples/``, whose size grows with the number of recordings, no
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import json
 import os
 import shutil
@@ -18,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from marionette.corpus import paths
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
 from marionette.io import text_sha256, write_json, write_parquet
 from marionette.schema import load_scene
@@ -29,10 +28,6 @@ from marionette.schema import load_scene
 # other       — an event that is not an attack (dodge, roar, ...).
 ATTACK_PEAK_MPS = 7.0
 LOCOMOTION_MPS = 0.5
-
-
-def shard_name(n: int) -> str:
-    return f"shard-{n:06d}"
 
 
 def classify(kind: str, instances: list[list[float]]) -> str:
@@ -115,8 +110,24 @@ def build_stats(records: list[dict]) -> dict:
     return out
 
 
+def _read_record(p: Path) -> dict:
+    """A sample record (committed or staged), checked to be a JSON object whose key is its file's own name."""
+    try:
+        rec = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{p}: not a sample record ({exc})") from None
+    own = p.stem if p.name != "record.json" else p.parent.name
+    if not isinstance(rec, dict) or rec.get("key") != own:
+        raise paths.CorpusPathError(f"{p}: record key {rec.get('key') if isinstance(rec, dict) else rec!r} is not {own!r}")
+    paths.check_id(own, "sample key", str(p))
+    for field in ("shard", "retired_shard"):
+        if rec.get(field) is not None:
+            paths.check_shard(rec[field], f"{p}: {field}")
+    return rec
+
+
 def _load_records(d: Path) -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))] if d.exists() else []
+    return [_read_record(p) for p in sorted(d.glob("*.json"))] if d.exists() else []
 
 
 def _plan(corpus: Path, options_key: str | None) -> dict:
@@ -124,7 +135,7 @@ def _plan(corpus: Path, options_key: str | None) -> dict:
     committed = {r["key"]: r for r in _load_records(corpus / "meta" / "samples")}
     staged = []
     for p in sorted((corpus / "staging").glob("*/record.json")):
-        rec = json.loads(p.read_text())
+        rec = _read_record(p)
         if options_key is not None and rec.get("options_key") != options_key:
             shutil.rmtree(p.parent, ignore_errors=True)  # staged by a build with other options: stale
             continue
@@ -142,60 +153,75 @@ def _plan(corpus: Path, options_key: str | None) -> dict:
             if own is None:
                 own, next_shard = next_shard, next_shard + 1
             rec["shard"] = own
-            moves.append([f"{stage}/state.arrow", f"state/{shard_name(own)}.arrow", rec["input_hash"]])
-            moves.append([f"{stage}/video.tar", f"video/{shard_name(own)}.tar", rec["input_hash"]])
+            moves.append([f"{stage}/state.arrow", f"state/{paths.shard_name(own)}.arrow", rec["input_hash"]])
+            moves.append([f"{stage}/video.tar", f"video/{paths.shard_name(own)}.tar", rec["input_hash"]])
         else:
             rec["shard"] = None
             if own is not None:  # a recording that was good and now is not: its shard goes, its number stays reserved
                 rec["retired_shard"] = own
-                deletes += [f"state/{shard_name(own)}.arrow", f"video/{shard_name(own)}.tar"]
+                deletes += [f"state/{paths.shard_name(own)}.arrow", f"video/{paths.shard_name(own)}.tar"]
         records.append(rec)
     return {"records": records, "moves": moves, "deletes": deletes}
 
 
-def _execute(corpus: Path, plan: dict) -> None:
+def _checked_plan(corpus: Path, plan: object, where: str) -> tuple[list, list, list]:
+    """(moves, deletes, records) of a plan, every entry checked to name a path of this corpus: a plan is
+    read back from disk, so nothing in it is trusted, and nothing is touched unless all of it is valid."""
+    if not isinstance(plan, dict) or not all(isinstance(plan.get(k), list) for k in ("moves", "deletes", "records")):
+        raise ValueError(f"{where}: not a finalize plan (moves, deletes, records)")
+    moves = []
+    for i, entry in enumerate(plan["moves"]):
+        if not (isinstance(entry, list) and len(entry) == 3 and isinstance(entry[2], str)):
+            raise ValueError(f"{where}: moves[{i}] is not [source, destination, input hash]")
+        src = paths.resolve_plan_entry(corpus, entry[0], f"{where}: moves[{i}]")
+        dst = paths.resolve_plan_entry(corpus, entry[1], f"{where}: moves[{i}]")
+        if not entry[0].startswith("staging/") or entry[1].startswith("staging/"):
+            raise paths.CorpusPathError(f"{where}: moves[{i}] {entry[:2]} does not move a staged file into a shard")
+        moves.append((src, dst, entry[2]))
+    deletes = []
+    for i, rel in enumerate(plan["deletes"]):
+        if isinstance(rel, str) and rel.startswith("staging/"):
+            raise paths.CorpusPathError(f"{where}: deletes[{i}] {rel!r} is not a shard")
+        deletes.append(paths.resolve_plan_entry(corpus, rel, f"{where}: deletes[{i}]"))
+    records = []
+    for i, rec in enumerate(plan["records"]):
+        if not isinstance(rec, dict):
+            raise ValueError(f"{where}: records[{i}] is not a sample record")
+        paths.check_id(rec.get("key"), "sample key", f"{where}: records[{i}]")
+        records.append(rec)
+    return moves, deletes, records
+
+
+def _execute(corpus: Path, plan: dict, where: str) -> None:
     """Carry out a plan; every step is safe to repeat after a crash."""
-    meta = corpus / "meta"
-    for src, dst, h in plan["moves"]:
-        src_p, dst_p = corpus / src, corpus / dst
+    moves, deletes, records = _checked_plan(corpus, plan, where)
+    for src_p, dst_p, h in moves:
         if src_p.exists():
             staged = src_p.parent / "record.json"
             if staged.exists() and json.loads(staged.read_text())["input_hash"] != h:
-                raise RuntimeError(f"{staged}: staged sample changed after {meta / 'finalize-plan.json'} was written")
+                raise RuntimeError(f"{staged}: staged sample changed after {where} was written")
             os.replace(src_p, dst_p)
         elif not dst_p.exists():
             raise FileNotFoundError(f"finalize: staged file {src_p} is gone and {dst_p} does not exist")
-    for p in plan["deletes"]:
-        (corpus / p).unlink(missing_ok=True)
-    for rec in plan["records"]:
-        write_json(meta / "samples" / f"{rec['key']}.json", rec)
-        shutil.rmtree(corpus / "staging" / rec["key"], ignore_errors=True)
+    for p in deletes:
+        p.unlink(missing_ok=True)
+    for rec in records:
+        write_json(paths.sample_record(corpus, rec["key"]), rec)
+        shutil.rmtree(paths.staging_dir(corpus, rec["key"]), ignore_errors=True)
 
 
 def finish_pending(corpus: Path) -> bool:
     """Complete a finalize that crashed after writing its plan; True if there was one."""
-    plan_path = Path(corpus) / "meta" / "finalize-plan.json"
+    plan_path = paths.meta(corpus, "finalize-plan.json")
     if not plan_path.exists():
         return False
-    _execute(Path(corpus), json.loads(plan_path.read_text()))
+    try:
+        plan = json.loads(plan_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{plan_path}: not a finalize plan ({exc})") from None
+    _execute(Path(corpus), plan, str(plan_path))
     plan_path.unlink()
     return True
-
-
-@contextlib.contextmanager
-def corpus_lock(corpus: Path):
-    """Hold ``<corpus>/meta/.lock`` exclusively for a build; a second concurrent build fails at once."""
-    path = Path(corpus) / "meta" / ".lock"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+") as fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise RuntimeError(f"{corpus}: another build holds {path}; wait for it to finish") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:
@@ -206,12 +232,12 @@ def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[st
     corpus = Path(corpus)
     (corpus / "state").mkdir(parents=True, exist_ok=True)
     (corpus / "video").mkdir(parents=True, exist_ok=True)
-    plan_path = corpus / "meta" / "finalize-plan.json"
+    plan_path = paths.meta(corpus, "finalize-plan.json")
     finish_pending(corpus)
     plan = _plan(corpus, options.key() if options is not None else None)
     if plan["records"]:
         write_json(plan_path, plan)
-        _execute(corpus, plan)
+        _execute(corpus, plan, str(plan_path))
         plan_path.unlink()
     return write_metadata(corpus, options, stages)
 

@@ -33,6 +33,7 @@ import webdataset as wds
 
 from marionette.bridge.gbuffer import CODE_MAX, iter_codes
 from marionette.corpus import Corpus
+from marionette.corpus.paths import parse_chunk_key
 from marionette.ingest.video import decode_frames
 
 
@@ -122,7 +123,7 @@ class ClipSource:
         """The clip with the entity tokens of its frames: the chunk json's source frames [a, b) in the segment's rows."""
         from marionette.dynamics.data import ActionTokens
 
-        seg = clip.key.split("__c")[0]
+        seg = parse_chunk_key(clip.key)[0]
         if seg not in self._tokens:
             rows = self.corpus.read_segment(seg)
             tokens, _ = ActionTokens.from_corpus(self.corpus).encode(self.corpus.layout, rows, where=str(self.corpus.path))
@@ -142,7 +143,12 @@ class ClipSource:
         every_shard = lambda urls: urls  # noqa: E731
         for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False, nodesplitter=every_shard):
             key = sample["__key__"]
-            if key.split("__c")[0] not in self.segments:
+            try:
+                segment = parse_chunk_key(key, str(sample.get("__url__", "")))[0]
+            except ValueError as err:
+                self.skipped[str(key)] = str(err)
+                continue
+            if segment not in self.segments:
                 continue
             if "pose.mkv" not in sample:
                 self.skipped[key] = "no pose.mkv (render the pose targets first)"

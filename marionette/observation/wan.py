@@ -35,17 +35,17 @@ chunk k and the next T − 1 pose frames, so N chunks give 1 + N·(T − 1) fram
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 from typing import NamedTuple
 
 import torch
 from diffusers import AutoencoderKLWan, WanTransformer3DModel
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import Tensor, nn
 
-from marionette.io import atomic_path, write_json
+from marionette.corpus.paths import inside
+from marionette.io import atomic_path, read_json, read_tensors, write_json
 
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 PICKLES = (".pth", ".pt", ".bin", ".ckpt", ".pkl")
@@ -168,16 +168,36 @@ def original_config(transformer: WanTransformer3DModel, text_len: int = 512, ref
     }
 
 
+SHARD_FILE = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,200}\.safetensors")
+
+
+def index_shards(index: Path) -> list[Path]:
+    """The shard files a ``*.safetensors.index.json`` names, each checked to be a plain ``*.safetensors`` name
+    in the index's own directory (a model directory is untrusted input); else a ValueError naming the entry."""
+    try:
+        weight_map = read_json(index)["weight_map"]
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{index}: not a safetensors index with a weight_map ({type(exc).__name__}: {exc})") from None
+    if not isinstance(weight_map, dict):
+        raise ValueError(f"{index}: weight_map is not an object")
+    out = []
+    for name in sorted({str(v) for v in weight_map.values()}):
+        if not SHARD_FILE.fullmatch(name) or ".." in name:
+            raise ValueError(f"{index}: weight_map names {name!r}, which is not a *.safetensors file beside the index")
+        out.append(inside(index.parent, index.parent / name, str(index)))
+    return out
+
+
 def read_safetensors(directory: Path) -> tuple[dict[str, Tensor], Path]:
     """The tensors of ``directory``'s ``diffusion_pytorch_model.safetensors`` (or of the shards its
     ``.index.json`` names) and the file read; a ValueError if there are none (pickles are never loaded)."""
     single, index = directory / WEIGHTS, directory / f"{WEIGHTS}.index.json"
     if single.is_file():
-        return load_file(single), single
+        return read_tensors(single), single
     if index.is_file():
         weights: dict[str, Tensor] = {}
-        for shard in sorted(set(json.loads(index.read_text())["weight_map"].values())):
-            weights.update(load_file(directory / shard))
+        for shard in index_shards(index):
+            weights.update(read_tensors(shard))
         return weights, index
     pickles = sorted(p.name for p in directory.iterdir() if p.suffix in PICKLES) if directory.is_dir() else []
     hint = f"; {pickles} are torch pickles, which are never loaded here: convert them offline to safetensors" if pickles else ""
@@ -221,7 +241,7 @@ def load_transformer(directory: Path) -> Backbone:
     path = directory / "config.json"
     if not path.is_file():
         raise FileNotFoundError(f"{directory}: no config.json (a transformer checkpoint directory)")
-    config = json.loads(path.read_text())
+    config = read_json(path)
     weights, file = read_safetensors(directory)
     if "num_attention_heads" in config:  # diffusers format: its own class reads its own config
         with torch.device("meta"):
@@ -276,7 +296,7 @@ def load_vae(directory: Path) -> AutoencoderKLWan:
         raise FileNotFoundError(f"{directory}: no config.json (a diffusers AutoencoderKLWan directory)")
     weights, file = read_safetensors(directory)
     with torch.device("meta"):
-        vae = AutoencoderKLWan.from_config(json.loads(path.read_text()))
+        vae = AutoencoderKLWan.from_config(read_json(path))
     _assign(vae, weights, file)
     return vae
 

@@ -1,0 +1,235 @@
+"""A corpus, a checkpoint directory and a model directory are untrusted input: a name read from one becomes a
+path only when it matches its pattern and stays inside its root. Each case plants a hostile entry, checks that
+the error names it, and that a sentinel tree outside the corpus is byte-for-byte unchanged."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import TEST_OPTIONS
+from safetensors.torch import save_file
+
+from marionette.corpus import paths, video_shards
+from marionette.corpus.lock import CorpusLocked, corpus_lock
+from marionette.dynamics.checkpoint import latest_checkpoint
+from marionette.ingest import build_corpus
+
+
+def _sentinel(root: Path) -> Path:
+    """A tree of files and a directory that a traversal would move, delete or overwrite."""
+    out = root / "outside"
+    (out / "dir").mkdir(parents=True)
+    (out / "victim").write_bytes(b"keep me")
+    (out / "dir" / "inner").write_bytes(b"keep me too")
+    (out / "evil.json").write_bytes(b"{}")
+    return out
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() if p.is_file() else b"<dir>" for p in sorted(root.rglob("*"))}
+
+
+@pytest.fixture
+def corpus_copy(corpus, tmp_path) -> Path:
+    """A private copy of the session corpus at tmp_path/corpus, beside the sentinel tmp_path/outside."""
+    out = tmp_path / "corpus"
+    shutil.copytree(corpus, out)
+    return out
+
+
+def _raw_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+    info = tarfile.TarInfo(name)
+    info.size = len(data)
+    tar.addfile(info, io.BytesIO(data))
+
+
+# pose targets are written under corpus/derived/pose: three levels up is the sentinel
+@pytest.mark.parametrize("evil", ["../../../outside/evil.json", "/outside/evil.json", "x__c00000.rgb.mp4/../../../../outside/evil.json"])
+def test_video_shard_member_outside_the_corpus_is_refused(corpus_copy, tmp_path, evil):
+    from marionette.bridge.targets import render_pose_targets
+
+    outside = _sentinel(tmp_path)
+    before = _snapshot(tmp_path / "outside")
+    shard = corpus_copy / "video" / "shard-000000.tar"
+    members = video_shards.read_members(shard)
+    name = evil if not evil.startswith("/") else str(tmp_path / evil.lstrip("/"))
+    with tarfile.open(shard, "w", format=tarfile.GNU_FORMAT) as tar:
+        for n, data in members:
+            _raw_member(tar, n, data)
+        _raw_member(tar, name, json.dumps({"segment": "x", "chunk": 0, "frames": [0, 81]}).encode())
+    shard_bytes = shard.read_bytes()
+
+    with pytest.raises(paths.CorpusPathError, match="member"):
+        video_shards.read_members(shard)
+    report = render_pose_targets(corpus_copy)
+    assert name in report.failed["shard-000000"], report.failed
+    assert shard.read_bytes() == shard_bytes  # the refused shard is left as it was
+    assert _snapshot(outside) == before
+    assert not any(p.name.startswith("evil-") for p in tmp_path.rglob("*.mkv"))
+    assert report.chunks > 0 and not any(k.startswith("shard-") for k in report.failed if k != "shard-000000")
+
+
+def test_video_shard_member_must_name_its_own_chunk(corpus_copy):
+    shard = corpus_copy / "video" / "shard-000000.tar"
+    key, _ = video_shards.parse_member(video_shards.read_members(shard)[0][0])
+    other = key.replace("__c", "X__c")
+    with pytest.raises(ValueError, match=f"member {other}.json names segment"):
+        video_shards.chunk_record(json.dumps({"segment": paths.parse_chunk_key(key)[0], "chunk": 0}).encode(), other, "shard")
+
+
+def test_finalize_plan_entries_outside_the_corpus_are_refused(corpus_copy, synth_source, tmp_path):
+    outside = _sentinel(tmp_path)
+    before = _snapshot(outside)
+    inside_before = _snapshot(corpus_copy / "state")
+    plan = {  # plan entries are relative to the corpus
+        "moves": [["../outside/victim", "state/shard-000000.arrow", "h"]],
+        "deletes": ["../outside/dir/inner"],
+        "records": [{"key": "../outside/dir"}],
+    }
+    plan_path = corpus_copy / "meta" / "finalize-plan.json"
+    for bad, entry in ((plan, "moves[0]"), ({**plan, "moves": []}, "deletes[0]"), ({**plan, "moves": [], "deletes": []}, "records[0]")):
+        plan_path.write_text(json.dumps(bad))
+        with pytest.raises(paths.CorpusPathError, match=re.escape(f"finalize-plan.json: {entry}")):
+            build_corpus(synth_source, corpus_copy, TEST_OPTIONS, workers=1, progress=False)
+        assert _snapshot(outside) == before
+        assert _snapshot(corpus_copy / "state") == inside_before
+    plan_path.write_text(json.dumps({"moves": [["staging/k/state.arrow", "../outside/victim", "h"]], "deletes": [], "records": []}))
+    with pytest.raises(paths.CorpusPathError, match="outside/victim"):
+        build_corpus(synth_source, corpus_copy, TEST_OPTIONS, workers=1, progress=False)
+    assert _snapshot(outside) == before
+
+
+def test_sample_record_whose_key_is_not_its_file_is_refused(corpus_copy, synth_source):
+    record = sorted((corpus_copy / "meta" / "samples").glob("*.json"))[0]
+    rec = json.loads(record.read_text())
+    record.write_text(json.dumps({**rec, "key": "../outside"}))
+    with pytest.raises(paths.CorpusPathError, match=f"{record.name}: record key"):
+        build_corpus(synth_source, corpus_copy, TEST_OPTIONS, workers=1, progress=False)
+
+
+def test_terrain_manifest_file_outside_the_stage_is_refused(scanned_corpus, tmp_path):
+    from marionette.pipeline import refresh
+
+    corpus = tmp_path / "corpus"
+    shutil.copytree(scanned_corpus, corpus)
+    outside = _sentinel(tmp_path)
+    before = _snapshot(outside)
+    manifest = corpus / "terrain" / "stage_default" / "manifest.json"
+    m = json.loads(manifest.read_text())
+    rec = next(iter(m["recordings"]))
+    # stage files are relative to corpus/terrain/stage_default: three levels up is the sentinel
+    m["recordings"][rec]["file"] = "../../../outside/victim"
+    m["recordings"]["gone/recording"] = {**m["recordings"][rec], "file": "../../../outside/dir/inner"}
+    manifest.write_text(json.dumps(m))
+    with pytest.raises(paths.CorpusPathError, match=re.escape(f"recordings.{rec}.file is '../../../outside/victim'")):
+        refresh(corpus, incremental=True)
+    assert _snapshot(outside) == before
+
+    m = json.loads(scanned_corpus.joinpath("terrain", "stage_default", "manifest.json").read_text())
+    chunk = next(iter(m["chunks"]))
+    m["chunks"][chunk]["file"] = "../../../outside/victim"
+    manifest.write_text(json.dumps(m))
+    with pytest.raises(paths.CorpusPathError, match=re.escape(f"chunks.{chunk}.file")):
+        refresh(corpus, incremental=True)
+    assert _snapshot(outside) == before
+
+
+def test_checkpoint_latest_naming_the_parent_is_refused(tmp_path):
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (tmp_path / "meta.json").write_text("{}")  # what `latest` = ".." would point at
+    for bad in ("..", "../runs", "/etc", "step-1"):
+        (runs / "latest").write_text(bad + "\n")
+        with pytest.raises(ValueError, match=r"runs/latest: names"):
+            latest_checkpoint(runs)
+
+
+def test_wan_index_shard_outside_the_directory_is_refused(tmp_path):
+    from marionette.observation.wan import WEIGHTS, read_safetensors
+
+    model = tmp_path / "model"
+    model.mkdir()
+    save_file({"w": torch.zeros(2)}, str(tmp_path / "x.safetensors"))  # a real file the entry would reach
+    for bad in ("../x.safetensors", str(tmp_path / "x.safetensors"), "sub/../../x.safetensors", ".hidden.safetensors"):
+        (model / f"{WEIGHTS}.index.json").write_text(json.dumps({"weight_map": {"w": bad}}))
+        with pytest.raises(ValueError, match="weight_map names"):
+            read_safetensors(model)
+
+
+def test_pickle_renamed_safetensors_names_the_file(tmp_path):
+    from marionette.io import read_tensors
+
+    path = tmp_path / "model.safetensors"
+    torch.save({"w": torch.zeros(2)}, path)  # a torch pickle under a safetensors name
+    with pytest.raises(ValueError, match=r"model\.safetensors: not a readable safetensors file"):
+        read_tensors(path)
+
+
+def test_id_patterns_admit_no_traversal():
+    for bad in ("..", ".", "a/b", "/abs", "a.b", "", "a b", "x" * 201):
+        with pytest.raises(paths.CorpusPathError):
+            paths.check_id(bad, "segment")
+    with pytest.raises(paths.CorpusPathError):
+        paths.parse_chunk_key("../x__c00000")
+    with pytest.raises(paths.CorpusPathError):
+        paths.state_shard(Path("c"), -1)
+    assert paths.parse_chunk_key("data_part1-rec0000-s000__c00003") == ("data_part1-rec0000-s000", 3)
+
+
+def test_symlink_out_of_the_corpus_is_refused(tmp_path):
+    root = tmp_path / "corpus"
+    (root / "state").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    os.symlink(tmp_path / "elsewhere", root / "state" / "link")
+    with pytest.raises(paths.CorpusPathError, match="outside"):
+        paths.inside(root, root / "state" / "link" / "x")
+
+
+def test_a_second_writer_fails_fast_naming_the_holder(tmp_path):
+    corpus = tmp_path / "corpus"
+    with corpus_lock(corpus, "ingest"):
+        code = "import sys; from marionette.corpus.lock import corpus_lock\nwith corpus_lock(sys.argv[1], 'scan'): pass"
+        r = subprocess.run([sys.executable, "-c", code, str(corpus)], capture_output=True, text=True, timeout=60)
+        assert r.returncode != 0 and f"pid {os.getpid()} (ingest)" in r.stderr
+        with pytest.raises(CorpusLocked, match="another build"), corpus_lock(corpus, "scan"):  # not re-entrant unless shared
+            pass
+    with corpus_lock(corpus, "pipeline", share=True), corpus_lock(corpus, "scan"):  # a shared hold admits its own writers
+        assert "pid" in (corpus / "meta" / ".lock").read_text()
+
+
+def test_terrain_scan_started_during_an_ingest_is_refused(synth_source, tmp_path):
+    from marionette.cli import main
+
+    corpus = tmp_path / "corpus"
+    code = (
+        "import sys; from pathlib import Path; from marionette.ingest import build_corpus; from conftest import TEST_OPTIONS\n"
+        "build_corpus(Path(sys.argv[1]), Path(sys.argv[2]), TEST_OPTIONS, workers=1, progress=False)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent)}
+    ingest = subprocess.Popen([sys.executable, "-c", code, str(synth_source), str(corpus)], env=env, stderr=subprocess.PIPE)
+    try:
+        lock = corpus / "meta" / ".lock"
+        deadline = time.time() + 120
+        while not (lock.exists() and lock.read_text().startswith("pid")):
+            assert ingest.poll() is None and time.time() < deadline, "the ingest ended before the lock was seen"
+            time.sleep(0.05)
+        with pytest.raises(CorpusLocked, match=rf"pid {ingest.pid} \(ingest\)"):
+            from marionette.pipeline import refresh
+
+            refresh(corpus)
+        assert main(["terrain", "scan", str(corpus)]) == 2
+        assert ingest.poll() is None, "the ingest must still be running: the refusal came from the lock"
+    finally:
+        ingest.wait(timeout=300)
+    assert ingest.returncode == 0, ingest.stderr.read().decode()
