@@ -75,11 +75,12 @@ from marionette.bridge.gbuffer import CODE_MAX, GBufferMeta, decode_codes, iter_
 from marionette.bridge.kinematics import bone_segments, world_skeletons  # noqa: E402
 from marionette.bridge.render import Rasterizer  # noqa: E402
 from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, height_range, source_size  # noqa: E402
-from marionette.corpus import Corpus, _fixed  # noqa: E402
+from marionette.corpus import Corpus, fixed_rows  # noqa: E402
+from marionette.corpus.paths import stage_dir  # noqa: E402
 from marionette.ingest import IngestOptions, build_corpus  # noqa: E402
 from marionette.ingest.video import CropResize  # noqa: E402
 from marionette.schema import Layout  # noqa: E402
-from terrain_scan.scan import scan_stages, stage_dir  # noqa: E402
+from terrain_scan.scan import scan_stages  # noqa: E402
 
 REF_THICKNESS = 2  # the WildWorld visualisation tool's skeleton lines
 REF_CODEC = ("libx264", "yuv420p", "rgb24", {"preset": "fast", "crf": "18"})  # its video: codec, pix_fmt, input format, options
@@ -125,8 +126,8 @@ class Clip:
     def cameras(self, H: int, W: int) -> Cameras:
         """The recorded camera at H × W: intrinsics mapped by the centred crop + resize (as ``render_rows``)."""
         crop = CropResize.fit(self.src_size[0], self.src_size[1], H, W)
-        rot = np.nan_to_num(_fixed(self.rows["camera.rot"], 4))
-        return recorded_cameras(_fixed(self.rows["camera.K"], 4), _fixed(self.rows["camera.pos"], 3), rot, np.ones(len(self), bool),
+        rot = np.nan_to_num(fixed_rows(self.rows["camera.rot"], 4))
+        return recorded_cameras(fixed_rows(self.rows["camera.K"], 4), fixed_rows(self.rows["camera.pos"], 3), rot, np.ones(len(self), bool),
                                 W, H, crop=crop)  # fmt: skip
 
     def meta(self, H: int, W: int) -> GBufferMeta:

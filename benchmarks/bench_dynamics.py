@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
-from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, parameter_counts
@@ -332,7 +332,7 @@ def part_heads(corpus: Path, steps: int, work: Path) -> None:
         w = world_of_rows(c.layout, t)
         span = max(float(np.ptp(w[e.name][SEED:, 0], axis=0).max()) for e in c.layout.articulated)
         cv = np.concatenate([bone_cv(w[e.name][SEED:], e.rig) for e in c.layout.articulated])
-        finite = bool(np.isfinite(_fixed(t["state"], c.layout.dim)).all())
+        finite = bool(np.isfinite(fixed_rows(t["state"], c.layout.dim)).all())
         rows.append([f"{'residual, clean inputs' if residual else 'absolute, input noise 0.1 (default)'}", f"{span:,.0f}",
                      str(finite), f"{np.median(cv):.4f}", f"{cv.max():.3f}"])  # fmt: skip
         print(f"residual {residual}: span {span:.0f}", file=sys.stderr)

@@ -29,6 +29,7 @@ from prefect.runtime import flow_run
 from prefect_dask import DaskTaskRunner
 
 from marionette import ingest
+from marionette.corpus.lock import corpus_lock
 from marionette.ingest import IngestOptions, SampleRef, VideoSettings
 from marionette.io import write_json
 
@@ -55,8 +56,10 @@ def sample_cache_key(context: TaskRunContext, parameters: dict) -> str | None:
     known = ingest.known_record(Path(parameters["corpus"]), ref)
     if known is None or known.get("retry"):
         return None  # nothing to reuse: no need to hash the files here as well as in ingest_sample
-    h = ingest.input_hash(ref, options, ingest.file_digests(ref, known.get("files")))
-    return h if known["input_hash"] == h else None
+    inputs = ingest.sample_inputs(ref, options, known)  # never reads through a symlink out of the source tree
+    if inputs.digests is None:
+        return None
+    return inputs.hash if known["input_hash"] == inputs.hash else None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -72,7 +75,13 @@ def check_corpus(corpus: str, options: IngestOptions) -> None:
 
 @task(cache_policy=NO_CACHE)
 def discover_samples(source: str) -> list[SampleRef]:
-    return ingest.discover(Path(source))
+    """Every sample under ``source``; an error naming it when there is none. Entries passed over are logged."""
+    skipped: list = []
+    refs = ingest.discover(Path(source), skipped)
+    for path, why in skipped:
+        get_run_logger().info("skipped %s: %s", path, why)
+    ingest.check_source(Path(source), refs)
+    return refs
 
 
 @task(
@@ -157,6 +166,8 @@ def report_markdown(report: dict) -> str:
         "",
         "corpus: " + ", ".join(f"{k.removeprefix('total_')} {v}" for k, v in report["corpus_totals"].items()),
         "",
+        "failures: " + ", ".join(f"{k} {v}" for k, v in report.get("failures", {}).items()),
+        "",
         "| sample | status | worker | segments | frames | reason |",
         "|---|---|---|---|---|---|",
     ]
@@ -209,7 +220,8 @@ def build_corpus(
         video=VideoSettings(height=video_height, width=video_width, chunk_frames=chunk_frames, crf=crf),
         compression=compression,
     )
-    with ingest.corpus_lock(Path(corpus)):  # held by this flow-run process; one build per corpus at a time
+    # held by this flow-run process, shared with the writers it calls here; one build per corpus at a time
+    with corpus_lock(Path(corpus), "build-corpus flow", share=True):
         check_corpus(corpus, options)
         fan_out = ingest_samples.with_options(task_runner=dask_runner(dask_address, n_workers))
         results = fan_out(source, corpus, options.to_json())
@@ -221,6 +233,11 @@ def build_corpus(
             terrain = rescan_stage(corpus, incremental=True, frame_stride=terrain_frame_stride)
         report = build_report(str(flow_run.id), source, corpus, options, results, info)
         report["terrain"] = terrain
+        report["failures"] = {
+            "quarantined": report["counts"].get("quarantined", 0),
+            "terrain": sum(len(r["failed"]) for st, r in terrain.items() if st != "_pose_targets"),
+            "pose": len(terrain.get("_pose_targets", {}).get("failed", {})),
+        }
         path = publish_report(corpus, report)
     get_run_logger().info("build report: %s (%s)", path, report["counts"])
     return report

@@ -15,15 +15,14 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
-from marionette.dynamics.train import TrainConfig, train, train_in_processes
+from marionette.dynamics.train import TrainConfig, run
 
 
 @task(cache_policy=NO_CACHE, task_run_name="train-{config.preset}")
 def train_models(corpus: str, out: str, config: TrainConfig, nproc: int) -> dict:
-    """Train (resuming when ``out`` holds a checkpoint); returns the run's summary without the loss history."""
-    if nproc > 1:
-        return {k: v for k, v in train_in_processes(corpus, out, config, nproc).items() if k != "losses"}
-    summary = train(corpus, out, config, log=get_run_logger().info)
+    """Train (resuming when ``out`` holds a checkpoint; ``nproc`` > 1: under torchrun); returns the run's
+    summary without the loss history."""
+    summary = run(corpus, out, config, nproc=nproc, log=get_run_logger().info)
     return {k: v for k, v in summary.items() if k != "losses"}
 
 
@@ -69,8 +68,17 @@ def train_dynamics(
     nproc: int = 1,
 ) -> dict:
     """Train both dynamics models on ``corpus`` into ``out``; returns the summary (checkpoint, eval, baselines)."""
-    config = TrainConfig(preset=preset, steps=steps, batch_size=batch_size, window=window, lr=lr, seed=seed,
-                         relative=relative, checkpoint_every=checkpoint_every, eval_every=eval_every)  # fmt: skip
+    config = TrainConfig(
+        preset=preset,
+        steps=steps,
+        batch_size=batch_size,
+        window=window,
+        lr=lr,
+        seed=seed,
+        relative=relative,
+        checkpoint_every=checkpoint_every,
+        eval_every=eval_every,
+    )
     summary = train_models(corpus, out, config, nproc)
     create_markdown_artifact(key="train-dynamics-report", markdown=report_markdown(corpus, out, summary))
     get_run_logger().info("checkpoint %s", summary["checkpoint"])

@@ -15,7 +15,7 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
-from marionette.observation.train import ObservationTrainConfig, train
+from marionette.observation.train import ObservationTrainConfig, run
 
 
 @task(cache_policy=NO_CACHE, task_run_name="pose-targets")
@@ -29,25 +29,28 @@ def pose_targets(corpus: str) -> dict:
 
 
 @task(cache_policy=NO_CACHE, task_run_name="train-observation-{config.control}")
-def train_model(corpus: str, out: str, config: ObservationTrainConfig) -> dict:
-    """Train (resuming when ``out`` holds a checkpoint); returns the summary without the loss history."""
-    summary = train(corpus, out, config, log=get_run_logger().info)
+def train_model(corpus: str, out: str, config: ObservationTrainConfig, nproc: int = 1) -> dict:
+    """Train (resuming when ``out`` holds a checkpoint; ``nproc`` > 1: under torchrun); returns the summary
+    without the loss history."""
+    summary = run(corpus, out, config, nproc=nproc, log=get_run_logger().info)
     return {k: v for k, v in summary.items() if k != "losses"}
 
 
 def report_markdown(corpus: str, s: dict) -> str:
     first, last = s["evals"][0], s["evals"][-1]
-    return "\n".join([
-        f"# train-observation `{corpus}`",
-        "",
-        f"checkpoint `{s['checkpoint']}` after {s['steps']} steps; {s['parameters']:,} parameters; "
-        f"{s['chunks']} train chunks, {s['held_out']} held-out ({s['held_out_split']})",
-        "",
-        "| held-out flow loss | step |",
-        "|---|---|",
-        f"| {first['held_out_loss']:.4f} (initialisation) | {first['step']} |",
-        f"| {last['held_out_loss']:.4f} | {last['step']} |",
-    ])  # fmt: skip
+    return "\n".join(
+        [
+            f"# train-observation `{corpus}`",
+            "",
+            f"checkpoint `{s['checkpoint']}` after {s['steps']} steps; {s['parameters']:,} parameters; "
+            f"{s['chunks']} train chunks, {s['held_out']} held-out ({s['held_out_split']})",
+            "",
+            "| held-out flow loss | step |",
+            "|---|---|",
+            f"| {first['held_out_loss']:.4f} (initialisation) | {first['step']} |",
+            f"| {last['held_out_loss']:.4f} | {last['step']} |",
+        ]
+    )
 
 
 @flow(name="train-observation")
@@ -65,13 +68,24 @@ def train_observation(
     control: str = "pose",
     checkpoint_every: int = 250,
     reference_swap: float | None = None,
+    nproc: int = 1,
 ) -> dict:
     """Pose targets up to date, then train the observation model (or the pixel-AR baseline, control="actions");
     ``reference_swap`` None: the trainer's default (0.2 under pose control, 0 for the baseline)."""
-    config = ObservationTrainConfig(preset=preset, steps=steps, batch_size=batch_size, frames=frames, reduce=reduce, patch=patch, lr=lr,
-                                    seed=seed, control=control, checkpoint_every=checkpoint_every,
-                                    reference_swap=reference_swap)  # fmt: skip
+    config = ObservationTrainConfig(
+        preset=preset,
+        steps=steps,
+        batch_size=batch_size,
+        frames=frames,
+        reduce=reduce,
+        patch=patch,
+        lr=lr,
+        seed=seed,
+        control=control,
+        checkpoint_every=checkpoint_every,
+        reference_swap=reference_swap,
+    )
     pose_targets(corpus)
-    summary = train_model(corpus, out, config)
+    summary = train_model(corpus, out, config, nproc)
     create_markdown_artifact(key="train-observation-report", markdown=report_markdown(corpus, summary))
     return summary

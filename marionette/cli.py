@@ -3,18 +3,153 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
+import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
+DESCRIPTION = (
+    "Game recordings into a corpus, terrain and pose-control targets; dynamics and observation models trained, rolled out, "
+    "painted and evaluated. `marionette COMMAND --help` lists a command's options and their defaults."
+)
+X264_CRF = (0, 51)  # libx264's constant-rate-factor range for 8-bit video
 
-def _size(s: str) -> tuple[int, int]:
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Help with every option's default, written as it is typed (``176x320``); flags without a value
+    (switches) and defaults of None (their help says what happens) are left as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        d = action.default
+        if "%(default)" in text or not action.option_strings or action.nargs == 0 or d is None or d is argparse.SUPPRESS:
+            return text
+        if isinstance(d, list | tuple) and not d:
+            return text
+        shown = "x".join(str(v) for v in d) if isinstance(d, tuple) else str(d)
+        return f"{text} (default: {shown.replace('%', '%%')})"
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose help shows defaults (``HelpFormatter``); its subparsers are Parsers too."""
+
+    def __init__(self, *args, formatter_class: type = HelpFormatter, **kwargs) -> None:
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
+
+
+def _integer(s: str) -> int:
+    try:
+        return int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, not {s!r}") from None
+
+
+def _number(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, not {s!r}") from None
+    if v != v or v in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, not {s!r}")
+    return v
+
+
+def int_at_least(lo: int) -> Callable[[str], int]:
+    """An argparse type: an integer ≥ ``lo``."""
+
+    def parse(s: str) -> int:
+        v = _integer(s)
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be at least {lo}, not {v}")
+        return v
+
+    parse.__name__ = f"integer ≥ {lo}"
+    return parse
+
+
+positive_int = int_at_least(1)
+non_negative_int = int_at_least(0)
+
+
+def positive_float(s: str) -> float:
+    """An argparse type: a finite number > 0."""
+    v = _number(s)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be greater than 0, not {s}")
+    return v
+
+
+def non_negative_float(s: str) -> float:
+    """An argparse type: a finite number ≥ 0."""
+    v = _number(s)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, not {s}")
+    return v
+
+
+def x264_crf(s: str) -> int:
+    """An argparse type: an x264 constant rate factor, 0 (lossless) to 51."""
+    v = _integer(s)
+    lo, hi = X264_CRF
+    if not lo <= v <= hi:
+        raise argparse.ArgumentTypeError(f"x264's crf runs from {lo} to {hi} (lower is better), not {v}")
+    return v
+
+
+def chunk_frames(s: str) -> int:
+    """An argparse type: frames per video chunk, 4k + 1 and at least 5 (the video models' temporal stride is 4)."""
+    v = _integer(s)
+    if v < 5 or (v - 1) % 4:
+        raise argparse.ArgumentTypeError(f"chunk frames are 4k + 1 and at least 5 (e.g. 41, 81), not {v}")
+    return v
+
+
+def size_hxw(s: str) -> tuple[int, int]:
+    """An argparse type: ``HxW`` with both sides > 0."""
     try:
         h, w = (int(v) for v in s.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"size must be HxW, e.g. 176x320, not {s!r}") from None
+    if h <= 0 or w <= 0:
+        raise argparse.ArgumentTypeError(f"size {s!r}: height and width must both be greater than 0")
     return h, w
+
+
+def even_size_hxw(s: str) -> tuple[int, int]:
+    """An argparse type: ``HxW`` with both sides > 0 and even (H.264 in yuv420p halves the chroma planes)."""
+    h, w = size_hxw(s)
+    if h % 2 or w % 2:
+        raise argparse.ArgumentTypeError(f"size {s!r}: H.264 video needs an even height and width")
+    return h, w
+
+
+def even_int(s: str) -> int:
+    """An argparse type: an even integer > 0 (a side of an H.264 video)."""
+    v = _integer(s)
+    if v <= 0 or v % 2:
+        raise argparse.ArgumentTypeError(f"an H.264 video side is an even number greater than 0, not {v}")
+    return v
+
+
+def near_ids(ids: list[str], wrong: str) -> str:
+    """``; did you mean a, b?`` naming the ids closest to ``wrong``, or nothing when none is close."""
+    near = difflib.get_close_matches(wrong, ids, n=3, cutoff=0.6)
+    return f"; did you mean {', '.join(near)}?" if near else ""
+
+
+def segment_row(c, segment: str) -> dict:
+    """The corpus's row of ``segment``; a wrong id is a ValueError that suggests near ones and the command listing them."""
+    try:
+        return c.segment_row(segment)
+    except KeyError:
+        ids = c.segment_ids()
+        raise ValueError(
+            f"{c.path}: no segment {segment!r}{near_ids(ids, segment)} "
+            f"(`marionette inspect {c.path} --segments` lists all {len(ids)})"
+        ) from None
 
 
 def cmd_synth(a: argparse.Namespace) -> int:
@@ -39,43 +174,39 @@ def _options(a: argparse.Namespace):
         min_segment_frames=a.min_segment_frames,
         video=VideoSettings(height=h, width=w, chunk_frames=a.chunk_frames, crf=a.crf),
         compression=a.compression,
+        max_member_bytes=a.max_member_bytes,
     )
 
 
 def cmd_ingest(a: argparse.Namespace) -> int:
-    from marionette.ingest import build_corpus
+    """Ingest, then scan the terrain and render the pose targets (``marionette.pipeline.build``); 1 with --strict when anything failed."""
+    from marionette.pipeline import build
 
     t0 = time.time()
-    report = build_corpus(a.src, a.corpus, _options(a), workers=a.workers, progress=not a.quiet)
+    report = build(a.src, a.corpus, _options(a), workers=a.workers, terrain=a.terrain, pose=a.pose, progress=not a.quiet)
     counts: dict[str, int] = {}
     for r in report["results"]:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
         if r["status"] in ("quarantined", "skipped"):
             print(f"{r['status']}: {r['sample']}: {r['reason']}")
+    for path, why in report["skipped"]:
+        print(f"not a sample: {path}: {why}")
     info = report["info"]
     print(
         f"corpus {a.corpus}: {info['total_segments']} segments, {info['total_frames']} frames, "
         f"{', '.join(f'{v} {k}' for k, v in sorted(counts.items()))} in {time.time() - t0:.1f} s"
     )
-    if a.terrain and info["total_ingested"]:
-        from terrain_scan.scan import scan_stages
+    for line in report["refresh"].lines():
+        print(line)
+    return _strict_status(a.strict, report["failures"])
 
-        for st, r in scan_stages(a.corpus, incremental=True, log=lambda *_: None).items():
-            print(f"terrain {st}: {len(r['scanned'])} recordings scanned, {len(r['unchanged'])} unchanged, {len(r['chunks_written'])} chunks written")
-    if a.pose and info["total_ingested"]:
-        _pose_targets(a.corpus)
+
+def _strict_status(strict: bool, failures: dict[str, int]) -> int:
+    """The exit status of a build: 1 under --strict when any sample was quarantined or any scan or pose target failed."""
+    if strict and any(failures.values()):
+        print("--strict: " + ", ".join(f"{n} {kind}" for kind, n in failures.items() if n) + " failed", file=sys.stderr)
+        return 1
     return 0
-
-
-def _pose_targets(corpus: Path) -> None:
-    from marionette.bridge.targets import render_pose_targets
-
-    t0 = time.time()
-    r = render_pose_targets(corpus)
-    print(
-        f"pose targets: {len(r.rendered)} of {r.chunks} video chunks rendered ({r.frames_rendered} frames), "
-        f"{len(r.shards_rewritten)} video shards rewritten in {time.time() - t0:.1f} s"
-    )
 
 
 def inspect_text(corpus_path: Path) -> str:
@@ -88,12 +219,12 @@ def inspect_text(corpus_path: Path) -> str:
     lines.append(f"layout   {c.layout.scene} dim={c.layout.dim} hash={c.layout.hash}")
     for name, (s0, s1) in c.layout.slices.items():
         lines.append(f"           {name:<20} [{s0}, {s1})")
-    frames = info["total_frames"]
+    frames = info.total_frames
     lines.append(
-        f"samples  {info['total_samples']} ({info['total_ingested']} ingested, {info['total_quarantined']} quarantined, {info['total_skipped']} skipped)"
+        f"samples  {info.total_samples} ({info.total_ingested} ingested, {info.total_quarantined} quarantined, {info.total_skipped} skipped)"
     )
     lines.append(
-        f"segments {info['total_segments']}  frames {frames}  hours {frames / c.fps / 3600:.4f}  fps {c.fps:g}  video chunks {info['total_chunks']}"
+        f"segments {info.total_segments}  frames {frames}  hours {frames / c.fps / 3600:.4f}  fps {c.fps:g}  video chunks {info.total_chunks}"
     )
     splits: dict[str, list[int]] = {}
     for sp, fr in zip(seg["split"].to_pylist(), seg["frames"].to_pylist()):
@@ -106,7 +237,7 @@ def inspect_text(corpus_path: Path) -> str:
         for act in v["actions"][1:]:
             kinds[act["class"]] = kinds.get(act["class"], 0) + 1
         lines.append(f"vocab    {etype}: {v['size']} tokens ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})")
-    lines.append(f"shards   {len(info['shards'])} state + video: {c.path / 'state'}, {c.path / 'video'}")
+    lines.append(f"shards   {len(info.shards)} state + video: {c.path / 'state'}, {c.path / 'video'}")
     q = c.quarantine.to_pylist()
     lines.append(f"quarantine {len(q)}")
     for r in q:
@@ -119,45 +250,157 @@ def inspect_text(corpus_path: Path) -> str:
     return "\n".join(lines)
 
 
+SEGMENT_COLUMNS = ("segment", "split", "frames", "stage", "chunks")
+
+
+def segment_rows(corpus_path: Path, split: str | None = None) -> list[dict]:
+    """The corpus's segments (id, split, frames, stage, video chunks), of one split when given; an unknown split is a ValueError."""
+    from marionette.corpus import Corpus
+
+    c = Corpus(corpus_path)
+    rows = [{k: r[k] for k in SEGMENT_COLUMNS} for r in c.segments.select(list(SEGMENT_COLUMNS)).to_pylist()]
+    if split is not None:
+        splits = sorted({r["split"] for r in rows})
+        if split not in splits:
+            raise ValueError(f"{c.path}: no segment in split {split!r}; its splits are {', '.join(splits) or 'none'}")
+        rows = [r for r in rows if r["split"] == split]
+    return rows
+
+
+def segments_text(rows: list[dict]) -> str:
+    """Segment rows as an aligned table, one segment a line, with a count at the end."""
+    table = [list(SEGMENT_COLUMNS)] + [[str(r[k]) for k in SEGMENT_COLUMNS] for r in rows]
+    widths = [max(len(line[i]) for line in table) for i in range(len(SEGMENT_COLUMNS))]
+    numeric = {SEGMENT_COLUMNS.index("frames"), SEGMENT_COLUMNS.index("chunks")}
+    lines = ["  ".join(v.rjust(w) if i in numeric else v.ljust(w) for i, (v, w) in enumerate(zip(row, widths))) for row in table]
+    lines = [line.rstrip() for line in lines]
+    frames = sum(int(r["frames"]) for r in rows)
+    return "\n".join([*lines, f"{len(rows)} segments, {frames} frames"])
+
+
 def cmd_inspect(a: argparse.Namespace) -> int:
-    if a.json:
+    if a.segments or a.split is not None:
+        rows = segment_rows(a.corpus, a.split)
+        print(json.dumps(rows, indent=1) if a.json else segments_text(rows))
+    elif a.json:
         from marionette.corpus import Corpus
 
-        print(json.dumps(Corpus(a.corpus).info, indent=1))
+        print(json.dumps(Corpus(a.corpus).info.to_json(), indent=1))
     else:
         print(inspect_text(a.corpus))
     return 0
 
 
-def cmd_terrain_scan(a: argparse.Namespace) -> int:
-    from terrain_scan.depth import DepthDecoder
-    from terrain_scan.scan import ScanOptions, scan_stages
+def segment_chunks(c, segment: str, kinds: tuple[str, ...]) -> tuple[Path, dict[int, dict[str, bytes]]]:
+    """The video shard holding ``segment`` and the segment's chunks there: chunk number → {kind → bytes} of ``kinds``."""
+    from marionette.corpus.paths import parse_chunk_key
+    from marionette.corpus.video_shards import read_chunks
 
-    decoder = DepthDecoder.synthetic() if a.depth_decoder is None else DepthDecoder.from_json(json.loads(a.depth_decoder.read_text()))
-    options = ScanOptions(decoder=decoder.to_json(), frame_stride=a.frame_stride, voxel_m=a.voxel)
-    report = scan_stages(a.corpus, a.stage, incremental=a.incremental, options=options)
-    for st, r in report.items():
-        print(
-            f"stage {st}: {len(r['scanned'])} scanned, {len(r['unchanged'])} unchanged, {len(r['failed'])} failed; "
-            f"chunks {len(r['chunks_written'])} written, {len(r['chunks_unchanged'])} unchanged, {len(r['chunks_removed'])} removed; "
-            f"{r['layers']} layers ({r['filled']} filled) in {r['dir']}"
+    shard = c.video_path(segment_row(c, segment)["shard"])
+    if not shard.exists():
+        raise FileNotFoundError(f"{shard}: the video shard of segment {segment!r} is missing")
+    chunks = {parse_chunk_key(k)[1]: v for k, v in read_chunks(shard, segment, kinds).items()}
+    return shard, dict(sorted(chunks.items()))
+
+
+def export_chunk(c, segment: str, chunk: int, out: Path) -> tuple[int, int]:
+    """Write chunk ``chunk`` of ``segment`` as ``out``/pose.mkv (its pose target), first.png (its first RGB frame) and
+    rgb.mp4 (the recorded RGB); returns the frame's (height, width). A chunk without a pose target says how to render one."""
+    from marionette.corpus.paths import chunk_key
+    from marionette.ingest.video import decode_frames
+    from marionette.io import write_bytes
+    from marionette.observation.generate import write_image
+
+    shard, chunks = segment_chunks(c, segment, ("rgb.mp4", "pose.mkv"))
+    if chunk not in chunks:
+        have = ", ".join(map(str, chunks)) or "none"
+        raise ValueError(f"{shard}: segment {segment!r} has no chunk {chunk} (its chunks: {have})")
+    m = chunks[chunk]
+    if "pose.mkv" not in m:
+        raise ValueError(
+            f"{shard}: chunk {chunk} of segment {segment!r} has no pose target; render the targets with "
+            f"`marionette terrain scan {c.path}` (or ingest without --no-pose)"
         )
-    if a.pose:
-        _pose_targets(a.corpus)
+    if "rgb.mp4" not in m:
+        raise ValueError(f"{shard}: chunk {chunk} of segment {segment!r} has no rgb.mp4")
+    first = decode_frames(m["rgb.mp4"], {0}).get(0)
+    if first is None:
+        raise ValueError(f"{shard}: {chunk_key(segment, chunk)}.rgb.mp4 holds no frame")
+    out = Path(out)
+    write_bytes(out / "pose.mkv", m["pose.mkv"])
+    write_bytes(out / "rgb.mp4", m["rgb.mp4"])
+    write_image(out / "first.png", first)
+    return first.shape[0], first.shape[1]
+
+
+def cmd_export_chunk(a: argparse.Namespace) -> int:
+    """Take one video chunk's pose target and first RGB frame out of a corpus (the inputs of ``marionette generate``), or
+    list the segment's chunks."""
+    from marionette.corpus import Corpus
+    from marionette.corpus.paths import chunk_key
+    from marionette.corpus.video_shards import chunk_record
+
+    c = Corpus(a.corpus)
+    if a.chunk is None:
+        shard, chunks = segment_chunks(c, a.segment, ("json", "pose.mkv"))
+        if not chunks:
+            raise ValueError(f"{shard}: segment {a.segment!r} has no video chunks (it is shorter than one chunk)")
+        print(f"segment {a.segment}: {len(chunks)} video chunks in {shard}")
+        for k, m in chunks.items():
+            rec = chunk_record(m["json"], chunk_key(a.segment, k), str(shard)) if "json" in m else {}
+            f0, f1 = rec.get("frames", ("?", "?"))
+            print(f"  --chunk {k}: source frames [{f0}, {f1}), {'pose target' if 'pose.mkv' in m else 'no pose target'}")
+        return 0
+    if a.out is None:
+        raise ValueError("export-chunk --chunk N needs --out DIR")
+    out = Path(a.out)
+    h, w = export_chunk(c, a.segment, a.chunk, out)
+    print(f"wrote {out / 'pose.mkv'}, {out / 'first.png'} ({h}x{w}) and {out / 'rgb.mp4'} (the recorded RGB)")
+    print(f"next: marionette generate RUNS --pose {out / 'pose.mkv'} --first-frame {out / 'first.png'} --out painted.mp4")
     return 0
 
 
+def check_stage(corpus_path: Path, stage: str) -> None:
+    """A ValueError naming the corpus's stages (the nearest first) when ``stage`` is none of them."""
+    from marionette.corpus import Corpus
+
+    c = Corpus(corpus_path)
+    stages = sorted(set(c.segments["stage"].to_pylist()))
+    if stage not in stages:
+        raise ValueError(f"{c.path}: no stage {stage!r}{near_ids(stages, stage)} (its stages: {', '.join(stages) or 'none'})")
+
+
+def cmd_terrain_scan(a: argparse.Namespace) -> int:
+    """Scan the corpus's stages, then bring the pose targets up to date (``marionette.pipeline.refresh``)."""
+    from marionette.io import read_json
+    from marionette.pipeline import refresh
+    from terrain_scan.depth import DepthDecoder
+    from terrain_scan.scan import ScanOptions
+
+    decoder = DepthDecoder.synthetic() if a.depth_decoder is None else DepthDecoder.from_json(read_json(a.depth_decoder))
+    options = ScanOptions(decoder=decoder.to_json(), frame_stride=a.frame_stride, voxel_m=a.voxel)
+    if a.stage is not None:
+        check_stage(a.corpus, a.stage)
+    report = refresh(a.corpus, a.stage, incremental=a.incremental, scan_options=options, pose=a.pose, progress=not a.quiet)
+    for line in report.lines():
+        print(line)
+    failed = report.failures()
+    return _strict_status(a.strict, {"terrain": len(failed["terrain"]), "pose": len(failed["pose"])})
+
+
 def cmd_terrain_export(a: argparse.Namespace) -> int:
+    """Export a stage's scanned terrain as a mesh, its vertices relative to the terrain's middle."""
     import numpy as np
 
+    from marionette.corpus import Corpus
     from terrain_scan.mesh import export
-    from terrain_scan.scan import stage_dir
-    from terrain_scan.store import Stage
 
-    st = Stage(stage_dir(a.corpus, a.stage))
-    layers, _ = st.layers()
+    check_stage(a.corpus, a.stage)
+    c = Corpus(a.corpus)
+    st = c.stage_terrain(a.stage)
+    layers = st.layers()[0] if st is not None else ()
     if not len(layers):
-        raise ValueError(f"{st.dir}: the stage has no terrain yet (run `marionette terrain scan` first)")
+        raise ValueError(f"{c.path}: stage {a.stage!r} has no terrain yet (run `marionette terrain scan {c.path}` first)")
     origin = np.array([np.floor(layers.gx.mean()), 0.0, np.floor(layers.gz.mean())])
     export(layers, a.out, origin=origin)
     print(f"wrote {a.out} ({len(layers)} layers; vertices relative to x={origin[0]:g}, z={origin[2]:g})")
@@ -170,7 +413,6 @@ def cmd_render(a: argparse.Namespace) -> int:
     from marionette.corpus import Corpus
     from marionette.io import read_ipc
     from marionette.schema import layout_of_schema
-    from terrain_scan.scan import stage_dir
 
     src = Path(a.source)
     t0 = time.time()
@@ -179,9 +421,9 @@ def cmd_render(a: argparse.Namespace) -> int:
         if a.segment is None:
             raise ValueError(f"{src}: a corpus needs --segment ID")
         c = Corpus(src)
-        rows = c.read_segment(a.segment)
-        layout, stage = c.layout, c.segment_row(a.segment)["stage"]
-        terrain = TerrainScene.of_stage(a.terrain or stage_dir(src, stage))
+        segment_row(c, a.segment)
+        rows, layout = c.read_segment(a.segment), c.layout
+        terrain = TerrainScene.of_stage(a.terrain or c.terrain(a.segment))
         size_src = source_size(c, a.segment) if a.camera == "recorded" else None
     else:
         rows = read_ipc(src)
@@ -189,61 +431,95 @@ def cmd_render(a: argparse.Namespace) -> int:
         if a.segment is not None:
             import pyarrow.compute as pc
 
+            ids = pc.unique(rows["segment"]).to_pylist()
+            if a.segment not in ids:
+                raise ValueError(f"{src}: no segment {a.segment!r}{near_ids(ids, a.segment)} (it holds {', '.join(ids)})")
             rows = rows.filter(pc.equal(rows["segment"], a.segment))
         terrain = TerrainScene.of_stage(a.terrain) if a.terrain else TerrainScene.empty()
         if a.camera == "recorded":
             raise ValueError(f"{src}: a rollout has no recorded camera to follow; use --camera follow")
         size_src = None
     meta = render_rows(layout, rows, a.out, terrain, a.camera, a.size, a.fps, size_src)
-    print(f"wrote {a.out}: {meta.width}×{meta.height} at {meta.fps:g} fps, heights {meta.h_min:g}..{meta.h_max:g} m, "
-          f"{time.time() - t0:.1f} s")  # fmt: skip
+    took = time.time() - t0
+    heights = f"heights {meta.h_min:g}..{meta.h_max:g} m"
+    print(f"wrote {a.out}: {meta.width}×{meta.height} at {meta.fps:g} fps, {heights}, {took:.1f} s")
     return 0
 
 
 def cmd_train_dynamics(a: argparse.Namespace) -> int:
     """Train ActionGPT + PoseGPT on a corpus (resuming from --out when it holds a checkpoint)."""
-    from marionette.dynamics.train import run
+    from marionette.dynamics.train import TrainConfig, run
+    from marionette.training import config_from_args
 
-    run(a)
+    summary = run(a.corpus, a.out, config_from_args(TrainConfig, a), nproc=a.nproc, progress=a.progress)
+    print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return 0
 
 
 def cmd_train_observation(a: argparse.Namespace) -> int:
     """Train the observation model on a corpus's video shards (resuming from --out)."""
-    from marionette.observation.train import ObservationTrainConfig, train, train_in_processes
+    from marionette.observation.train import ObservationTrainConfig, run
+    from marionette.training import config_from_args
 
-    keys = ("preset", "steps", "batch_size", "frames", "reduce", "patch", "lr", "warmup", "seed", "checkpoint_every", "control",
-            "reference_swap")
-    config = ObservationTrainConfig(**{k: getattr(a, k) for k in keys if getattr(a, k) is not None})
-    if a.nproc > 1:
-        train_in_processes(a.corpus, a.out, config, a.nproc)
-    else:
-        train(a.corpus, a.out, config)
+    summary = run(a.corpus, a.out, config_from_args(ObservationTrainConfig, a), nproc=a.nproc, progress=a.progress)
+    print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return 0
 
 
 def cmd_generate(a: argparse.Namespace) -> int:
     """Paint RGB onto a pose-control video with a trained observation model."""
-    from marionette.observation.generate import main as generate_main
+    from marionette.observation.generate import paint_video
 
-    generate_main(a)
+    paint_video(a.ckpt, a.pose, a.first_frame, a.out, chunks=a.chunks, steps=a.steps, seed=a.seed, fps=a.fps)
     return 0
 
 
 def cmd_rollout(a: argparse.Namespace) -> int:
     """Roll a trained dynamics model out from a recorded segment's first frames."""
+    from marionette.corpus import Corpus
     from marionette.dynamics.rollout import run
 
+    segment_row(Corpus(a.corpus), a.segment)
     run(a)
     return 0
+
+
+class ProgressBars:
+    """A ``progress(phase, done, total)`` callback drawing one tqdm bar per phase on stderr (a new phase closes the last bar)."""
+
+    def __init__(self) -> None:
+        self.phase: str | None = None
+        self.bar = None
+
+    def __call__(self, phase: str, done: int, total: int) -> None:
+        from tqdm import tqdm
+
+        if phase != self.phase or self.bar is None:
+            self.close()
+            self.phase, self.bar = phase, tqdm(total=total, desc=phase, leave=True, dynamic_ncols=True)
+        self.bar.update(done - self.bar.n)
+        if done >= total:
+            self.close()
+
+    def close(self) -> None:
+        """Close the open bar, if any."""
+        if self.bar is not None:
+            self.bar.close()
+        self.phase, self.bar = None, None
 
 
 def cmd_eval(a: argparse.Namespace) -> int:
     """Run the evaluation protocol on a dynamics checkpoint (and an observation model) and write the report."""
     from marionette.eval.report import evaluate
 
-    s = evaluate(a.dynamics, a.corpus, a.out, observation=a.observation, segments=a.segments, seed_frames=a.seed_frames,
-                 horizon=a.horizon, seed=a.seed, fvd_steps=a.fvd_steps, fvd_frames=a.fvd_frames, i3d=a.i3d)  # fmt: skip
+    bars = None if a.quiet else ProgressBars()
+    try:
+        options = dict(observation=a.observation, segments=a.segments, seed_frames=a.seed_frames, horizon=a.horizon, seed=a.seed)
+        fvd = dict(fvd_steps=a.fvd_steps, fvd_frames=a.fvd_frames, i3d=a.i3d)
+        s = evaluate(a.dynamics, a.corpus, a.out, **options, **fvd, progress=bars)
+    finally:
+        if bars is not None:
+            bars.close()
     print(f"report: {s['report_md']}")
     return 0
 
@@ -253,7 +529,8 @@ def cmd_demo(a: argparse.Namespace) -> int:
     evaluation report, end to end."""
     from marionette.corpus import Corpus
     from marionette.eval.report import evaluate
-    from marionette.ingest import IngestOptions, build_corpus
+    from marionette.ingest import IngestOptions
+    from marionette.pipeline import build
     from marionette.synth import generate
 
     out = Path(a.out)
@@ -261,26 +538,32 @@ def cmd_demo(a: argparse.Namespace) -> int:
     t0 = time.time()
     print(f"[1/9] synthesising {a.recordings} recordings × {a.seconds:g} s into {src}")
     generate(src, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers)
-    print(f"[2/9] building the corpus {corpus} with {a.workers} workers")
-    build_corpus(src, corpus, IngestOptions(), workers=a.workers, progress=True)
+    print(f"[2/9] building the corpus {corpus} with {a.workers} workers, its stages' terrain and its pose-control targets")
+    built = build(src, corpus, IngestOptions(), workers=a.workers, progress=True)
     c = Corpus(corpus)
     rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
     print(f"[3/9] dynamics view at 20 fps: {rows} rows under {c.dynamics_dir()}")
-    from terrain_scan.scan import scan_stages
-
-    for st, r in scan_stages(corpus, incremental=True, log=lambda *_: None).items():
-        print(f"[4/9] terrain of stage {st}: {len(r['scanned'])} recordings scanned, {r['layers']} layers in {len(r['chunks_written']) + len(r['chunks_unchanged'])} chunks under {r['dir']}")
+    terrain, pose = built["refresh"].terrain, built["refresh"].pose
+    for st, r in terrain.items():
+        scanned, chunks, layers = len(r["scanned"]), len(r["chunks_written"]) + len(r["chunks_unchanged"]), r["layers"]
+        print(f"[4/9] terrain of stage {st}: {scanned} recordings scanned, {layers} layers in {chunks} chunks under {r['dir']}")
     print("[5/9] the bridge: pose-control targets for every video chunk, and one segment seen by the follow camera")
-    _pose_targets(corpus)
+    if pose is not None:
+        print(f"    {len(pose['rendered'])} of {pose['chunks']} video chunks rendered ({pose['frames_rendered']} frames)")
     seg = c.segment_ids()[0]
     follow = out / f"{seg}-follow.mkv"
-    cmd_render(argparse.Namespace(source=corpus, segment=seg, camera="follow", out=follow, size=(352, 640), fps=None, terrain=None))
+    render = argparse.Namespace(source=corpus, segment=seg, camera="follow", out=follow, size=(352, 640), fps=None, terrain=None)
+    cmd_render(render)
     print(inspect_text(corpus))
     _demo_dynamics(c, out, a.dynamics_steps)
     _demo_observation(c, out, a.observation_steps)
     print("[9/9] evaluation: state-layer metrics beside the recorded state, controllability probe, rule ablation, proxy-FVD")
-    report = evaluate(out / "dynamics", corpus, out / "evaluation", observation=out / "observation", segments=4, seed_frames=32,
-                      horizon=80, fvd_steps=8, fvd_frames=41, log=lambda m: print("   ", m))  # fmt: skip
+    bars = ProgressBars()
+    try:
+        options = dict(observation=out / "observation", segments=4, seed_frames=32, horizon=80, fvd_steps=8, fvd_frames=41)
+        report = evaluate(out / "dynamics", corpus, out / "evaluation", **options, log=lambda m: print("   ", m), progress=bars)
+    finally:
+        bars.close()
     print(f"    report: {report['report_md']} (plots beside it)")
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
     return 0
@@ -296,8 +579,12 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
     runs = out / "dynamics"
     t = time.time()
     print(f"[6/9] training ActionGPT + PoseGPT (tiny preset, {steps} steps) into {runs}")
-    s = train(c, runs, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50),
-              log=lambda m: print("   ", m) if m.startswith(("window", "baselines", "eval")) else None)  # fmt: skip
+
+    def log(m: str) -> None:
+        if m.startswith(("window", "baselines", "eval")):
+            print("   ", m)
+
+    s = train(c, runs, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50), log=log)
     print(f"    {s['steps']} steps in {time.time() - t:.1f} s; checkpoint {s['checkpoint']}")
     held = c.segment_ids("test") or c.segment_ids()
     seg = max(held, key=lambda x: c.dynamics_segment(x).num_rows)
@@ -308,8 +595,8 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
     classes = {x["composite"]: x.get("class") for x in c.vocab["entity_types"].get(type_key, {}).get("actions", [])}
     attack = next((k for k in range(1, tokens.sizes[hunter]) if classes.get(int(tokens.composites[hunter][k])) == "attack"), None)
     states, video = out / f"{seg}-rollout.arrow", out / f"{seg}-rollout.mkv"
-    argv = [str(runs), str(c.path), "--segment", seg, "--seed-frames", "32", "--horizon", "200", "--out", str(states),
-            "--render", str(video), "--size", "352x640"]  # fmt: skip
+    argv = [str(runs), str(c.path), "--segment", seg, "--seed-frames", "32", "--horizon", "200"]
+    argv += ["--out", str(states), "--render", str(video), "--size", "352x640"]
     if attack is not None:
         argv += ["--force", f"{entity}:40:60:{attack}"]
     print(f"[7/9] rollout of {seg}: 32 seed frames, 200 predicted (10 s), {entity} forced to attack over frames 40–59, rules on")
@@ -320,168 +607,223 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
 
 def _demo_observation(c, out: Path, steps: int) -> None:
     """The demo's observation stage: train the tiny video model, then paint a held-out chunk's pose video from its first frame."""
-    import tarfile
-
-    from marionette.ingest.video import decode_frames
-    from marionette.observation.generate import main as generate_main
-    from marionette.observation.generate import write_image
+    from marionette.observation.generate import paint_video
     from marionette.observation.train import ObservationTrainConfig, train
 
     runs = out / "observation"
     t = time.time()
-    video = c.info["ingest"]["video"]
+    video = c.info.video
     reduce = 8 if video["height"] % 8 == 0 and video["width"] % 8 == 0 else 4
     print(f"[8/9] training the observation model (tiny video DiT, {steps} steps, 1/{reduce} of the chunk size) into {runs}")
-    s = train(c, runs, ObservationTrainConfig(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3,
-                                              warmup=20), log=lambda m: print("   ", m))  # fmt: skip
+    tiny = dict(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3, warmup=20)
+    s = train(c, runs, ObservationTrainConfig(**tiny), log=lambda m: print("   ", m))
     print(f"    {s['steps']} steps in {time.time() - t:.1f} s")
-    held = set(c.segment_ids("test") or c.segment_ids())
-    for shard in sorted((c.path / "video").glob("shard-*.tar")):
-        with tarfile.open(shard) as tar:
-            keys = [n[: -len(".pose.mkv")] for n in tar.getnames() if n.endswith(".pose.mkv") and n.split("__c")[0] in held]
-            if keys:
-                (out / "pose.mkv").write_bytes(tar.extractfile(f"{keys[0]}.pose.mkv").read())
-                first = decode_frames(tar.extractfile(f"{keys[0]}.rgb.mp4").read())[0]
-                break
+    split = "test" if c.segment_ids("test") else None
+    for seg in (r["segment"] for r in c.segments.to_pylist() if r["chunks"] and split in (None, r["split"])):
+        posed = list(segment_chunks(c, seg, ("pose.mkv",))[1])  # the chunks holding a pose target
+        if posed:
+            chunk = posed[0]
+            break
     else:
         print("    no held-out chunk with a pose target: nothing to generate")
         return
-    write_image(out / "first.png", first)
-    generate_main(argparse.Namespace(ckpt=runs, pose=out / "pose.mkv", first_frame=out / "first.png", out=out / "generated.mp4",
-                                     chunks=4, steps=8, seed=0, fps=30.0))  # fmt: skip
+    export_chunk(c, seg, chunk, out)  # out/pose.mkv, out/first.png (and the recorded out/rgb.mp4)
+    print(f"    painting chunk {chunk} of held-out segment {seg} from its first frame")
+    paint_video(runs, out / "pose.mkv", out / "first.png", out / "generated.mp4", chunks=4, steps=8, seed=0, fps=30.0)
+
+
+def scene_name(s: str) -> str:
+    """An argparse type: the name of a scene under the schema directory's ``scenes/``."""
+    from marionette.schema import SCHEMA_DIR
+
+    names = sorted(f.stem for f in (SCHEMA_DIR / "scenes").glob("*.json"))
+    if s not in names:
+        where = SCHEMA_DIR / "scenes"
+        raise argparse.ArgumentTypeError(f"no scene {s!r} in {where}{near_ids(names, s)} (scenes: {', '.join(names)})")
+    return s
+
+
+def mesh_path(s: str) -> Path:
+    """An argparse type: an output path ending in .ply or .glb."""
+    if Path(s).suffix.lower() not in (".ply", ".glb"):
+        raise argparse.ArgumentTypeError(f"{s!r}: a mesh is written as .ply or .glb")
+    return Path(s)
+
+
+def _synthetic_arguments(s: argparse.ArgumentParser, recordings: int, workers: int) -> None:
+    """The synthetic recordings' options (``synth`` and ``demo``)."""
+    s.add_argument("--recordings", type=positive_int, default=recordings, help="recordings to write")
+    s.add_argument("--seconds", type=positive_float, default=20.0, help="length of each recording, seconds")
+    s.add_argument("--seed", type=non_negative_int, default=0, help="seed of the synthetic game")
+    s.add_argument("--width", type=even_int, default=320, help="source video width, pixels (even)")
+    s.add_argument("--height", type=even_int, default=180, help="source video height, pixels (even)")
+    s.add_argument("--workers", type=positive_int, default=workers, help="parallel worker processes")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="marionette", description=__doc__)
-    sub = p.add_subparsers(dest="cmd", required=True)
+    """The ``marionette`` command line: every subcommand, each option validated as it is parsed and its default shown."""
+    p = Parser(prog="marionette", description=DESCRIPTION)
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
-    s = sub.add_parser("synth", help="write synthetic WildWorld-format recordings")
-    s.add_argument("out", type=Path)
-    s.add_argument("--recordings", type=int, default=2)
-    s.add_argument("--seconds", type=float, default=20.0)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--width", type=int, default=320)
-    s.add_argument("--height", type=int, default=180)
-    s.add_argument("--workers", type=int, default=1, help="recordings generated in parallel processes")
+    def command(name: str, help: str, group=sub) -> argparse.ArgumentParser:
+        return group.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".")
+
+    s = command("synth", "write synthetic WildWorld-format recordings")
+    s.add_argument("out", type=Path, help="directory to write the recordings under")
+    _synthetic_arguments(s, recordings=2, workers=1)
     s.set_defaults(fn=cmd_synth)
 
-    s = sub.add_parser("ingest", help="ingest WildWorld recordings into a corpus (then finalize)")
-    s.add_argument("src", type=Path)
-    s.add_argument("corpus", type=Path)
-    s.add_argument("--scene", default="duel")
-    s.add_argument("--monster-species", type=int, default=None)
-    s.add_argument("--weapon", type=int, default=None)
-    s.add_argument("--workers", type=int, default=1)
-    s.add_argument("--min-segment-frames", type=int, default=30)
-    s.add_argument("--video-size", type=_size, default=(176, 320), help="training resolution HxW")
-    s.add_argument("--chunk-frames", type=int, default=81)
-    s.add_argument("--crf", type=int, default=20, help="x264 quality of the video chunks (lower is better)")
-    s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd")
-    s.add_argument("--quiet", action="store_true")
+    s = command("ingest", "ingest WildWorld recordings into a corpus (then finalize, scan terrain, render pose targets)")
+    s.add_argument("src", type=Path, help="the source tree: a directory holding sample directories")
+    s.add_argument("corpus", type=Path, help="the corpus directory (created, or updated incrementally)")
+    s.add_argument("--scene", type=scene_name, default="duel", help="the scene layout (schemas/scenes/NAME.json)")
+    species_help = "ingest only recordings whose monster has this species id (default: every species the rig declares)"
+    s.add_argument("--monster-species", type=non_negative_int, help=species_help)
+    s.add_argument("--weapon", type=non_negative_int, help="ingest only recordings whose hunter has this weapon (default: any)")
+    s.add_argument("--workers", type=positive_int, default=1, help="samples ingested in parallel processes")
+    s.add_argument("--min-segment-frames", type=positive_int, default=30, help="shortest segment kept, frames")
+    s.add_argument("--video-size", type=even_size_hxw, default=(176, 320), metavar="HxW", help="video chunks' size, HxW (even)")
+    s.add_argument("--chunk-frames", type=chunk_frames, default=81, help="frames per video chunk (4k + 1, at least 5)")
+    s.add_argument("--crf", type=x264_crf, default=20, help="x264 quality of the video chunks, 0..51 (lower is better)")
+    s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd", help="codec of the Arrow state shards")
+    s.add_argument("--max-member-bytes", type=positive_int, default=2 << 30,
+                   help="largest skeleton.npz array a sample may declare, bytes (checked before it is inflated)")  # fmt: skip
+    s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.add_argument("--no-terrain", dest="terrain", action="store_false", help="skip the incremental terrain scan after ingest")
     s.add_argument("--no-pose", dest="pose", action="store_false", help="skip rendering the pose-control targets after ingest")
+    s.add_argument("--strict", action="store_true", help="exit 1 when any sample is quarantined or any scan or pose target fails")
     s.set_defaults(fn=cmd_ingest)
 
-    s = sub.add_parser("inspect", help="summarise a corpus")
-    s.add_argument("corpus", type=Path)
-    s.add_argument("--json", action="store_true", help="print info.json")
+    s = command("inspect", "summarise a corpus, or list its segments")
+    s.add_argument("corpus", type=Path, help="a corpus directory")
+    s.add_argument("--segments", action="store_true", help="list the segments: id, split, frames, stage, video chunks")
+    s.add_argument("--split", default=None, help="list only this split's segments, e.g. test (implies --segments)")
+    s.add_argument("--json", action="store_true", help="print info.json (with --segments: the segment rows) as JSON")
     s.set_defaults(fn=cmd_inspect)
 
-    t = sub.add_parser("terrain", help="terrain scans: scan a corpus's stages, export meshes")
-    tsub = t.add_subparsers(dest="terrain_cmd", required=True)
-    s = tsub.add_parser("scan", help="scan the stages of a corpus into layered height-field chunks")
-    s.add_argument("corpus", type=Path)
+    s = command("export-chunk", "take a video chunk's pose target and first frame out of a corpus (the inputs of generate)")
+    s.add_argument("corpus", type=Path, help="a corpus directory")
+    s.add_argument("--segment", required=True, help="segment id (`marionette inspect CORPUS --segments` lists them)")
+    s.add_argument("--chunk", type=non_negative_int, default=None, help="chunk number in the segment (default: list its chunks)")
+    s.add_argument("--out", type=Path, default=None, help="directory for pose.mkv, first.png and rgb.mp4 (required with --chunk)")
+    s.set_defaults(fn=cmd_export_chunk)
+
+    t = command("terrain", "terrain scans: scan a corpus's stages, export meshes")
+    tsub = t.add_subparsers(dest="terrain_cmd", required=True, metavar="COMMAND")
+    s = command("scan", "scan the stages of a corpus into layered height-field chunks", tsub)
+    s.add_argument("corpus", type=Path, help="a corpus directory")
     s.add_argument("--stage", default=None, help="one stage id (default: every stage)")
     s.add_argument("--incremental", action="store_true", help="scan only recordings that are new or changed")
-    s.add_argument("--frame-stride", type=int, default=1, help="use every Nth depth frame")
-    s.add_argument("--voxel", type=float, default=0.25, help="voxel size of the point down-sampling, metres")
-    s.add_argument("--depth-decoder", type=Path, default=None, help="JSON of the 8-bit depth mapping (default: the synthetic game's)")
+    s.add_argument("--frame-stride", type=positive_int, default=1, help="use every Nth depth frame")
+    s.add_argument("--voxel", type=positive_float, default=0.25, help="voxel size of the point down-sampling, metres")
+    s.add_argument("--depth-decoder", type=Path, default=None, help="8-bit depth mapping JSON (default: the synthetic game's)")
     s.add_argument("--no-pose", dest="pose", action="store_false", help="do not bring the pose-control targets up to date")
+    s.add_argument("--quiet", action="store_true", help="no progress bars")
+    s.add_argument("--strict", action="store_true", help="exit 1 when any recording's scan or any pose target fails")
     s.set_defaults(fn=cmd_terrain_scan)
-    s = tsub.add_parser("export", help="export a stage's terrain as a PLY or GLB mesh")
-    s.add_argument("corpus", type=Path)
-    s.add_argument("--stage", default="default")
-    s.add_argument("--out", type=Path, required=True)
+    s = command("export", "export a stage's terrain as a PLY or GLB mesh", tsub)
+    s.add_argument("corpus", type=Path, help="a corpus directory")
+    s.add_argument("--stage", default="default", help="stage id")
+    s.add_argument("--out", type=mesh_path, required=True, help="output mesh, .ply or .glb")
     s.set_defaults(fn=cmd_terrain_export)
 
-    s = sub.add_parser("render", help="render a corpus segment or a rollout table to a lossless G-buffer video")
+    s = command("render", "render a corpus segment or a rollout table to a lossless G-buffer video")
     s.add_argument("source", type=Path, help="a corpus directory or a STATES.arrow rollout")
-    s.add_argument("--segment", default=None, help="segment id (required for a corpus)")
-    s.add_argument("--camera", choices=["recorded", "follow"], default=None, help="default: recorded for a corpus, follow for a rollout")
+    s.add_argument("--segment", default=None, help="segment id (required for a corpus; `inspect CORPUS --segments` lists them)")
+    s.add_argument("--camera", choices=["recorded", "follow"], help="default: recorded for a corpus, follow for a rollout")
     s.add_argument("--out", type=Path, required=True, help="output .mkv")
-    s.add_argument("--size", type=_size, default=(704, 1280), help="HxW (default 704x1280)")
-    s.add_argument("--fps", type=float, default=None, help="output rate (default: the state's)")
+    s.add_argument("--size", type=size_hxw, default=(704, 1280), metavar="HxW", help="output size, HxW")
+    s.add_argument("--fps", type=positive_float, default=None, help="output rate (default: the state's)")
     s.add_argument("--terrain", type=Path, default=None, help="a stage directory (default: the segment's stage)")
     s.set_defaults(fn=cmd_render)
 
-    t = sub.add_parser("train", help="train a model on a corpus")
-    tsub = t.add_subparsers(dest="train_cmd", required=True)
-    s = tsub.add_parser("dynamics", help="train ActionGPT + PoseGPT (a rerun with the same --out resumes)")
+    t = command("train", "train a model on a corpus")
+    tsub = t.add_subparsers(dest="train_cmd", required=True, metavar="COMMAND")
+    s = command("dynamics", "train ActionGPT + PoseGPT (a rerun with the same --out resumes)", tsub)
     from marionette.dynamics.train import add_arguments as train_arguments
 
     train_arguments(s)
     s.set_defaults(fn=cmd_train_dynamics)
 
-    s = tsub.add_parser("observation", help="train the observation model (pose video + first frame → RGB) on the video shards")
-    s.add_argument("corpus", type=Path)
-    s.add_argument("--out", type=Path, required=True)
-    s.add_argument("--preset", default=None, help="tiny (default) or small")
-    s.add_argument("--control", choices=["pose", "actions"], default=None,
-                   help="pose (default): pose-control video; actions: the pixel-AR baseline (first frame + action schedule)")  # fmt: skip
-    for flag, kind in (("--steps", int), ("--batch-size", int), ("--frames", int), ("--reduce", int), ("--patch", int),
-                       ("--lr", float), ("--warmup", int), ("--seed", int), ("--checkpoint-every", int)):  # fmt: skip
-        s.add_argument(flag, type=kind, default=None)
-    s.add_argument("--reference-swap", type=float, default=None,
-                   help="probability that a training clip's first frame comes from another chunk (pose control; teaches pose-following)")  # fmt: skip
-    s.add_argument("--nproc", type=int, default=1, help="processes: > 1 trains under torchrun (DDP)")
+    s = command("observation", "train the observation model (pose video + first frame → RGB) on the video shards", tsub)
+    from marionette.observation.train import add_arguments as observation_arguments
+
+    observation_arguments(s)
     s.set_defaults(fn=cmd_train_observation)
 
-    s = sub.add_parser("generate", help="paint RGB onto a pose-control video with a trained observation model")
+    s = command("generate", "paint RGB onto a pose-control video with a trained observation model")
     from marionette.observation.generate import add_arguments as generate_arguments
 
     generate_arguments(s)
     s.set_defaults(fn=cmd_generate)
 
-    s = sub.add_parser("rollout", help="roll a trained dynamics model out from a recorded segment, with forced tokens and scripted roots")
+    s = command("rollout", "roll a trained dynamics model out from a recorded segment, with forced tokens and scripted roots")
     from marionette.dynamics.rollout import add_arguments as rollout_arguments
 
     rollout_arguments(s)
     s.set_defaults(fn=cmd_rollout)
 
-    s = sub.add_parser("eval", help="evaluate a dynamics checkpoint: state metrics, controllability probe, rule ablation, proxy-FVD")
+    s = command("eval", "evaluate a dynamics checkpoint: state metrics, controllability probe, rule ablation, proxy-FVD")
     s.add_argument("dynamics", type=Path, help="a dynamics checkpoint or training directory")
-    s.add_argument("corpus", type=Path)
+    s.add_argument("corpus", type=Path, help="a corpus directory (its test split, else train, gives the windows)")
     s.add_argument("--out", type=Path, required=True, help="the report directory")
-    s.add_argument("--observation", type=Path, default=None, help="an observation checkpoint or training directory (for the video rows)")
-    s.add_argument("--segments", type=int, default=8, help="held-out windows")
-    s.add_argument("--seed-frames", type=int, default=64, help="recorded context frames of each window")
-    s.add_argument("--horizon", type=int, default=120, help="predicted frames of each window")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--fvd-steps", type=int, default=20, help="sampling steps of the observation model for proxy-FVD")
-    s.add_argument("--fvd-frames", type=int, default=None, help="at most this many video frames per proxy-FVD clip (default: whole)")
-    s.add_argument("--i3d", type=Path, default=None, help="Inception-I3D weights (safetensors) for FVD proper (default: the labelled proxy)")
+    s.add_argument("--observation", type=Path, help="observation checkpoint or training directory (default: no video rows)")
+    s.add_argument("--segments", type=positive_int, default=8, help="held-out windows")
+    s.add_argument("--seed-frames", type=positive_int, default=64, help="recorded context frames of each window")
+    s.add_argument("--horizon", type=positive_int, default=120, help="predicted frames of each window")
+    s.add_argument("--seed", type=non_negative_int, default=0, help="seed of the window choice and the samplers")
+    s.add_argument("--fvd-steps", type=positive_int, default=20, help="sampling steps of the observation model for proxy-FVD")
+    s.add_argument("--fvd-frames", type=positive_int, help="at most this many frames per proxy-FVD clip (default: whole clips)")
+    s.add_argument("--i3d", type=Path, help="Inception-I3D weights (safetensors) for FVD proper (default: the labelled proxy)")
+    s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.set_defaults(fn=cmd_eval)
 
-    s = sub.add_parser("demo", help="run the pipeline end to end on synthetic data")
-    s.add_argument("--out", type=Path, default=Path("demo-run"))
-    s.add_argument("--recordings", type=int, default=4)
-    s.add_argument("--seconds", type=float, default=20.0)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--width", type=int, default=320)
-    s.add_argument("--height", type=int, default=180)
-    s.add_argument("--workers", type=int, default=2)
-    s.add_argument("--dynamics-steps", type=int, default=1000, help="training steps of the demo's tiny dynamics model")
-    s.add_argument("--observation-steps", type=int, default=1000, help="training steps of the demo's tiny observation model")
+    s = command("demo", "run the pipeline end to end on synthetic data")
+    s.add_argument("--out", type=Path, default=Path("demo-run"), help="directory for everything the demo writes")
+    _synthetic_arguments(s, recordings=4, workers=2)
+    s.add_argument("--dynamics-steps", type=positive_int, default=1000, help="training steps of the tiny dynamics model")
+    s.add_argument("--observation-steps", type=positive_int, default=1000, help="training steps of the tiny observation model")
     s.set_defaults(fn=cmd_demo)
     return p
 
 
+def error_message(exc: BaseException) -> str | None:
+    """What the command prints for an error it expects (bad input, a file it cannot read or write), or None
+    for one it does not (a bug: its traceback is shown)."""
+    if isinstance(exc, OSError):
+        if exc.filename is None:
+            return str(exc)
+        where = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 is not None else "")
+        return f"{where}: {exc.strerror or exc}"
+    if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str):
+        return exc.args[0]  # str(KeyError) would quote the message
+    if isinstance(exc, ValueError | RuntimeError | KeyError):
+        return str(exc)
+    safetensors = sys.modules.get("safetensors")  # an error of it can only come once it was imported
+    if safetensors is not None and isinstance(exc, safetensors.SafetensorError):
+        return f"not a readable safetensors file: {exc}"
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; an expected error is one line on stderr and exit status 2 (MARIONETTE_DEBUG=1 raises it instead)."""
     args = build_parser().parse_args(argv)
+    name = " ".join(n for n in (args.cmd, getattr(args, "terrain_cmd", None), getattr(args, "train_cmd", None)) if n)
     try:
         return args.fn(args)
-    except (FileNotFoundError, ValueError, RuntimeError, KeyError) as exc:
-        print(f"marionette {args.cmd}: error: {exc}", file=sys.stderr)
+    except BrokenPipeError:  # the reader of stdout left (`| head`): nothing to say, and no one to say it to
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE
+    except KeyboardInterrupt:
+        if os.environ.get("MARIONETTE_DEBUG") == "1":
+            raise
+        print(f"marionette {name}: interrupted", file=sys.stderr)
+        return 130  # 128 + SIGINT, as a shell reports it
+    except Exception as exc:
+        message = error_message(exc)
+        if message is None or os.environ.get("MARIONETTE_DEBUG") == "1":
+            raise
+        print(f"marionette {name}: error: {message}", file=sys.stderr)
         return 2
 
 

@@ -40,17 +40,40 @@ def process_group_from_env() -> Iterator[None]:
             dist.destroy_process_group()
 
 
-def train_under_torchrun(module: str, corpus: Path | str, out_dir: Path | str, config_json: dict, nproc: int,
-                         summary: str = "summary.json") -> dict:  # fmt: skip
-    """Run ``python -m module CORPUS --out OUT --config OUT/train-config.json`` in ``nproc`` processes under
-    ``torchrun --standalone`` (a loopback rendezvous) and return the summary JSON rank 0 wrote in OUT.
-    The ranks' output goes where ours goes; a failure raises naming OUT and the exit code."""
+def train_under_torchrun(
+    module: str,
+    corpus: Path | str,
+    out_dir: Path | str,
+    config_json: dict,
+    nproc: int,
+    summary: str = "summary.json",
+    *,
+    progress: bool = False,
+) -> dict:
+    """Run ``python -m module CORPUS --out OUT --config OUT/train-config.json [--progress]`` in ``nproc``
+    processes under ``torchrun --standalone`` (a loopback rendezvous) and return the summary JSON rank 0
+    wrote in OUT. The ranks' output goes where ours goes; a failure raises naming OUT and the exit code."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "train-config.json", config_json)
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
-           "-m", module, str(corpus), "--out", str(out), "--config", str(out / "train-config.json")]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        f"--nproc_per_node={nproc}",
+        "-m",
+        module,
+        str(corpus),
+        "--out",
+        str(out),
+        "--config",
+        str(out / "train-config.json"),
+        "--progress" if progress else "--no-progress",
+    ]
     done = subprocess.run(cmd, env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
     if done.returncode != 0:
-        raise RuntimeError(f"{out}: torchrun with {nproc} processes failed with exit code {done.returncode} (its output is above)")
+        raise RuntimeError(
+            f"{out}: torchrun with {nproc} processes failed with exit code {done.returncode} (its output is above)"
+        )
     return json.loads((out / summary).read_text())

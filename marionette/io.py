@@ -35,6 +35,10 @@ def atomic_path(path: Path) -> Iterator[Path]:
             os.fsync(dfd)
         finally:
             os.close(dfd)
+    except OSError as exc:
+        if exc.filename is None:  # a failed write (disk full) names no file: name the one being written
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        raise
     finally:
         tmp.unlink(missing_ok=True)
 

@@ -95,9 +95,7 @@ def backproject(z: np.ndarray, K: np.ndarray, pos: np.ndarray, rot_xyzw: np.ndar
     u = np.arange(W) + 0.5
     v = np.arange(H) + 0.5
     z = z.astype(np.float64)
-    p_cam = np.stack(
-        [((u[None, :] - cx) / fx) * z, (-(v[:, None] - cy) / fy) * z, -z], axis=-1
-    )  # (H, W, 3)
+    p_cam = np.stack([((u[None, :] - cx) / fx) * z, (-(v[:, None] - cy) / fy) * z, -z], axis=-1)  # (H, W, 3)
     R = quat_to_matrix(np.asarray(rot_xyzw, dtype=np.float64))  # camera-to-world (3, 3)
     return p_cam @ R.T + np.asarray(pos, dtype=np.float64)
 
@@ -195,13 +193,29 @@ def contact_observations(sample: RecordedSample, layout: Layout, ts: int, speed:
 
 
 def depth_frames(path: Path) -> Iterator[np.ndarray]:
-    """The frames of an 8-bit depth video as (H, W) uint8 codes (one decoder thread)."""
-    with av.open(str(path)) as c:
+    """The frames of an 8-bit depth video as (H, W) uint8 codes (one decoder thread); a file that does not
+    open or decode as a video raises SampleError naming it and the frame."""
+    try:
+        c = av.open(str(path))
+    except av.error.FFmpegError as exc:
+        raise SampleError(f"{path}: unreadable video ({type(exc).__name__}: {exc})") from None
+    with c:
+        if not c.streams.video:
+            raise SampleError(f"{path}: no video stream")
         s = c.streams.video[0]
         s.thread_count = 1
-        for frame in c.decode(s):
-            a = frame.to_ndarray(format="gray") if frame.format.name != "gray" else frame.to_ndarray()
+        frames = c.decode(s)
+        i = 0
+        while True:
+            try:
+                frame = next(frames)
+                a = frame.to_ndarray(format="gray") if frame.format.name != "gray" else frame.to_ndarray()
+            except StopIteration:
+                return
+            except (av.error.FFmpegError, ValueError) as exc:
+                raise SampleError(f"{path}: cannot decode frame {i}: {type(exc).__name__}: {exc}") from None
             yield a
+            i += 1
 
 
 def ground_cloud(points: np.ndarray, voxel_m: float, min_normal_y: float, normal_radius_voxels: float = 4.0,

@@ -58,13 +58,6 @@ class DepthDecoder:
 
         return DepthDecoder.from_json(DEPTH_ENCODING)
 
-    def step_m(self, z: np.ndarray) -> np.ndarray:
-        """Depth change (m) of one code step at depth ``z``: the quantisation of this mapping."""
-        z = np.asarray(z, dtype=np.float64)
-        if self.kind == "linear":
-            return np.full_like(z, (self.z_far - self.z_near) / 254)
-        return z**2 * (1 / self.z_near - 1 / self.z_far) / 254
-
     def encode(self, z: np.ndarray) -> np.ndarray:
         """z-depth (m; inf/nan = nothing) → uint8 code; 0 where nothing or beyond z_far (for tests and tools)."""
         z = np.asarray(z, dtype=np.float64)

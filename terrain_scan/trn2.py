@@ -13,6 +13,7 @@ Cell index = row × 100 + col; world x = cx·100 + col, world z = cz·100 + row;
 
 from __future__ import annotations
 
+import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,11 +87,11 @@ def split_cell(gx: np.ndarray, gz: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return cx, cz, row * CELLS + col
 
 
-def decode(data: bytes, where: str = "<bytes>") -> Chunk:
-    """Parse TRN2 bytes; any deviation from the format raises TerrainFormatError naming ``where``."""
-    if len(data) < HEADER.size:
-        raise TerrainFormatError(f"{where}: truncated: {len(data)} bytes, the header alone is {HEADER.size}")
-    magic, version, cx, cz, chunk_m, cell_m, cell_count, max_layers = HEADER.unpack_from(data)
+def _header(head: bytes, where: str) -> tuple[int, int, int]:
+    """(cx, cz, max_layers) of a 32-byte TRN2 header; any deviation raises TerrainFormatError naming ``where``."""
+    if len(head) < HEADER.size:
+        raise TerrainFormatError(f"{where}: truncated: {len(head)} bytes, the header alone is {HEADER.size}")
+    magic, version, cx, cz, chunk_m, cell_m, cell_count, max_layers = HEADER.unpack_from(head)
     if magic != MAGIC:
         raise TerrainFormatError(f"{where}: bad magic {magic!r}, expected {MAGIC!r}")
     if version != VERSION:
@@ -101,26 +102,48 @@ def decode(data: bytes, where: str = "<bytes>") -> Chunk:
         )
     if not 1 <= max_layers <= 255:
         raise TerrainFormatError(f"{where}: max_layers={max_layers} out of range 1..255")
+    return int(cx), int(cz), int(max_layers)
+
+
+def _check_size(size: int, max_layers: int, where: str) -> None:
+    """The file size the header implies: 32 + 10000 × max_layers × 24 bytes."""
     want = HEADER.size + CELL_COUNT * max_layers * RECORD.itemsize
-    if len(data) != want:
+    if size != want:
         raise TerrainFormatError(
-            f"{where}: {'truncated' if len(data) < want else 'trailing bytes'}: {len(data)} bytes, expected {want}"
+            f"{where}: {'truncated' if size < want else 'trailing bytes'}: {size} bytes, expected {want} "
+            f"(header: max_layers={max_layers})"
         )
-    cells = np.frombuffer(data, RECORD, count=CELL_COUNT * max_layers, offset=HEADER.size).reshape(CELL_COUNT, max_layers).copy()
+
+
+def _cells(body: bytes, max_layers: int, where: str) -> np.ndarray:
+    cells = np.frombuffer(body, RECORD, count=CELL_COUNT * max_layers).reshape(CELL_COUNT, max_layers).copy()
     valid = (cells["flags"] & FLAG_VALID) != 0
     if not np.isfinite(cells["h"][valid]).all() or not np.isfinite(cells["n"][valid]).all():
         raise TerrainFormatError(f"{where}: a valid layer holds a non-finite height or normal")
-    return Chunk(int(cx), int(cz), cells)
+    return cells
+
+
+def decode(data: bytes, where: str = "<bytes>") -> Chunk:
+    """Parse TRN2 bytes; any deviation from the format raises TerrainFormatError naming ``where``."""
+    cx, cz, max_layers = _header(data[: HEADER.size], where)
+    _check_size(len(data), max_layers, where)
+    return Chunk(cx, cz, _cells(memoryview(data)[HEADER.size :], max_layers, where))
 
 
 def read_chunk(path: Path) -> Chunk:
-    """Read one chunk file."""
+    """Read one chunk file: its size is checked against the header before the body is read."""
     path = Path(path)
+    where = str(path)
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            cx, cz, max_layers = _header(fh.read(HEADER.size), where)
+            _check_size(size, max_layers, where)
+            body = fh.read(size - HEADER.size)
     except FileNotFoundError:
         raise TerrainFormatError(f"{path}: no such chunk file") from None
-    return decode(data, str(path))
+    _check_size(HEADER.size + len(body), max_layers, where)  # the file changed while it was read
+    return Chunk(cx, cz, _cells(body, max_layers, where))
 
 
 def write_chunk(path: Path, chunk: Chunk) -> None:

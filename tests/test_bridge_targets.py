@@ -11,8 +11,8 @@ import pytest
 
 from marionette.bridge.gbuffer import decode_gbuffer
 from marionette.bridge.targets import render_pose_targets
+from marionette.corpus.paths import stage_dir
 from terrain_scan.layers import Observations
-from terrain_scan.scan import stage_dir
 from terrain_scan.store import Stage
 
 

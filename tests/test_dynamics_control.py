@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from marionette import geometry as geo
-from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.data import ActionTokens
 from marionette.dynamics.rollout import Rollout, force_windows, rollout
 
@@ -40,7 +40,7 @@ def held_out_seeds(c: Corpus, horizon: int, stride: int = 16) -> list[tuple[str,
 
 def tip_speed(c: Corpus, table) -> np.ndarray:
     """Weapon-tip speed (m/s) in its owner's root frame of each predicted frame (from the last seed frame)."""
-    state = _fixed(table["state"], c.layout.dim)[SEED - 1 :]
+    state = fixed_rows(table["state"], c.layout.dim)[SEED - 1 :]
     tip = state[:, c.layout.slice("weapon.points")].reshape(len(state), -1, 3)[:, -1]
     return np.linalg.norm(np.diff(tip, axis=0), axis=1) * 20.0
 
@@ -124,7 +124,7 @@ def test_cached_and_recomputed_rollouts_agree_over_twice_the_window(corpus, ckpt
     horizon = 2 * window + 8  # predicted frames, past twice the window
     a = rollout(ckpt, corpus, seg, SEED, horizon, rules="auto")
     b = rollout(ckpt, corpus, seg, SEED, horizon, rules="auto", cached=False)
-    sa, sb = (_fixed(t["state"], corpus.layout.dim)[SEED:] for t in (a, b))
+    sa, sb = (fixed_rows(t["state"], corpus.layout.dim)[SEED:] for t in (a, b))
     err = np.abs(sa - sb).max()
     print(f"\ncached vs recomputed over {horizon} predicted frames (window {window}): max |Δ state| = {err:.2e}")
     assert err < 1e-5
@@ -137,7 +137,7 @@ def test_ten_thousand_frames_stay_finite_with_steady_bones(corpus, ckpt):
     started = time.perf_counter()
     table = rollout(ckpt, c, seg, SEED, 10_000, rules="auto")
     took = time.perf_counter() - started
-    state = _fixed(table["state"], c.layout.dim)
+    state = fixed_rows(table["state"], c.layout.dim)
     assert np.isfinite(state).all()
     world = world_of_rows(c.layout, table)
     print(f"\n10,000 frames in {took:.1f} s ({10_000 / took:.0f} frames/s, tiny model, rules on)")
@@ -179,11 +179,11 @@ def test_bf16_drift_and_root_integration_error(corpus, ckpt):
 
     table = rollout(ckpt, c, seg, SEED, 2000, rules="none")
     e = c.layout.articulated[0]
-    state = _fixed(table["state"], c.layout.dim)[SEED:]
+    state = fixed_rows(table["state"], c.layout.dim)[SEED:]
     R = geo.rot6d_to_matrix(state[:, c.layout.slice(f"{e.name}.rot6d")].astype(np.float64))
     delta = state[:, c.layout.slice(f"{e.name}.root")]
     far = np.array([-4000.5, 12.25, 7000.75])  # thousands of metres from the origin, negative x
-    truth = _fixed(table[f"{e.name}.root_world"], 3)[SEED:] - _fixed(table[f"{e.name}.root_world"], 3)[SEED - 1] + far
+    truth = fixed_rows(table[f"{e.name}.root_world"], 3)[SEED:] - fixed_rows(table[f"{e.name}.root_world"], 3)[SEED - 1] + far
     step = np.einsum("nij,nj->ni", R, delta)
     f64 = far + np.cumsum(step, axis=0)
     f32 = np.empty_like(step, dtype=np.float32)

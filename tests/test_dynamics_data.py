@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from marionette import geometry as geo
-from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.corpus import Corpus, fixed_rows, world_of_rows
+from marionette.corpus.paths import stage_dir
 from marionette.dynamics.data import (
     ActionTokens,
     HeldOutWindows,
@@ -33,7 +34,6 @@ from marionette.dynamics.model import (
     split_state,
 )
 from terrain_scan.field import egocentric_patch, joint_clearances, open_stage
-from terrain_scan.scan import stage_dir
 
 HELD_OUT = "data_part1/rec0001"  # the recording the split tests move to "test"
 
@@ -55,7 +55,7 @@ def split_corpus(corpus) -> Corpus:
 
 
 def source_state(c: Corpus, split: str = "train") -> np.ndarray:
-    return np.concatenate([_fixed(c.read_segment(s)["state"], c.layout.dim) for s in c.segment_ids(split)])
+    return np.concatenate([fixed_rows(c.read_segment(s)["state"], c.layout.dim) for s in c.segment_ids(split)])
 
 
 # -- normalisation -----------------------------------------------------------------------------------
@@ -64,7 +64,7 @@ def source_state(c: Corpus, split: str = "train") -> np.ndarray:
 def test_normalise_round_trip_and_json(corpus):
     c = Corpus(corpus)
     norm = Normaliser.from_corpus(c, c.layout)
-    root, body = split_state(_fixed(c.dynamics_shard(0)["state"], c.layout.dim), c.layout)
+    root, body = split_state(fixed_rows(c.dynamics_shard(0)["state"], c.layout.dim), c.layout)
     for r, b in [
         (root, body),
         (root.astype(np.float64), body.astype(np.float64)),
@@ -254,7 +254,7 @@ def test_batches_have_the_config_shapes(corpus):
     # the batch is the normalised view
     i, s = data.segments.index(batch.segments[0]), batch.starts[0]
     view = c.dynamics_segment(batch.segments[0])
-    root, body = split_state(_fixed(view["state"], c.layout.dim)[s : s + 17], c.layout)
+    root, body = split_state(fixed_rows(view["state"], c.layout.dim)[s : s + 17], c.layout)
     assert np.allclose(data.normaliser.denormalise_root(f.root[0].numpy()), root, atol=1e-5)
     assert np.allclose(data.normaliser.denormalise_body(f.body[0].numpy()), body, atol=1e-5)
 
@@ -286,8 +286,8 @@ def test_terrain_features_equal_direct_field_queries(scanned):
     world = world_of_rows(c.layout, view)
     for r in (0, n // 2, n - 1):
         for i, e in enumerate(c.layout.articulated):
-            root = _fixed(view[f"{e.name}.root_world"], 3)[r : r + 1]
-            R = geo.quat_to_matrix(_fixed(view[f"{e.name}.rot_world"], 4)[r : r + 1])
+            root = fixed_rows(view[f"{e.name}.root_world"], 3)[r : r + 1]
+            R = geo.quat_to_matrix(fixed_rows(view[f"{e.name}.rot_world"], 4)[r : r + 1])
             patch, ok = egocentric_patch(field, root, R, np.asarray(e.rig.forward_axis))
             assert np.array_equal(known[r, i, :121], ok.reshape(-1))
             assert np.allclose(feats[r, i, :121], np.nan_to_num(patch.reshape(-1)), atol=1e-5)

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from marionette.bridge.targets import TerrainScene, render_rows
-from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.corpus import Corpus, fixed_rows, world_of_rows
+from marionette.corpus.paths import stage_dir
 from marionette.dynamics.rollout import Rollout, main, open_terrain_field, rollout
 from marionette.dynamics.train import TrainConfig, train
 from marionette.io import read_ipc
 from marionette.schema import check_layout
-from terrain_scan.scan import stage_dir
 
 SEED_FRAMES, HORIZON = 16, 24
 
@@ -76,7 +76,7 @@ def test_counterfactual_force_differs_only_from_its_start(ckpt, scanned, segment
     F = 10
     base = run(ckpt, scanned, segment, force=[(hunter, 0, F, 1)])
     other = run(ckpt, scanned, segment, force=[(hunter, 0, F, 1), (hunter, F, HORIZON, 2)])
-    sa, sb = (_fixed(t["state"], c.layout.dim)[SEED_FRAMES:] for t in (base, other))
+    sa, sb = (fixed_rows(t["state"], c.layout.dim)[SEED_FRAMES:] for t in (base, other))
     assert np.array_equal(sa[:F], sb[:F])
     assert np.array_equal(predicted(base, f"{hunter}.action")[:F], predicted(other, f"{hunter}.action")[:F])
     assert not np.array_equal(sa[F], sb[F])  # the forced token changes PoseGPT's very first animated frame
@@ -97,7 +97,7 @@ def test_forcing_sets_the_token_and_restarts_progress(ckpt, scanned, segment):
     # the streaming class gives the same stream as the function
     ro.start(c.dynamics_segment(segment).slice(0, SEED_FRAMES))
     first = [ro.step({0: token} if start <= t < end else None, restart=[0] if t == start else ()) for t in range(end)]
-    assert np.array_equal(np.stack(first), _fixed(table["state"], c.layout.dim)[SEED_FRAMES : SEED_FRAMES + end])
+    assert np.array_equal(np.stack(first), fixed_rows(table["state"], c.layout.dim)[SEED_FRAMES : SEED_FRAMES + end])
 
 
 def test_the_table_is_a_corpus_state_table_continuous_with_its_seed(ckpt, scanned, segment):
@@ -108,12 +108,12 @@ def test_the_table_is_a_corpus_state_table_continuous_with_its_seed(ckpt, scanne
     print(f"rollout: {rate:.0f} frames/s (tiny model, incl. seeding and loading)")
     check_layout(table.schema, c.layout, "rollout")
     assert table.num_rows == SEED_FRAMES + 60
-    state = _fixed(table["state"], c.layout.dim)
+    state = fixed_rows(table["state"], c.layout.dim)
     assert np.all(np.isfinite(state))
     assert np.allclose(np.diff(table["t"].to_numpy()), 1 / 20)
     assert table["valid"].to_numpy(zero_copy_only=False).all()
     for e in c.layout.articulated:
-        roots = _fixed(table[f"{e.name}.root_world"], 3)
+        roots = fixed_rows(table[f"{e.name}.root_world"], 3)
         step = np.linalg.norm(roots[SEED_FRAMES] - roots[SEED_FRAMES - 1])
         assert step < 0.5, f"{e.name}: first predicted root {step:.3f} m from the last seed root"
         assert np.all(np.linalg.norm(np.diff(roots[SEED_FRAMES - 1 :], axis=0), axis=1) < 0.5)  # ≤ 10 m/s
@@ -179,7 +179,7 @@ def test_cli_trains_then_rolls_out_with_a_scripted_root_and_renders(scanned, seg
                 "--script-root", f"{hunter}:2:7:0,0,2.5", "--force", f"{hunter}:0:3:1", "--rules", "none",
                 "--out", str(out), "--render", str(video), "--size", "72x128"]) == 0  # fmt: skip
     table = read_ipc(out)
-    delta = _fixed(table["state"], c.layout.dim)[8:, c.layout.slice(f"{hunter}.root")]
+    delta = fixed_rows(table["state"], c.layout.dim)[8:, c.layout.slice(f"{hunter}.root")]
     np.testing.assert_allclose(delta[2:7], np.tile([0.0, 0.0, 2.5 / 20], (5, 1)), atol=1e-5)  # 2.5 m/s forward at 20 fps
     assert not np.allclose(delta[7:], [0.0, 0.0, 0.125], atol=1e-3)  # the script ends at frame 7
     frames, meta = decode_gbuffer(video)
@@ -211,7 +211,7 @@ def test_a_relative_position_model_trains_and_rolls_out(scanned, segment, tmp_pa
     ro = Rollout(runs, Corpus(scanned), rules="none")
     assert ro.config.relative_position
     table = rollout(runs, scanned, segment, seed_frames=8, horizon=6, rules="none")
-    assert np.isfinite(_fixed(table["state"], Corpus(scanned).layout.dim)).all()
+    assert np.isfinite(fixed_rows(table["state"], Corpus(scanned).layout.dim)).all()
 
 
 def test_a_batch_of_streams_equals_the_streams_run_alone(ckpt, scanned):

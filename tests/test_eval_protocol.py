@@ -193,7 +193,7 @@ def test_observation_fvd_on_a_small_model():
 
 
 def test_rollout_clips_start_from_the_recorded_view(corpus, windows, free):
-    from marionette.corpus import _fixed
+    from marionette.corpus import fixed_rows
     from marionette.geometry import quat_to_matrix
     from marionette.ingest.video import decode_frames
 
@@ -212,8 +212,8 @@ def test_rollout_clips_start_from_the_recorded_view(corpus, windows, free):
         assert t_seed - 1e-6 <= t_first < t_seed + 1 / 30  # the first video frame at or after the last (recorded) seed row
         # the bridge camera's first frame is the recorded camera of that frame (the chunk's intrinsics) ...
         chunk = next(r for r in R.segment_chunks(corpus, w.segment) if r["frames"][0] <= a < r["frames"][1])
-        np.testing.assert_allclose(clip.cameras.pos[0], _fixed(rows["camera.pos"], 3)[i], atol=1e-9)
-        np.testing.assert_allclose(clip.cameras.rot[0], quat_to_matrix(_fixed(rows["camera.rot"], 4)[i]), atol=1e-9)
+        np.testing.assert_allclose(clip.cameras.pos[0], fixed_rows(rows["camera.pos"], 3)[i], atol=1e-9)
+        np.testing.assert_allclose(clip.cameras.rot[0], quat_to_matrix(fixed_rows(rows["camera.rot"], 4)[i]), atol=1e-9)
         np.testing.assert_allclose(clip.cameras.K[0], chunk["K"][a - chunk["frames"][0]], atol=1e-9)
         assert clip.cameras.valid.all() and (clip.cameras.width, clip.cameras.height) == (64, 36)
         # ... and it frames the generated bodies; the RGB is the recorded frame of the chunk

@@ -20,7 +20,7 @@ from marionette.schema import SchemaError
 from marionette.synth import generate, load_truth, world_skeletons_at
 
 
-def _fixed(col, w):
+def fixed_rows(col, w):
     return col.combine_chunks().values.to_numpy(zero_copy_only=False).reshape(-1, w)
 
 
@@ -50,7 +50,7 @@ def test_rotation_matches_true_heading(corpus, synth_source):
         part, sid = seg["sample"].split("/")
         truth = load_truth(synth_source, part, sid)
         frames = rows["frame"].to_numpy()
-        state = _fixed(rows["state"], L.dim).astype(np.float64)
+        state = fixed_rows(rows["state"], L.dim).astype(np.float64)
         for name in ("monster", "hunter"):
             R = geo.rot6d_to_matrix(state[:, L.slice(f"{name}.rot6d")])
             fwd = R @ np.asarray(L.entity(name).rig.forward_axis)
@@ -68,9 +68,9 @@ def test_reconstruction_equals_recorded_joints(corpus, synth_source):
         part, sid = seg["sample"].split("/")
         with np.load(synth_source / part / sid / "skeleton.npz", allow_pickle=False) as z:
             skel = {k: z[k] for k in z.files}
-        state = _fixed(rows["state"], L.dim)
+        state = fixed_rows(rows["state"], L.dim)
         frames = rows["frame"].to_numpy()
-        anchors = {e.name: _fixed(rows[f"{e.name}.root_world"], 3)[0] for e in L.articulated}
+        anchors = {e.name: fixed_rows(rows[f"{e.name}.root_world"], 3)[0] for e in L.articulated}
         world = geo.state_to_world(L, state, anchors)
         types = {e.name: int(rows[f"{e.name}.type_id"][0].as_py()) for e in L.entities}
         for e in L.entities:
@@ -137,7 +137,7 @@ def test_dynamics_view_matches_analytic_motion(corpus, synth_source):
             want = truth[e.name][:, list(e.rig.keep_source_index)]
             errs.append(np.linalg.norm(world[e.name] - want, axis=-1).ravel())
         # re-derived state: δ_0 = 0 and reconstruction from the view's own anchor
-        state = _fixed(view["state"], L.dim)
+        state = fixed_rows(view["state"], L.dim)
         assert np.all(state[0, L.slice("hunter.root")] == 0)
         back = geo.state_to_world(L, state, {e.name: world[e.name][0, 0] for e in L.articulated})
         assert np.abs(back["hunter"]["joints"] - world["hunter"]).max() < 1e-4
@@ -229,9 +229,9 @@ def test_hunter_only_scene_and_foreign_shards(synth_source, corpus, tmp_path):
     solo = tmp_path / "solo"
     build_corpus(synth_source, solo, replace(TEST_OPTIONS, scene="hunter_solo"), workers=1, progress=False)
     cs = Corpus(solo, expect="hunter_solo")
-    assert cs.info["layout"]["dim"] == 108 and "monster.root" not in cs.info["layout"]["slices"]
+    assert cs.info.layout["dim"] == 108 and "monster.root" not in cs.info.layout["slices"]
     # without the monster, its absent spans no longer break segments
-    assert cs.info["total_frames"] > Corpus(corpus).info["total_frames"]
+    assert cs.info.total_frames > Corpus(corpus).info.total_frames
     # a duel corpus refuses hunter_solo samples, naming both layouts
     duel_copy = tmp_path / "duel"
     shutil.copytree(corpus, duel_copy)

@@ -91,8 +91,8 @@ def test_bad_samples_are_quarantined_and_the_rest_ingested(synth_source, tmp_pat
     c = Corpus(corpus)
     q = {r["sample"].split("/")[1]: r["reason"] for r in pq.read_table(corpus / "meta" / "quarantine.parquet").to_pylist()}
     assert q == reasons
-    assert c.info["total_ingested"] == 1 and len(c.shard_ids()) == 1
-    assert c.read_shard(c.shard_ids()[0]).num_rows == c.info["total_frames"]
+    assert c.info.total_ingested == 1 and len(c.shard_ids()) == 1
+    assert c.read_shard(c.shard_ids()[0]).num_rows == c.info.total_frames
     assert not list(corpus.rglob("*.tmp"))
     assert not (corpus / "staging").exists() or not list((corpus / "staging").iterdir())
 

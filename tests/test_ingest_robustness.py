@@ -72,7 +72,7 @@ def test_crash_inside_finalize_then_changed_source(synth_source, tmp_path, monke
     build_corpus(src, corpus, TEST_OPTIONS, workers=1, progress=False)
     build_corpus(src, reference, TEST_OPTIONS, workers=1, progress=False)
     assert _snapshot(corpus) == _snapshot(reference)
-    assert Corpus(corpus).info["total_ingested"] == 2 and Corpus(corpus).info["total_quarantined"] == 1
+    assert Corpus(corpus).info.total_ingested == 2 and Corpus(corpus).info.total_quarantined == 1
     assert not (corpus / "meta" / "finalize-plan.json").exists()
     assert not (corpus / "staging").exists() or not list((corpus / "staging").iterdir())
 
@@ -92,7 +92,7 @@ def test_transient_failure_is_retried_on_the_next_run(synth_source, tmp_path, mo
     monkeypatch.setattr(sample_mod, "write_video_shard", real)
     report = build_corpus(src, corpus, TEST_OPTIONS, workers=1, progress=False)
     assert report["results"][0]["status"] == "ingested"
-    assert Corpus(corpus).info["total_quarantined"] == 0
+    assert Corpus(corpus).info.total_quarantined == 0
 
 
 def test_unreadable_input_is_quarantined_not_fatal(synth_source, tmp_path):
@@ -113,7 +113,7 @@ def test_names_that_sanitise_alike_stay_distinct(synth_source, tmp_path):
     corpus = tmp_path / "corpus"
     build_corpus(src, corpus, TEST_OPTIONS, workers=2, progress=False)
     c = Corpus(corpus)
-    assert c.info["total_ingested"] == 2 and len(c.shard_ids()) == 2
+    assert c.info.total_ingested == 2 and len(c.shard_ids()) == 2
     segs = c.segments["segment"].to_pylist()
     assert len(segs) == len(set(segs)) and all("." not in s for s in segs)
     report = build_corpus(src, corpus, TEST_OPTIONS, workers=1, progress=False)
@@ -160,6 +160,17 @@ def test_dynamics_view_is_recomputed_when_its_shard_changes(synth_source, tmp_pa
     frames = np.stack(decode_frames(src / "data_part1" / "rec0000" / "rgb.mp4")[:-40])
     (src / "data_part1" / "rec0000" / "rgb.mp4").write_bytes(encode_mp4(frames, 30, TEST_OPTIONS.video))
     assert av  # PyAV wrote the shortened video
+    depth = src / "data_part1" / "rec0000" / "depth.mkv"
+    with av.open(str(depth)) as c:
+        codes = [f.to_ndarray(format="gray") for f in c.decode(video=0)][:-40]
+    with av.open(str(depth), "w", format="matroska") as c:
+        s = c.add_stream("ffv1", rate=30)
+        s.width, s.height, s.pix_fmt = codes[0].shape[1], codes[0].shape[0], "gray"
+        for f in codes:
+            for p in s.encode(av.VideoFrame.from_ndarray(f, format="gray")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
     build_corpus(src, corpus, TEST_OPTIONS, workers=1, progress=False)
     c2 = Corpus(corpus)
     again = c2.dynamics_shard(shard)

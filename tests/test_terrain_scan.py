@@ -6,7 +6,8 @@ import shutil
 
 import numpy as np
 
-from terrain_scan.scan import ScanOptions, corpus_stages, scan_stages, stage_dir
+from marionette.corpus.paths import stage_dir
+from terrain_scan.scan import ScanOptions, corpus_stages, scan_stages
 from terrain_scan.store import Stage
 from terrain_scan.trn2 import read_chunk
 

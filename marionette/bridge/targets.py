@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from marionette.corpus import Corpus, _fixed, paths, video_shards
+from marionette.corpus import Corpus, fixed_rows, paths, video_shards
 from marionette.corpus.lock import corpus_lock
 from marionette.io import text_sha256
 from marionette.schema import Layout
@@ -65,17 +65,18 @@ class TerrainScene:
         return TerrainScene(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
 
     @staticmethod
-    def of_stage(stage_dir: Path) -> TerrainScene:
-        """Read a stage's TRN2 chunks (as listed by its manifest) into a mesh, boxes and hashes."""
+    def of_stage(stage) -> TerrainScene:
+        """A stage's TRN2 chunks (as its checked manifest lists them) as a mesh, boxes and hashes; ``stage`` is a
+        ``terrain_scan.store.Stage`` (``Corpus.terrain``), a stage directory, or None (no terrain)."""
         from terrain_scan.layers import Observations
         from terrain_scan.mesh import tessellate
         from terrain_scan.store import Stage
         from terrain_scan.trn2 import CELLS, read_chunk
 
-        if not (Path(stage_dir) / "manifest.json").exists():
+        if stage is None or (not isinstance(stage, Stage) and not (Path(stage) / "manifest.json").exists()):
             return TerrainScene.empty()
         parts, boxes, hashes = [], {}, {}
-        for name, (file, digest) in Stage(stage_dir).chunk_files().items():
+        for name, (file, digest) in (stage if isinstance(stage, Stage) else Stage(stage)).chunk_files().items():
             ch = read_chunk(file)
             ok = ch.valid() & np.isfinite(ch.cells["h"])
             cell, slot = np.nonzero(ok)
@@ -124,9 +125,9 @@ def height_range(terrain: TerrainScene, roots_y: np.ndarray, settings: RenderSet
 
 def chunk_inputs(layout: Layout, rows: pa.Table) -> tuple[np.ndarray, dict, dict, np.ndarray]:
     """State (n, D) float64, anchors (row 0's recorded roots), validity, times (s) of a chunk's rows."""
-    state = _fixed(rows["state"], layout.dim).astype(np.float64)
+    state = fixed_rows(rows["state"], layout.dim).astype(np.float64)
     valid = rows["valid"].to_numpy(zero_copy_only=False).astype(bool)
-    anchors = {e.name: _fixed(rows[f"{e.name}.root_world"], 3)[0] for e in layout.articulated}
+    anchors = {e.name: fixed_rows(rows[f"{e.name}.root_world"], 3)[0] for e in layout.articulated}
     return state, anchors, {e.name: valid for e in layout.articulated}, rows["t"].to_numpy().astype(np.float64)
 
 
@@ -167,7 +168,7 @@ class _Pass:
 
     def terrain(self, stage: str) -> TerrainScene:
         if stage not in self.terrains:
-            self.terrains[stage] = TerrainScene.of_stage(paths.stage_dir(self.corpus.path, stage))
+            self.terrains[stage] = TerrainScene.of_stage(self.corpus.stage_terrain(stage))
         return self.terrains[stage]
 
     def target(self, vpath: Path, key: str, rec: dict) -> Path:
@@ -187,10 +188,10 @@ class _Pass:
         if rows.num_rows != b - a:
             raise ValueError(f"{vpath}: chunk {key} spans frames [{a}, {b}) but its segment has {rows.num_rows} of them")
         out_h, out_w = rec["resize"]
-        cams = recorded_cameras(np.asarray(rec["K"], np.float64), _fixed(rows["camera.pos"], 3),
-                                _fixed(rows["camera.rot"], 4), rows["valid"].to_numpy(zero_copy_only=False),
+        cams = recorded_cameras(np.asarray(rec["K"], np.float64), fixed_rows(rows["camera.pos"], 3),
+                                fixed_rows(rows["camera.rot"], 4), rows["valid"].to_numpy(zero_copy_only=False),
                                 out_w, out_h)  # fmt: skip
-        roots_y = np.concatenate([_fixed(rows[f"{e.name}.root_world"], 3)[:, 1] for e in layout.articulated])
+        roots_y = np.concatenate([fixed_rows(rows[f"{e.name}.root_world"], 3)[:, 1] for e in layout.articulated])
         h = height_range(terrain, roots_y, settings)
         seen = terrain.seen_chunks(cams, settings.z_near, settings.z_far)
         digest = text_sha256(_rows_hash(layout, rows), json.dumps([[s, terrain.hashes[s]] for s in seen]), json.dumps(h),
@@ -256,7 +257,7 @@ def render_pose_targets(corpus_path: Path, settings: RenderSettings | None = Non
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=int(corpus.info.get("total_chunks", 0)), desc="pose targets", unit="chunk")
+            bar = tqdm(total=corpus.info.total_chunks, desc="pose targets", unit="chunk")
         try:
             for shard in corpus.shard_ids():
                 vpath = corpus.video_path(shard)
@@ -289,7 +290,7 @@ def _rows_hash(layout: Layout, rows: pa.Table) -> str:
     cols += [(f"{e.name}.root_world", 3) for e in layout.articulated] + [(f"{e.name}.rot_world", 4) for e in layout.articulated]
     for name, width in cols:
         h.update(name.encode())
-        h.update(np.ascontiguousarray(_fixed(rows[name], width)).tobytes())
+        h.update(np.ascontiguousarray(fixed_rows(rows[name], width)).tobytes())
     for name in ("valid", "t", "frame"):
         h.update(name.encode())
         h.update(np.ascontiguousarray(rows[name].to_numpy(zero_copy_only=False)).tobytes())
@@ -346,9 +347,9 @@ def render_rows(layout: Layout, rows: pa.Table, out: Path, terrain: TerrainScene
         if src_size is None:
             raise ValueError("the recorded camera needs the source video size")
         cr = CropResize.fit(src_size[0], src_size[1], H, W)
-        K = resample_positions(t, _fixed(rows["camera.K"], 4), t_out, "nearest")
-        pos = resample_positions(t, _fixed(rows["camera.pos"], 3), t_out)
-        rot = resample_quats(t, np.nan_to_num(_fixed(rows["camera.rot"], 4)), t_out)
+        K = resample_positions(t, fixed_rows(rows["camera.K"], 4), t_out, "nearest")
+        pos = resample_positions(t, fixed_rows(rows["camera.pos"], 3), t_out)
+        rot = resample_quats(t, np.nan_to_num(fixed_rows(rows["camera.rot"], 4)), t_out)
         # a frame with an invalid recorded camera (NaN position) makes the frames interpolated from it invalid: black
         cams = recorded_cameras(K, pos, rot, np.ones(n_out, bool), W, H, crop=cr)
     elif camera == "follow":

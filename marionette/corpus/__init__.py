@@ -13,6 +13,7 @@ import pyarrow.parquet as pq
 
 from marionette import geometry as geo
 from marionette.corpus import paths
+from marionette.corpus.info import CorpusInfo
 from marionette.io import read_ipc, text_sha256, write_ipc
 from marionette.schema import Layout, SchemaError, check_layout, layout_from_json, load_scene, state_schema
 
@@ -24,11 +25,11 @@ class Corpus:
 
     def __init__(self, path: Path, expect: Layout | str | None = None):
         self.path = Path(path)
-        info = self.path / "meta" / "info.json"
+        info = paths.meta(self.path, "info.json")
         if not info.exists():
             raise FileNotFoundError(f"{info}: not a corpus (run `marionette ingest` first)")
-        self.info = json.loads(info.read_text())
-        self.layout = layout_from_json({k: v for k, v in self.info["layout"].items() if k != "hash"})
+        self.info = CorpusInfo.read(info)
+        self.layout = layout_from_json({k: v for k, v in self.info.layout.items() if k != "hash"})
         self._shard_cache: dict[int, pa.Table] = {}
         if expect is not None:
             want = load_scene(expect) if isinstance(expect, str) else expect
@@ -60,7 +61,7 @@ class Corpus:
 
     @property
     def fps(self) -> float:
-        return float(self.info["fps"] if not isinstance(self.info["fps"], list) else self.info["fps"][0])
+        return self.info.source_fps
 
     def state_path(self, shard: int) -> Path:
         return paths.state_shard(self.path, shard)
@@ -69,8 +70,7 @@ class Corpus:
         return paths.video_shard(self.path, shard)
 
     def shard_ids(self) -> list[int]:
-        where = str(self.path / "meta" / "info.json")
-        return sorted(paths.check_shard(n, where) for n in self.info["shards"])
+        return sorted(self.info.shards)
 
     def read_shard(self, shard: int) -> pa.Table:
         """A state shard, its layout checked against the corpus layout (the last two read are kept,
@@ -96,6 +96,24 @@ class Corpus:
         if not rows:
             raise KeyError(f"{self.path}: no segment {segment!r}")
         return rows[0]
+
+    def stage_of(self, segment: str) -> str:
+        """The stage a segment was recorded on."""
+        return self.segment_row(segment)["stage"]
+
+    def stage_terrain(self, stage: str):
+        """A stage's scanned terrain (a ``terrain_scan.store.Stage``), or None when it was never scanned."""
+        from terrain_scan.store import Stage
+
+        d = paths.stage_dir(self.path, stage)
+        if not (d / "manifest.json").is_file():
+            return None
+        scanned = Stage(d)
+        return scanned if scanned.manifest["chunks"] else None
+
+    def terrain(self, segment: str):
+        """The one answer to "this segment's terrain": its stage's ``Stage``, or None when it is unscanned."""
+        return self.stage_terrain(self.stage_of(segment))
 
     def read_segment(self, segment: str) -> pa.Table:
         """All source-rate rows of one segment."""
@@ -129,7 +147,7 @@ class Corpus:
             for s in pc.unique(src["segment"]).to_pylist()
         ]
         table = pa.concat_tables(parts) if parts else state_schema(self.layout).empty_table()
-        write_ipc(path, table, self.info["ingest"].get("compression", "zstd"))
+        write_ipc(path, table, self.info.compression)
         for old in path.parent.glob(f"shard-{shard:06d}-*.arrow"):  # views of an older version of the shard
             if old != path:
                 old.unlink(missing_ok=True)
@@ -140,7 +158,32 @@ class Corpus:
         return t.filter(pc.equal(t["segment"], segment))
 
 
-def _fixed(col: pa.ChunkedArray, width: int) -> np.ndarray:
+def state_table(layout: Layout, columns: dict, n: int | None = None) -> pa.Table:
+    """A state-shard table built from ``state_schema(layout)``: every field from ``columns`` (numpy arrays, lists or
+    Arrow arrays; a fixed-size-list field from an (n, width) array, a scalar broadcast to ``n`` rows). A missing or
+    unknown column is an error naming it."""
+    schema = state_schema(layout)
+    missing = [f.name for f in schema if f.name not in columns]
+    extra = sorted(set(columns) - set(schema.names))
+    if missing or extra:
+        raise SchemaError(f"state table for layout {layout.scene!r}: missing columns {missing}, unknown columns {extra}")
+    arrays = []
+    for f in schema:
+        v = columns[f.name]
+        if n is not None and np.ndim(v) == 0 and not isinstance(v, pa.Array):
+            v = [v] * n
+        if isinstance(v, pa.Array | pa.ChunkedArray):
+            arrays.append(v.cast(f.type) if v.type != f.type else v)
+        elif pa.types.is_fixed_size_list(f.type):
+            flat = np.ascontiguousarray(v, f.type.value_type.to_pandas_dtype()).reshape(-1)
+            arrays.append(pa.FixedSizeListArray.from_arrays(pa.array(flat, f.type.value_type), f.type.list_size))
+        else:
+            arrays.append(pa.array(v, f.type))
+    return pa.Table.from_arrays(arrays, schema=schema)
+
+
+def fixed_rows(col: pa.ChunkedArray, width: int) -> np.ndarray:
+    """A fixed-size-list column as an (n, width) array (zero-copy where Arrow allows)."""
     arr = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
     return arr.values.to_numpy(zero_copy_only=False).reshape(-1, width)
 
@@ -148,12 +191,12 @@ def _fixed(col: pa.ChunkedArray, width: int) -> np.ndarray:
 def world_of_rows(layout: Layout, table: pa.Table) -> dict[str, np.ndarray]:
     """World kept joints per entity of state rows, from the recorded roots and rotations (float64)."""
     n = table.num_rows
-    state = _fixed(table["state"], layout.dim).astype(np.float64)
+    state = fixed_rows(table["state"], layout.dim).astype(np.float64)
     out: dict[str, np.ndarray] = {}
     frames = {}
     for e in layout.articulated:
-        x = _fixed(table[f"{e.name}.root_world"], 3)
-        R = geo.quat_to_matrix(_fixed(table[f"{e.name}.rot_world"], 4))
+        x = fixed_rows(table[f"{e.name}.root_world"], 3)
+        R = geo.quat_to_matrix(fixed_rows(table[f"{e.name}.rot_world"], 4))
         frames[e.name] = (x, R)
         local = state[:, layout.slice(f"{e.name}.joints")].reshape(n, -1, 3)
         out[e.name] = np.concatenate([x[:, None], geo.to_world(local, x, R)], axis=1)
@@ -177,22 +220,16 @@ def resample_segment(layout: Layout, seg: pa.Table, fps: float, method: str = "l
     for e in layout.entities:
         joints[e.name] = geo.resample_positions(t_src, world[e.name], t_dst, method)
     for e in layout.articulated:
-        rots[e.name] = geo.resample_quats(t_src, _fixed(seg[f"{e.name}.rot_world"], 4), t_dst, method)
+        rots[e.name] = geo.resample_quats(t_src, fixed_rows(seg[f"{e.name}.rot_world"], 4), t_dst, method)
     state = geo.world_to_state(layout, joints, rots)
     idx = geo.index_at_or_before(t_src, t_dst)
     out = seg.take(pa.array(idx))
-    cols = {name: out[name] for name in out.column_names}
-    cols["t"] = pa.array(t_dst)
-    cols["state"] = pa.FixedSizeListArray.from_arrays(pa.array(state.reshape(-1), pa.float32()), layout.dim)
-
-    def fixed(x: np.ndarray, w: int) -> pa.Array:
-        return pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(x, np.float64).reshape(-1)), w)
-
+    cols = {name: out[name].combine_chunks() for name in out.column_names}
+    cols["t"] = t_dst
+    cols["state"] = state
     for e in layout.articulated:
-        cols[f"{e.name}.root_world"] = fixed(joints[e.name][:, 0], 3)
-        cols[f"{e.name}.rot_world"] = fixed(rots[e.name], 4)
-    cam_pos = geo.resample_positions(t_src, _fixed(seg["camera.pos"], 3), t_dst, method)
-    cam_rot = geo.resample_quats(t_src, _fixed(seg["camera.rot"], 4), t_dst, method)
-    cols["camera.pos"] = fixed(cam_pos, 3)
-    cols["camera.rot"] = fixed(cam_rot, 4)
-    return pa.Table.from_pydict(cols, schema=seg.schema)
+        cols[f"{e.name}.root_world"] = joints[e.name][:, 0]
+        cols[f"{e.name}.rot_world"] = rots[e.name]
+    cols["camera.pos"] = geo.resample_positions(t_src, fixed_rows(seg["camera.pos"], 3), t_dst, method)
+    cols["camera.rot"] = geo.resample_quats(t_src, fixed_rows(seg["camera.rot"], 4), t_dst, method)
+    return state_table(layout, cols)

@@ -87,12 +87,11 @@ import torch
 from torch import Tensor
 
 from marionette import geometry as geo
-from marionette.corpus import RESAMPLE_VERSION, Corpus, _fixed, world_of_rows
+from marionette.corpus import RESAMPLE_VERSION, Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.model import N_CLEARANCES, PATCH_SIZE, TERRAIN_FEATURES, Frames, body_index, root_index
 from marionette.io import read_ipc, text_sha256, write_ipc
 from marionette.schema import Entity, Layout, SchemaError
 from terrain_scan.field import LayeredField, egocentric_patch, joint_clearances, open_stage
-from terrain_scan.scan import stage_dir
 
 DEFAULT_FPS = 20.0
 DEFAULT_STD_FLOOR = 1e-3
@@ -338,21 +337,18 @@ def relative_roots(roots_world: np.ndarray, rotations: np.ndarray) -> np.ndarray
 def relative_of_rows(layout: Layout, table: pa.Table) -> np.ndarray:
     """``relative_roots`` (n, N, 3) float32 of state rows, from their ``root_world`` and ``rot_world`` columns."""
     ents = layout.articulated
-    roots = np.stack([_fixed(table[f"{e.name}.root_world"], 3) for e in ents], axis=1)
-    R = np.stack([geo.quat_to_matrix(_fixed(table[f"{e.name}.rot_world"], 4)) for e in ents], axis=1)
+    roots = np.stack([fixed_rows(table[f"{e.name}.root_world"], 3) for e in ents], axis=1)
+    R = np.stack([geo.quat_to_matrix(fixed_rows(table[f"{e.name}.rot_world"], 4)) for e in ents], axis=1)
     return relative_roots(roots, R).astype(np.float32)
 
 
 # -- terrain features --------------------------------------------------------------------------------
 
 
-def stage_chunk_hashes(corpus_path: Path, stage: str) -> dict[str, str]:
+def stage_chunk_hashes(c: Corpus, stage: str) -> dict[str, str]:
     """Chunk name "cx_cz" → sha256 of each chunk of a stage, from its manifest.json; empty when it was never scanned."""
-    manifest = stage_dir(Path(corpus_path), stage) / "manifest.json"
-    if not manifest.exists():
-        return {}
-    chunks = json.loads(manifest.read_text()).get("chunks", {})
-    return {name: rec["sha256"] for name, rec in sorted(chunks.items())}
+    scanned = c.stage_terrain(stage)
+    return {name: digest for name, (_, digest) in scanned.chunk_files().items()} if scanned is not None else {}
 
 
 def compute_terrain_features(layout: Layout, table: pa.Table, field: LayeredField | None) -> tuple[np.ndarray, np.ndarray]:
@@ -360,7 +356,7 @@ def compute_terrain_features(layout: Layout, table: pa.Table, field: LayeredFiel
     entities in layout order: the 11×11 egocentric patch (m, relative to the root), then 11 clearances (m)."""
     if field is None or table.num_rows == 0:
         return terrain_features_of(layout, {}, np.zeros((table.num_rows, 0, 3, 3)), None)
-    R = np.stack([geo.quat_to_matrix(_fixed(table[f"{e.name}.rot_world"], 4)) for e in layout.articulated], axis=1)
+    R = np.stack([geo.quat_to_matrix(fixed_rows(table[f"{e.name}.rot_world"], 4)) for e in layout.articulated], axis=1)
     return terrain_features_of(layout, world_of_rows(layout, table), R, field)
 
 
@@ -407,7 +403,7 @@ def terrain_feature_path(corpus: Corpus | Path | str, shard: int, fps: float = D
     c = _as_corpus(corpus)
     stages = sorted(set(_shard_stages(c, shard).values()))
     geometry = json.dumps([PATCH_SIZE, PATCH_CELL_M, PATCH_AHEAD_M, N_CLEARANCES])
-    terrain = json.dumps({st: stage_chunk_hashes(c.path, st) for st in stages}, sort_keys=True)
+    terrain = json.dumps({st: stage_chunk_hashes(c, st) for st in stages}, sort_keys=True)
     key = text_sha256(_dynamics_key(c, shard, fps, method), terrain, FEATURE_VERSION, geometry)[:16]
     return c.path / "derived" / TERRAIN_DIR / f"shard-{shard:06d}-{fps:g}fps-{method}-{key}.arrow"
 
@@ -447,13 +443,14 @@ def terrain_feature_shard(
     known = np.zeros(feats.shape, bool)
     for st in sorted(set(stage_of.values())):
         rows = np.flatnonzero(np.isin(segs, [s for s, v in stage_of.items() if v == st]))
-        field = open_stage(stage_dir(c.path, st)) if stage_chunk_hashes(c.path, st) else None
+        scanned = c.stage_terrain(st)
+        field = open_stage(scanned.dir) if scanned is not None else None
         feats[rows], known[rows] = compute_terrain_features(layout, view.take(pa.array(rows)), field)
     cols: dict[str, pa.Array] = {"segment": view["segment"].combine_chunks(), "frame": view["frame"].combine_chunks()}
     for i, e in enumerate(layout.articulated):
         cols[f"{e.name}.terrain"] = pa.FixedSizeListArray.from_arrays(pa.array(feats[:, i].reshape(-1)), TERRAIN_FEATURES)
         cols[f"{e.name}.terrain_known"] = pa.FixedSizeListArray.from_arrays(pa.array(known[:, i].reshape(-1)), TERRAIN_FEATURES)
-    write_ipc(path, pa.Table.from_pydict(cols, schema=_feature_schema(layout)), c.info["ingest"].get("compression", "zstd"))
+    write_ipc(path, pa.Table.from_pydict(cols, schema=_feature_schema(layout)), c.info.compression)
     for old in path.parent.glob(f"shard-{shard:06d}-{fps:g}fps-{method}-*.arrow"):  # features under an older key
         if old != path:
             old.unlink(missing_ok=True)
@@ -461,8 +458,8 @@ def terrain_feature_shard(
 
 
 def _feature_arrays(layout: Layout, table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
-    feats = np.stack([_fixed(table[f"{e.name}.terrain"], TERRAIN_FEATURES) for e in layout.articulated], axis=1)
-    known = np.stack([_fixed(table[f"{e.name}.terrain_known"], TERRAIN_FEATURES) for e in layout.articulated], axis=1)
+    feats = np.stack([fixed_rows(table[f"{e.name}.terrain"], TERRAIN_FEATURES) for e in layout.articulated], axis=1)
+    known = np.stack([fixed_rows(table[f"{e.name}.terrain_known"], TERRAIN_FEATURES) for e in layout.articulated], axis=1)
     return feats.astype(np.float32), known.astype(bool)
 
 
@@ -522,7 +519,7 @@ class WindowData:
         ri, bi = root_index(self.layout), body_index(self.layout)
         for shard, segs in sorted(by_shard.items()):
             view = c.dynamics_shard(shard, fps, method)
-            state = _fixed(view["state"], self.layout.dim)
+            state = fixed_rows(view["state"], self.layout.dim)
             root = self.normaliser.normalise_root(state[:, ri]).astype(np.float32)
             body = self.normaliser.normalise_body(state[:, bi]).astype(np.float32)
             tok, prog = self.tokens.encode(self.layout, view, where=str(c.dynamics_dir(fps, method)))

@@ -42,7 +42,7 @@ import torch
 
 from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
-from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.corpus import Corpus, fixed_rows, state_table, world_of_rows
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
 from marionette.dynamics.data import (
     ActionTokens,
@@ -74,10 +74,9 @@ def checkpoint_dir(ckpt: Path | str) -> Path:
 def open_terrain_field(corpus: Corpus, segment: str):
     """The segment's stage as a ``LayeredField``, or None when the stage was never scanned."""
     from terrain_scan.field import open_stage
-    from terrain_scan.scan import stage_dir
 
-    d = stage_dir(corpus.path, corpus.segment_row(segment)["stage"])
-    return open_stage(d) if (d / "manifest.json").exists() and any((d / "chunks").glob("*")) else None
+    stage = corpus.terrain(segment)
+    return open_stage(stage.dir) if stage is not None else None
 
 
 class ModelStream:
@@ -226,7 +225,7 @@ class Rollout:
         L, nz = self.layout, self.normaliser
         per = []  # per stream: (root_n, body_n, tokens, progress, terrain, relative), each (n, ...)
         for rows in seeds:
-            state = _fixed(rows["state"], L.dim).astype(np.float32)
+            state = fixed_rows(rows["state"], L.dim).astype(np.float32)
             root, body = split_state(state, L)
             root_n, body_n = nz.normalise(root, body)
             tokens, progress = self.tokens.encode(L, rows, where=str(self.corpus.path))
@@ -251,7 +250,7 @@ class Rollout:
                 world = rules.step(world)  # frame 0 of the rules: taken as given
             self.scenes.append(_Scene(
                 state=p[6][-1].astype(np.float64), world=world,
-                quats=np.stack([_fixed(last[f"{e.name}.rot_world"], 4)[0] for e in L.articulated]),
+                quats=np.stack([fixed_rows(last[f"{e.name}.rot_world"], 4)[0] for e in L.articulated]),
                 body_n=p[1][-1], tok=p[2][-1].copy(), progress=p[3][-1].astype(np.float64), rules=rules,
                 generator=torch.Generator().manual_seed(_stream_seed(self.seed, b)),
             ))  # fmt: skip
@@ -500,55 +499,88 @@ def rollout_table(c: Corpus, ro: Rollout, seed_rows: pa.Table, segment: str, see
     last = seed_rows.slice(seed_rows.num_rows - 1, 1).to_pylist()[0]
     step_frames = c.fps / ro.fps
 
-    def fixed(x: np.ndarray, w: int, t: pa.DataType | None = None) -> pa.Array:
-        return pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(x).reshape(-1), t or pa.float64()), w)
-
     cols: dict[str, Any] = {
-        "segment": pa.array([name] * h),
-        "sample": pa.array([last["sample"]] * h),
-        "frame": pa.array([int(last["frame"]) + int(round((k + 1) * step_frames)) for k in range(h)], pa.int32()),
-        "t": pa.array(float(last["t"]) + (np.arange(h) + 1) / ro.fps),
-        "state": fixed(states.astype(np.float32), L.dim, pa.float32()),
+        "segment": name,
+        "sample": last["sample"],
+        "frame": [int(last["frame"]) + int(round((k + 1) * step_frames)) for k in range(h)],
+        "t": float(last["t"]) + (np.arange(h) + 1) / ro.fps,
+        "state": states,
     }
     for i, e in enumerate(L.articulated):
         tok = toks[:, i]
-        type_ids = [int(ro.tokens.type_keys[i][k].split(":")[1]) if k else int(last[f"{e.name}.type_id"]) for k in tok]
         clip = ro.tokens.clip_lengths[i][tok]
-        cols[f"{e.name}.type_id"] = pa.array(type_ids, pa.int32())
-        cols[f"{e.name}.action"] = pa.array(ro.tokens.composites[i][tok], pa.int32())
-        cols[f"{e.name}.motion_frame"] = pa.array(np.where(tok == 0, -1, np.rint(progs[:, i] * clip)).astype(np.int32))
-        cols[f"{e.name}.hp"] = pa.array([last[f"{e.name}.hp"]] * h, pa.float32())
-        cols[f"{e.name}.root_world"] = fixed(roots[:, i], 3)
-        cols[f"{e.name}.rot_world"] = fixed(quats[:, i], 4)
-        cols[f"{e.name}.pos_check_m"] = pa.array(np.full(h, np.nan, np.float32))
+        cols[f"{e.name}.type_id"] = [int(ro.tokens.type_keys[i][k].split(":")[1]) if k else int(last[f"{e.name}.type_id"]) for k in tok]
+        cols[f"{e.name}.action"] = ro.tokens.composites[i][tok]
+        cols[f"{e.name}.motion_frame"] = np.where(tok == 0, -1, np.rint(progs[:, i] * clip)).astype(np.int32)
+        cols[f"{e.name}.hp"] = last[f"{e.name}.hp"]
+        cols[f"{e.name}.root_world"] = roots[:, i]
+        cols[f"{e.name}.rot_world"] = quats[:, i]
+        cols[f"{e.name}.pos_check_m"] = np.full(h, np.nan, np.float32)
     for e in L.attachments:
-        cols[f"{e.name}.type_id"] = pa.array([last[f"{e.name}.type_id"]] * h, pa.int32())
-    cols["camera.K"] = fixed(np.full((h, 4), np.nan), 4)
-    cols["camera.pos"] = fixed(np.full((h, 3), np.nan), 3)
-    cols["camera.rot"] = fixed(np.full((h, 4), np.nan), 4)
-    cols["valid"] = pa.array(np.ones(h, bool))
-    predicted = pa.Table.from_pydict(cols, schema=schema)
+        cols[f"{e.name}.type_id"] = last[f"{e.name}.type_id"]
+    for name_, width in (("camera.K", 4), ("camera.pos", 3), ("camera.rot", 4)):
+        cols[name_] = np.full((h, width), np.nan)
+    cols["valid"] = True
+    predicted = state_table(L, cols, n=h)
     seeded = seed_rows.cast(schema).set_column(0, "segment", pa.array([name] * seed_rows.num_rows))
     return pa.concat_tables([seeded, predicted])
 
 
+def _frames_arg(flag: str, s: str, start: str, end: str) -> tuple[int, int]:
+    """(START, END) predicted frames of a ``flag`` value ``s``: integers with 0 ≤ START < END."""
+    try:
+        a, b = int(start), int(end)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{flag} {s!r}: START and END are integers") from None
+    if not 0 <= a < b:
+        raise argparse.ArgumentTypeError(f"{flag} {s!r}: frames [{a}, {b}) are empty or negative (0 ≤ START < END)")
+    return a, b
+
+
 def _parse_force(s: str) -> Force:
+    """``ENTITY:START:END:TOKEN`` (predicted frames, END exclusive; TOKEN ≥ 1, 0 being "no valid action")."""
     parts = s.rsplit(":", 3)
-    if len(parts) != 4:
+    if len(parts) != 4 or not parts[0]:
         raise argparse.ArgumentTypeError(f"--force {s!r}: expected ENTITY:START:END:TOKEN")
-    return parts[0], int(parts[1]), int(parts[2]), int(parts[3])
+    start, end = _frames_arg("--force", s, parts[1], parts[2])
+    try:
+        token = int(parts[3])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--force {s!r}: TOKEN is an integer") from None
+    if token < 1:
+        raise argparse.ArgumentTypeError(f"--force {s!r}: TOKEN is at least 1 (0 is 'no valid action')")
+    return parts[0], start, end, token
 
 
 def _parse_script(s: str) -> tuple[str, Any]:
     """``ENTITY:START:END:VX,VY,VZ`` (a constant root velocity in the entity's own frame, m/s; END
     exclusive) or ``ENTITY:FILE.npy`` (a (horizon, 9) array of E.root then E.rot6d, NaN = the model's)."""
     name, _, rest = s.partition(":")
+    if not name:
+        raise argparse.ArgumentTypeError(f"--script-root {s!r}: expected ENTITY:START:END:VX,VY,VZ or ENTITY:FILE.npy")
     if rest.endswith(".npy"):
         return name, Path(rest)
     parts = rest.split(":")
     if len(parts) != 3 or len(parts[2].split(",")) != 3:
         raise argparse.ArgumentTypeError(f"--script-root {s!r}: expected ENTITY:START:END:VX,VY,VZ or ENTITY:FILE.npy")
-    return name, (int(parts[0]), int(parts[1]), tuple(float(v) for v in parts[2].split(",")))
+    start, end = _frames_arg("--script-root", s, parts[0], parts[1])
+    try:
+        velocity = tuple(float(v) for v in parts[2].split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--script-root {s!r}: VX,VY,VZ are numbers (m/s)") from None
+    if not all(np.isfinite(velocity)):
+        raise argparse.ArgumentTypeError(f"--script-root {s!r}: VX,VY,VZ are finite")
+    return name, (start, end, velocity)
+
+
+def _parse_rules(s: str) -> str:
+    """``auto``, ``none`` or a comma list of known rules (returned as given; ``run`` splits it)."""
+    if s in ("auto", "none"):
+        return s
+    unknown = [r for r in s.split(",") if r not in RULES]
+    if unknown or not s:
+        raise argparse.ArgumentTypeError(f"--rules {s!r}: expected auto, none or a comma list of {','.join(RULES)}")
+    return s
 
 
 def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: float, layout) -> dict[str, np.ndarray] | None:
@@ -575,21 +607,25 @@ def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: floa
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
-    """The rollout command's arguments (shared by ``marionette rollout`` and ``python -m``)."""
+    """The rollout command's arguments (shared by ``marionette rollout`` and ``python -m``), each checked as it is parsed."""
+    from marionette.cli import HelpFormatter, non_negative_float, non_negative_int, positive_int, size_hxw
+
+    ap.formatter_class = HelpFormatter  # every option's default in --help, under either entry point
     ap.add_argument("ckpt", type=Path, help="a checkpoint directory or a training output directory")
-    ap.add_argument("corpus", type=Path)
+    ap.add_argument("corpus", type=Path, help="the corpus the segment comes from")
     ap.add_argument("--segment", required=True, help="the recorded segment whose first frames seed the rollout")
-    ap.add_argument("--seed-frames", type=int, default=64)
-    ap.add_argument("--horizon", type=int, required=True, help="predicted frames")
-    ap.add_argument("--temperature", type=float, default=0.0, help="0: argmax, deterministic")
-    ap.add_argument("--seed", type=int, default=0, help="the sampler's seed")
-    ap.add_argument("--force", type=_parse_force, nargs="+", action="extend", default=[], help="ENTITY:START:END:TOKEN (predicted frames, END exclusive)")
-    ap.add_argument("--script-root", type=_parse_script, nargs="+", action="extend", default=[],
-                    help="ENTITY:START:END:VX,VY,VZ (m/s in the entity's frame) or ENTITY:FILE.npy ((horizon, 9) root channels)")  # fmt: skip
-    ap.add_argument("--rules", default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
+    ap.add_argument("--seed-frames", type=positive_int, default=64, help="recorded frames fed before the first predicted one")
+    ap.add_argument("--horizon", type=positive_int, required=True, help="predicted frames")
+    ap.add_argument("--temperature", type=non_negative_float, default=0.0, help="sampling temperature; 0: argmax, deterministic")
+    ap.add_argument("--seed", type=non_negative_int, default=0, help="the sampler's seed")
+    force_help = "ENTITY:START:END:TOKEN, predicted frames, END exclusive (repeatable; default: no forced tokens)"
+    ap.add_argument("--force", type=_parse_force, nargs="+", action="extend", default=[], help=force_help)
+    script_help = "ENTITY:START:END:VX,VY,VZ (m/s, own frame) or ENTITY:FILE.npy ((horizon, 9) root channels; default: none)"
+    ap.add_argument("--script-root", type=_parse_script, nargs="+", action="extend", default=[], help=script_help)
+    ap.add_argument("--rules", type=_parse_rules, default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
     ap.add_argument("--out", type=Path, required=True, help="STATES.arrow (the corpus state schema)")
     ap.add_argument("--render", type=Path, default=None, help="also render the rollout (follow camera) to this .mkv")
-    ap.add_argument("--size", type=lambda v: tuple(int(x) for x in v.lower().split("x")), default=(352, 640), help="render HxW")
+    ap.add_argument("--size", type=size_hxw, default=(352, 640), metavar="HxW", help="render size, HxW")
 
 
 def run(args: argparse.Namespace, log=print) -> pa.Table:
@@ -606,10 +642,8 @@ def run(args: argparse.Namespace, log=print) -> pa.Table:
     log(f"{args.out}: {table.num_rows} rows ({args.horizon} predicted, {args.horizon / took:.0f} frames/s incl. loading)")
     if args.render is not None:
         from marionette.bridge.targets import TerrainScene, render_rows
-        from terrain_scan.scan import stage_dir
 
-        d = stage_dir(c.path, c.segment_row(args.segment)["stage"])
-        terrain = TerrainScene.of_stage(d) if (d / "manifest.json").exists() else TerrainScene.empty()
+        terrain = TerrainScene.of_stage(c.terrain(args.segment))
         meta = render_rows(c.layout, table, args.render, terrain, camera="follow", size=args.size)
         log(f"{args.render}: {meta.width}×{meta.height} at {meta.fps:g} fps (follow camera)")
     return table

@@ -28,10 +28,11 @@ then cosine decay to ``min_lr_ratio`` of the peak (a ``LambdaLR``), gradient cli
 only where the hardware has it (CUDA with bf16), else float32; ``TrainConfig.bf16`` forces either.
 
 Exact resume. The sampler's batches are a function of (seed, rank, world_size, epoch), so step s
-(0-based, global) is batch ``s − Σ_{e' < e} batches(e')`` of the epoch e holding it. A checkpoint
-holds weights, optimizer, scheduler, torch RNG and the loss history; resuming from
-``latest_checkpoint(out_dir)`` continues the same loss sequence bit for bit (same config, same
-world size, same device).
+(0-based, global) is batch ``s − Σ_{e' < e} batches(e')`` of the epoch e holding it, and its input
+noise and dropout are drawn from seeds of (seed, s, rank). A checkpoint holds weights, optimizer,
+scheduler, torch RNG and the loss history; resuming from ``latest_checkpoint(out_dir)`` (the step
+loop, resume check and checkpoints are ``marionette.training``'s, shared with the observation
+trainer) continues the same loss sequence bit for bit (same config, same world size, same device).
 
 DDP: when ``torch.distributed`` is initialised, ActionGPT and PoseGPT are each wrapped in
 ``DistributedDataParallel``, rank r samples its own windows (``WindowSampler(rank=r)``), the logged
@@ -52,8 +53,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
-import os
 from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields, replace
@@ -62,14 +61,14 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.distributed as dist
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from marionette import geometry as geo
+from marionette import training
 from marionette.corpus import Corpus
-from marionette.distributed import process_group_from_env, rank_world, train_under_torchrun
-from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from marionette.distributed import rank_world
+from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.data import ActionTokens, Batch, HeldOutWindows, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import (
     PATCH_SIZE,
@@ -82,58 +81,53 @@ from marionette.dynamics.model import (
     parameter_counts,
     pose_training_pair,
 )
-from marionette.io import check_json_fields, write_json
+from marionette.io import check_json_fields
 from marionette.schema import Layout
+from marionette.training import knob
 
 HELD_OUT_SPLIT = "test"
 ROOT_PER_ENTITY = 9  # E.root (3) then E.rot6d (6)
 N_PATCH = PATCH_SIZE * PATCH_SIZE  # terrain feature slots before the key joints' clearances
 TENSORBOARD = "tensorboard"  # event files under the training directory (rank 0)
-SUMMARY = "summary.json"  # the last run's summary (losses left out), written by rank 0
-CADENCE_FIELDS = ("eval_every", "checkpoint_every")  # may change between a run and its resume
+SUMMARY = training.SUMMARY
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """Every knob of a training run; saved as JSON in each checkpoint's meta."""
 
-    preset: str = "tiny"  # "tiny" | "paper" (model.PRESETS)
-    steps: int = 1000
-    batch_size: int = 16
-    window: int | None = None  # model steps per window; None: the preset's, capped to the train segments
-    lr: float = 3e-4
-    betas: tuple[float, float] = (0.9, 0.95)
-    weight_decay: float = 0.1
-    warmup: int = 100
-    min_lr_ratio: float = 0.1  # cosine decays to this fraction of lr
-    grad_clip: float = 1.0
-    seed: int = 0
-    terrain: bool = True  # load terrain features: monsters read them (DynamicsConfig.from_layout), the hinge uses them
-    relative: bool = False  # the relative-position feature (DESIGN: beyond the paper)
-    dropout: float = 0.0  # in both transformers
+    preset: str = knob("tiny", "model size (dynamics.model.PRESETS)", choices=sorted(PRESETS))
+    steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
+    batch_size: int = knob(16, "windows per step and process", min=1)
+    window: int | None = knob(None, "model steps per window; default: the preset's, capped to the train segments", min=1)
+    lr: float = knob(3e-4, "peak learning rate", above=0.0)
+    betas: tuple[float, float] = knob((0.9, 0.95), "AdamW betas", min=0.0, below=1.0)
+    weight_decay: float = knob(0.1, "AdamW weight decay (matrices and embeddings only)", min=0.0)
+    warmup: int = knob(100, "linear warm-up steps", min=0)
+    min_lr_ratio: float = knob(0.1, "the cosine decays to this fraction of lr", min=0.0, max=1.0)
+    grad_clip: float = knob(1.0, "gradient-norm clipping", above=0.0)
+    seed: int = knob(0, "seed of the initial weights, the windows drawn and the input noise", min=0)
+    terrain: bool = knob(True, "load terrain features: monsters read them (DynamicsConfig.from_layout), the hinge uses them")
+    relative: bool = knob(False, "the relative-position feature (DESIGN: beyond the paper)")
+    dropout: float = knob(0.0, "dropout in both transformers", min=0.0, below=1.0)
     # Long rollouts (docs/tradeoffs.md): residual heads trained on clean inputs integrate their errors and
     # leave the data within ~200 frames; absolute heads reading noised inputs stay stable over 10,000.
-    residual: bool = False  # heads predict a change added to the current frame (DynamicsConfig.residual)
-    input_noise: float = 0.1  # std (normalised units) of Gaussian noise on the models' root and body inputs
-    w_action: float = 1.0
-    w_root: float = 1.0
-    w_body: float = 1.0
-    w_drift: float = 0.1
-    w_hinge: float = 0.1
-    hinge_margin: float = 0.15  # metres, DESIGN's ReLU(H_j + 0.15 − y_j)²
-    eval_every: int = 0  # 0: evaluate only at the end
-    eval_batch_size: int = 64
-    checkpoint_every: int = 0  # 0: checkpoint only at the end
-    bf16: bool | None = None  # None: bf16 autocast where the hardware has it
-    fps: float = 20.0
+    residual: bool = knob(False, "heads predict a change added to the current frame (DynamicsConfig.residual)")
+    input_noise: float = knob(0.1, "std (normalised units) of Gaussian noise on the models' root and body inputs", min=0.0)
+    w_action: float = knob(1.0, "weight of the next-action cross-entropy", min=0.0)
+    w_root: float = knob(1.0, "weight of the next-root MSE", min=0.0)
+    w_body: float = knob(1.0, "weight of the next-body MSE", min=0.0)
+    w_drift: float = knob(0.1, "weight of the vertical-drift term", min=0.0)
+    w_hinge: float = knob(0.1, "weight of the penetration hinge", min=0.0)
+    hinge_margin: float = knob(0.15, "metres, DESIGN's ReLU(H_j + margin − y_j)²")
+    eval_every: int = knob(0, "evaluate on the held-out windows every N steps; 0: only at the end", min=0)
+    eval_batch_size: int = knob(64, "held-out windows per evaluation batch", min=1)
+    checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
+    bf16: bool | None = knob(None, "bf16 autocast; default: where the hardware has it (CUDA with bf16)")
+    fps: float = knob(20.0, "frame rate the model runs at (the dynamics view's, resampled from the corpus)", above=0.0)
 
     def __post_init__(self) -> None:
-        if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset {self.preset!r}; known: {sorted(PRESETS)}")
-        if self.steps < 1 or self.batch_size < 1:
-            raise ValueError(f"steps {self.steps} and batch_size {self.batch_size} must be ≥ 1")
-        if self.window is not None and self.window < 1:
-            raise ValueError(f"window {self.window} must be ≥ 1 step")
+        training.check_knobs(self)
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -149,20 +143,6 @@ class TrainConfig:
 # -- schedule and optimizer --------------------------------------------------------------------------
 
 
-def _noise_seed(seed: int, step: int, rank: int) -> int:
-    """The input-noise generator's seed of one (seed, step, rank): distinct for every triple."""
-    return int(np.random.SeedSequence([int(seed), int(step), int(rank)]).generate_state(1, np.uint64)[0] >> 1)
-
-
-def lr_factor(step: int, config: TrainConfig) -> float:
-    """Multiplier of ``config.lr`` at optimizer step ``step`` (0-based): linear warmup, cosine to min_lr_ratio."""
-    if step < config.warmup:
-        return (step + 1) / config.warmup
-    span = max(config.steps - config.warmup, 1)
-    progress = min((step - config.warmup) / span, 1.0)
-    return config.min_lr_ratio + (1 - config.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
-
-
 def make_optimizer(model: DynamicsModel, config: TrainConfig) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.LambdaLR]:
     """AdamW over both models (decay on ≥ 2-D parameters only) and its warmup + cosine LambdaLR."""
     params = [p for p in model.parameters() if p.requires_grad]
@@ -171,8 +151,7 @@ def make_optimizer(model: DynamicsModel, config: TrainConfig) -> tuple[torch.opt
         {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0},
     ]
     opt = torch.optim.AdamW(groups, lr=config.lr, betas=config.betas)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, config))
-    return opt, sched
+    return opt, training.warmup_cosine(opt, config.warmup, config.steps, config.min_lr_ratio)
 
 
 # -- data --------------------------------------------------------------------------------------------
@@ -285,9 +264,16 @@ class PenetrationHinge:
         return total / max(count, 1)
 
 
-def losses(model: nn.Module, action: nn.Module, pose: nn.Module, batch: Batch, normaliser: Normaliser,
-           config: TrainConfig, hinge: PenetrationHinge | None = None,
-           noise: torch.Generator | None = None) -> dict[str, Tensor]:  # fmt: skip
+def losses(
+    model: nn.Module,
+    action: nn.Module,
+    pose: nn.Module,
+    batch: Batch,
+    normaliser: Normaliser,
+    config: TrainConfig,
+    hinge: PenetrationHinge | None = None,
+    noise: torch.Generator | None = None,
+) -> dict[str, Tensor]:
     """The weighted terms and their sum for one batch; ``action``/``pose`` may be DDP wrappers.
 
     With ``config.input_noise`` > 0 and a ``noise`` generator, the models read root and body inputs
@@ -295,6 +281,7 @@ def losses(model: nn.Module, action: nn.Module, pose: nn.Module, batch: Batch, n
     a_in, (root_next, tok_next) = action_training_pair(batch.frames)
     p_in, body_next = pose_training_pair(batch.frames)
     if config.input_noise and noise is not None:
+
         def jitter(x: Tensor) -> Tensor:
             return x + config.input_noise * torch.randn(x.shape, generator=noise).to(x.device, x.dtype)
 
@@ -314,8 +301,13 @@ def losses(model: nn.Module, action: nn.Module, pose: nn.Module, batch: Batch, n
     if config.w_hinge and hinge is not None and batch.terrain_known is not None:
         nxt = batch.frames.time_slice(1, None)
         terms["hinge"] = hinge(body, body_next, nxt.root, nxt.terrain, batch.terrain_known[:, 1:])
-    weights = {"action": config.w_action, "root": config.w_root, "body": config.w_body, "drift": config.w_drift,
-               "hinge": config.w_hinge}  # fmt: skip
+    weights = {
+        "action": config.w_action,
+        "root": config.w_root,
+        "body": config.w_body,
+        "drift": config.w_drift,
+        "hinge": config.w_hinge,
+    }
     terms["total"] = sum(weights[k] * v for k, v in terms.items())
     return terms
 
@@ -383,78 +375,86 @@ def baselines(windows: HeldOutWindows, most_frequent: tuple[int, ...]) -> dict[s
 # -- the loop ----------------------------------------------------------------------------------------
 
 
-def _check_resume(saved: dict, config: TrainConfig, ckpt: Path) -> None:
-    mine = {k: v for k, v in config.to_json().items() if k not in CADENCE_FIELDS}
-    theirs = {k: v for k, v in saved.items() if k not in CADENCE_FIELDS}
-    if mine != theirs:
-        diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
-        raise ValueError(f"{ckpt}: was trained with another config (differs in {diff}); use a fresh out_dir")
+def _windows(
+    corpus: Corpus, config: TrainConfig, log: Callable[[str], Any]
+) -> tuple[WindowData, WindowSampler, HeldOutWindows | None]:
+    """This rank's train windows and their sampler, and (rank 0, when a held-out segment holds one) the
+    held-out windows."""
+    rank, world = rank_world()
+    normaliser = Normaliser.from_corpus(corpus)
+    tokens = ActionTokens.from_corpus(corpus)
+    data = WindowData(
+        corpus, "train", terrain=config.terrain, relative=config.relative, normaliser=normaliser, tokens=tokens, fps=config.fps
+    )
+    length = resolve_window(data, config, world)
+    sampler = WindowSampler(data, length, config.batch_size, seed=config.seed, rank=rank, world_size=world)
+    if sampler.skipped:
+        log(f"window {length}: {len(sampler.skipped)} train segments shorter than {length + 1} frames skipped")
+    if rank != 0:
+        return data, sampler, None
+    if not corpus.segment_ids(HELD_OUT_SPLIT):
+        log(f"{corpus.path}: no {HELD_OUT_SPLIT!r} segments: evaluation skipped")
+        return data, sampler, None
+    hdata = WindowData(
+        corpus,
+        HELD_OUT_SPLIT,
+        terrain=config.terrain,
+        relative=config.relative,
+        normaliser=normaliser,
+        tokens=tokens,
+        fps=config.fps,
+    )
+    held = HeldOutWindows(hdata, length, config.eval_batch_size)
+    if not held.windows():
+        log(f"no {HELD_OUT_SPLIT!r} segment holds a window of {length + 1} frames: evaluation skipped")
+        return data, sampler, None
+    return data, sampler, held
 
 
-def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainConfig,
-          log: Callable[[str], Any] = print, *, stop_at: int | None = None) -> dict:  # fmt: skip
-    """Train (or resume from ``latest_checkpoint(out_dir)``) for ``config.steps`` steps; returns a summary.
+def train(
+    corpus_path: Corpus | Path | str,
+    out_dir: Path | str,
+    config: TrainConfig,
+    log: Callable[[str], Any] = print,
+    *,
+    stop_at: int | None = None,
+    progress: bool = False,
+) -> dict:
+    """Train (or resume from the latest checkpoint in ``out_dir``) for ``config.steps`` steps; returns a summary.
 
     ``stop_at`` ends the run after that many steps (checkpointed), as an interruption would; the
-    schedule is still the one of ``config.steps``."""
+    schedule is still the one of ``config.steps``. ``progress``: a progress bar over the steps (rank 0)."""
     rank, world = rank_world()
-    log = log if rank == 0 else (lambda *_: None)
+    log = training.rank_zero_log(log)
     out_dir = Path(out_dir)
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
     device = torch.device(f"cuda:{torch.cuda.current_device()}" if torch.cuda.is_available() else "cpu")
     use_bf16 = config.bf16 if config.bf16 is not None else (device.type == "cuda" and torch.cuda.is_bf16_supported())
     autocast = torch.autocast(device.type, dtype=torch.bfloat16) if use_bf16 else nullcontext()
 
-    normaliser = Normaliser.from_corpus(corpus)
-    tokens = ActionTokens.from_corpus(corpus)
-    data = WindowData(corpus, "train", terrain=config.terrain, relative=config.relative, normaliser=normaliser, tokens=tokens,
-                      fps=config.fps)  # fmt: skip
-    length = resolve_window(data, config, world)
-    sampler = WindowSampler(data, length, config.batch_size, seed=config.seed, rank=rank, world_size=world)
-    if sampler.skipped:
-        log(f"window {length}: {len(sampler.skipped)} train segments shorter than {length + 1} frames skipped")
-
-    held = None
-    if rank == 0:
-        if corpus.segment_ids(HELD_OUT_SPLIT):
-            hdata = WindowData(corpus, HELD_OUT_SPLIT, terrain=config.terrain, relative=config.relative, normaliser=normaliser,
-                               tokens=tokens, fps=config.fps)  # fmt: skip
-            held = HeldOutWindows(hdata, length, config.eval_batch_size)
-            if not held.windows():
-                log(f"no {HELD_OUT_SPLIT!r} segment holds a window of {length + 1} frames: evaluation skipped")
-                held = None
-        else:
-            log(f"{corpus.path}: no {HELD_OUT_SPLIT!r} segments: evaluation skipped")
-
+    data, sampler, held = _windows(corpus, config, log)
+    normaliser, tokens, length = data.normaliser, data.tokens, sampler.length
     terrain_switch = {} if config.terrain else {"terrain": (False,) * len(tokens.sizes)}
-    dyn = DynamicsConfig.preset(config.preset, corpus.layout, tokens.sizes, window=length, relative_position=config.relative,
-                                dropout=config.dropout, residual=config.residual,
-                                **terrain_switch)  # fmt: skip
+    dyn = DynamicsConfig.preset(
+        config.preset,
+        corpus.layout,
+        tokens.sizes,
+        window=length,
+        relative_position=config.relative,
+        dropout=config.dropout,
+        residual=config.residual,
+        **terrain_switch,
+    )
     hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None
     model = DynamicsModel(dyn, seed=config.seed).to(device)
     opt, sched = make_optimizer(model, config)
-    history: list[dict] = []
-    evals: list[dict] = []
-    step = 0
-    ckpt = latest_checkpoint(out_dir)
-    if ckpt is not None:
-        meta = load_checkpoint(ckpt, model, opt, sched)
-        _check_resume(meta["train_config"], config, ckpt)
-        if DynamicsConfig.from_json(meta["dynamics_config"]) != dyn:
-            raise ValueError(f"{ckpt}: its dynamics config differs from this run's")
-        step, history, evals = int(meta["step"]), list(meta["losses"]), list(meta.get("evals", []))
-        log(f"resumed from {ckpt} at step {step}")
+    run = training.resume(out_dir, model, opt, sched, {"train_config": config, "dynamics_config": dyn})
+    if run.resumed_from is not None:
+        log(f"resumed from {run.resumed_from} at step {run.step}")
     counts = parameter_counts(model)
     log(f"window {length} steps, batch {config.batch_size} × {world} ranks, parameters {counts}, bf16 {use_bf16}")
-
-    action, pose = model.action, model.pose
-    if world > 1:
-        ids = [device.index] if device.type == "cuda" else None
-        action = nn.parallel.DistributedDataParallel(model.action, device_ids=ids)
-        pose = nn.parallel.DistributedDataParallel(model.pose, device_ids=ids)
-
-    most_frequent = most_frequent_actions(data)
-    base = baselines(held, most_frequent) if held is not None else None
+    action, pose = training.ddp(model.action, device), training.ddp(model.pose, device)
+    base = baselines(held, most_frequent_actions(data)) if held is not None else None
     if base is not None:
         log("baselines " + json.dumps({k: round(v, 4) for k, v in base.items()}))
 
@@ -466,147 +466,112 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: TrainCo
             "dynamics_config": dyn.to_json(),
             "normaliser": normaliser.to_json(),
             "vocab": {"hash": tokens.vocab_hash, "sizes": list(tokens.sizes), "entities": list(tokens.entities)},
-            "losses": history,
-            "evals": evals,
+            "losses": run.history,
+            "evals": run.evals,
         }
         return save_checkpoint(out_dir, at, model, opt, sched, meta)
 
     end = config.steps if stop_at is None else min(stop_at, config.steps)
     board = None
-    if rank == 0 and step < end:  # a resumed run drops the events logged after its checkpoint
+    if rank == 0 and run.step < end:  # a resumed run drops the events logged after its checkpoint
         from torch.utils.tensorboard import SummaryWriter
 
-        board = SummaryWriter(str(out_dir / TENSORBOARD), purge_step=step + 1 if step else None)
+        board = SummaryWriter(str(out_dir / TENSORBOARD), purge_step=run.step + 1 if run.step else None)
 
     def run_eval(at: int) -> None:
         if held is None:
             return
         metrics = {"step": at, **evaluate(model, held, device)}
-        evals.append(metrics)
+        run.evals.append(metrics)
         if board is not None:
             for k, v in metrics.items():
                 if k not in ("step", "windows"):
                     board.add_scalar(f"eval/{k}", v, at)
         log(f"eval step {at} " + json.dumps({k: round(v, 4) for k, v in metrics.items()}))
 
-    model.train()
-    batches = batches_from(sampler, step)
-    last_saved = None
-    while step < end:
+    def to_board(record: dict) -> None:
+        if board is not None:
+            for k, v in record.items():
+                if k != "step":
+                    board.add_scalar(f"train/{k}", v, record["step"])
+
+    batches = batches_from(sampler, run.step)
+
+    def loss_at(step: int) -> dict[str, Tensor]:
         batch = next(batches)
         frames = _to(batch.frames, device)
         with autocast:
             known = None if batch.terrain_known is None else batch.terrain_known.to(device)
-            noise = torch.Generator().manual_seed(_noise_seed(config.seed, step, rank))  # a function of the step: exact resume
-            terms = losses(model, action, pose, Batch(frames, known, batch.segments, batch.starts), normaliser, config, hinge, noise)
-        opt.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-        lr = opt.param_groups[0]["lr"]
-        opt.step()
-        sched.step()
-        step += 1
-        values = torch.stack([v.detach().float() for v in terms.values()] + [grad_norm.detach().float()])
-        if world > 1:
-            dist.all_reduce(values)
-            values /= world
-        record = {"step": step, **dict(zip([*terms, "grad_norm"], values.tolist(), strict=True)), "lr": lr}
-        history.append(record)
-        if board is not None:
-            for k, v in record.items():
-                if k != "step":
-                    board.add_scalar(f"train/{k}", v, step)
-        log(" ".join(f"{k} {v:.5g}" if isinstance(v, float) else f"{k} {v}" for k, v in record.items()))
-        if config.eval_every and step % config.eval_every == 0 and step < end:
-            run_eval(step)
-        if config.checkpoint_every and step % config.checkpoint_every == 0 and step < end:
-            last_saved = checkpoint(step)
-    if not evals or evals[-1]["step"] != step:
-        run_eval(step)
-    resumed_done = ckpt is not None and history and step == int(meta["step"])  # nothing trained in this call
-    last_saved = ckpt if resumed_done else (checkpoint(step) if rank == 0 else None)
+            noise = training.noise_generator(config.seed, step, rank)
+            return losses(
+                model, action, pose, Batch(frames, known, batch.segments, batch.starts), normaliser, config, hinge, noise
+            )
+
+    training.run_steps(
+        run,
+        end,
+        loss_at,
+        model,
+        opt,
+        sched,
+        seed=config.seed,
+        objective="total",
+        grad_clip=config.grad_clip,
+        checkpoint=checkpoint,
+        checkpoint_every=config.checkpoint_every,
+        evaluate=run_eval,
+        eval_every=config.eval_every,
+        on_record=to_board,
+        log=log,
+        progress=progress,
+        desc="train dynamics",
+    )
+    if not run.evals or run.evals[-1]["step"] != run.step:
+        run_eval(run.step)
+    last = training.final_checkpoint(run, checkpoint)
     if board is not None:
         board.close()
     summary = {
-        "steps": step,
+        "steps": run.step,
         "window": length,
-        "first": history[0] if history else None,
-        "final": history[-1] if history else None,
-        "eval": evals[-1] if evals else None,
+        "first": run.history[0] if run.history else None,
+        "final": run.history[-1] if run.history else None,
+        "eval": run.evals[-1] if run.evals else None,
         "baselines": base,
         "parameters": counts,
-        "checkpoint": str(last_saved) if last_saved else None,
-        "losses": history,
+        "checkpoint": str(last) if last else None,
+        "losses": run.history,
     }
-    if rank == 0:
-        write_json(out_dir / SUMMARY, {k: v for k, v in summary.items() if k != "losses"})
-    if world > 1:
-        dist.barrier()  # nobody returns (and tears the group down) before rank 0 has written
-    return summary
+    return training.finish(out_dir, summary)
 
 
-# -- CLI ---------------------------------------------------------------------------------------------
+# -- commands ----------------------------------------------------------------------------------------
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
-    """The training command's arguments: one flag per ``TrainConfig`` field (shared by ``marionette train
-    dynamics`` and ``python -m marionette.dynamics.train``)."""
-    ap.add_argument("corpus", type=Path)
-    ap.add_argument("--out", type=Path, required=True, help="training directory (checkpoints; a rerun resumes from it)")
-    ap.add_argument("--config", type=Path, help="a TrainConfig JSON; the flags below override it")
-    defaults = TrainConfig()
-    for f in fields(TrainConfig):
-        if f.name == "betas":
-            continue
-        flag = "--" + f.name.replace("_", "-")
-        if f.type in ("bool", bool, "bool | None"):
-            ap.add_argument(flag, action=argparse.BooleanOptionalAction, default=None)
-        else:
-            kind = {"int": int, "float": float, "str": str, "int | None": int}[str(f.type)]
-            ap.add_argument(flag, type=kind, default=None, help=f"default {getattr(defaults, f.name)}")
-    ap.add_argument("--nproc", type=int, default=1, help="processes: > 1 relaunches this command under torchrun (DDP)")
+    """The arguments of ``marionette train dynamics`` and ``python -m marionette.dynamics.train``: the corpus,
+    ``--out``, ``--config``, one flag per ``TrainConfig`` field, ``--nproc``, ``--progress``."""
+    training.add_arguments(ap, TrainConfig)
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    """The ``TrainConfig`` of parsed arguments: ``--config`` JSON, then the flags that were given."""
-    base = {}
-    if args.config:
-        try:
-            base = TrainConfig.from_json(json.loads(args.config.read_text())).to_json()
-        except (json.JSONDecodeError, TypeError, ValueError) as exc:
-            raise ValueError(f"{args.config}: not a TrainConfig JSON: {exc}") from exc
-    over = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if f.name != "betas" and getattr(args, f.name) is not None}
-    return TrainConfig.from_json({**base, **over})
-
-
-def train_in_processes(corpus: Path | str, out_dir: Path | str, config: TrainConfig, nproc: int) -> dict:
-    """Train under torchrun with ``nproc`` processes on this machine (gloo on CPU, NCCL on GPU) and return
-    the summary rank 0 wrote (losses left out)."""
-    return train_under_torchrun("marionette.dynamics.train", corpus, out_dir, config.to_json(), nproc, SUMMARY)
-
-
-def run(args: argparse.Namespace) -> dict:
-    """Run a parsed training command in this process, or, with ``--nproc`` > 1 outside a process group,
-    under torchrun (``train_in_processes``)."""
-    config = config_from_args(args)
-    if args.nproc > 1 and "WORLD_SIZE" not in os.environ:
-        summary = train_in_processes(args.corpus, args.out, config, args.nproc)
-        print(json.dumps(summary, indent=1))
-        return summary
-    with process_group_from_env():
-        rank = rank_world()[0]
-        summary = train(args.corpus, args.out, config)
-    if rank == 0:
-        print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
-    return summary
+def run(
+    corpus: Path | str,
+    out_dir: Path | str,
+    config: TrainConfig,
+    *,
+    nproc: int = 1,
+    progress: bool = False,
+    log: Callable[[str], Any] = print,
+) -> dict:
+    """Train in this process, or with ``nproc`` > 1 under torchrun (gloo on CPU, NCCL on GPU), returning
+    the summary (from torchrun: the one rank 0 wrote, losses left out)."""
+    return training.launch("marionette.dynamics.train", train, corpus, out_dir, config, nproc=nproc, progress=progress, log=log)
 
 
 def main(argv: list[str] | None = None) -> dict:
     """``python -m marionette.dynamics.train CORPUS --out DIR [--preset tiny] [--steps N] ...``; under
     torchrun (RANK / WORLD_SIZE / MASTER_ADDR in the environment) one process per rank."""
-    ap = argparse.ArgumentParser(prog="python -m marionette.dynamics.train", description=__doc__.splitlines()[0])
-    add_arguments(ap)
-    return run(ap.parse_args(argv))
+    return training.main(argv, "python -m marionette.dynamics.train", __doc__.splitlines()[0], TrainConfig, run)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ the controllability probe and the rule ablation. Definitions are DESIGN's "Evalu
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -43,7 +43,7 @@ import numpy as np
 import pyarrow as pa
 
 from marionette.bridge.rules import enabled_rules
-from marionette.corpus import Corpus, _fixed, world_of_rows
+from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.checkpoint import read_meta
 from marionette.dynamics.data import ActionTokens, _as_corpus
 from marionette.dynamics.rollout import (
@@ -67,6 +67,7 @@ ABLATION: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 PROBE_CONDITIONS = ("free", "force_gt", "force_shuf")
 CLASSES = ("stationary", "locomotion", "attack", "other")
+Progress = Callable[[str, int, int], Any]  # progress(phase, done, total): told after each unit of a long loop
 
 
 @dataclass(frozen=True)
@@ -134,9 +135,11 @@ def recorded_rows(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table
 
 def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *,
                 rules: str | Sequence[str] = "auto", force: Sequence[Sequence[Force]] | None = None,
-                temperature: float = 0.0, seed: int = 0, batch: int = 16) -> tuple[list[pa.Table], dict[str, tuple[str, ...]]]:  # fmt: skip
+                temperature: float = 0.0, seed: int = 0, batch: int = 16, progress: Progress | None = None,
+                phase: str = "rollouts") -> tuple[list[pa.Table], dict[str, tuple[str, ...]]]:  # fmt: skip
     """Roll every window out (seed rows + horizon predicted rows, ``rollout``'s table) with optional
-    per-window ``force``; returns the tables in window order and the rules that ran per stage."""
+    per-window ``force``; returns the tables in window order and the rules that ran per stage.
+    ``progress(phase, done, total)`` is told the predicted window-frames done after each frame step."""
     c = _as_corpus(corpus)
     force = [()] * len(windows) if force is None else list(force)
     if len(force) != len(windows):
@@ -148,6 +151,7 @@ def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
     stages: dict[str, list[int]] = {}
     for i, w in enumerate(windows):
         stages.setdefault(w.stage, []).append(i)
+    done, total = 0, sum(w.horizon for w in windows)
     for stage, idx in stages.items():
         field = open_terrain_field(c, windows[idx[0]].segment)
         want: Any = rules
@@ -175,6 +179,9 @@ def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
                     for k, v in (("state", states[b]), ("roots", ro.roots_of(sc)), ("quats", sc.quats.copy()), ("tok", sc.tok.copy()),
                                  ("prog", sc.progress.copy())):  # fmt: skip
                         rec[k][b].append(v)
+                done += len(part)
+                if progress is not None:
+                    progress(phase, done, total)
             for b, i in enumerate(part):
                 tables[i] = rollout_table(c, ro, seeds[b], windows[i].segment, seed, *(np.array(rec[k][b]) for k in rec))
     return tables, ran  # type: ignore[return-value]
@@ -303,9 +310,9 @@ def summarise(values: Sequence[float]) -> dict[str, Any]:
 
 
 def state_layer(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], tables: Sequence[pa.Table], *,
-                render_size: tuple[int, int] | None = (72, 128)) -> dict[str, Any]:  # fmt: skip
+                render_size: tuple[int, int] | None = (72, 128), progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
     """The state-layer table over windows: per "<metric>/<entity>" the generated and recorded summaries,
-    per-window values, and per entity the root drift (windows, horizon) for curves."""
+    per-window values, and per entity the root drift (windows, horizon) for curves (``progress`` told per window)."""
     c = _as_corpus(corpus)
     fps = model_fps(ckpt)
     per = []
@@ -313,9 +320,11 @@ def state_layer(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
     for w, table in zip(windows, tables):
         if w.stage not in scenes:
             field = open_terrain_field(c, w.segment)
-            scenes[w.stage] = (field, _terrain_scene(c, w.segment) if render_size else None)
+            scenes[w.stage] = (field, terrain_scene(c, w.segment) if render_size else None)
         field, terrain = scenes[w.stage]
         per.append(window_metrics(c.layout, predicted(table, w), recorded_rows(c, w, fps), fps, field, terrain, render_size))
+        if progress is not None:
+            progress("state-layer metrics", len(per), len(windows))
     rows = {}
     for key in per[0]["metrics"]:
         g = [p["metrics"][key]["generated"] for p in per]
@@ -328,12 +337,11 @@ def state_layer(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
     return {"metrics": rows, "drift": drift, "fps": fps, "notes": notes}
 
 
-def _terrain_scene(c: Corpus, segment: str) -> Any:
+def terrain_scene(c: Corpus, segment: str) -> Any:
+    """The segment's stage terrain as the bridge renders it (empty when the stage is unscanned)."""
     from marionette.bridge.targets import TerrainScene
-    from terrain_scan.scan import stage_dir
 
-    d = stage_dir(c.path, c.segment_row(segment)["stage"])
-    return TerrainScene.of_stage(d) if (d / "manifest.json").exists() else TerrainScene.empty()
+    return TerrainScene.of_stage(c.terrain(segment))
 
 
 # -- the controllability probe -----------------------------------------------------------------------------
@@ -343,13 +351,13 @@ def _motion_stats(layout: Layout, entity: str, rows: pa.Table, fps: float) -> tu
     """Per row (the first is the previous frame only): horizontal root speed and peak root-frame speed of any
     joint or owned attachment point (m/s) — the statistics ``ingest.sample.action_stats`` classifies on."""
     n = rows.num_rows
-    state = _fixed(rows["state"], layout.dim).astype(np.float64)
+    state = fixed_rows(rows["state"], layout.dim).astype(np.float64)
     local = [state[:, layout.slice(f"{entity}.joints")].reshape(n, -1, 3)]
     local += [state[:, layout.slice(f"{o.name}.points")].reshape(n, -1, 3) for o in layout.attachments if o.owner == entity]
     p = np.concatenate(local, axis=1)
     body = np.zeros(n)
     body[1:] = np.linalg.norm(np.diff(p, axis=0), axis=-1).max(axis=1) * fps
-    root = _fixed(rows[f"{entity}.root_world"], 3)
+    root = fixed_rows(rows[f"{entity}.root_world"], 3)
     speed = np.zeros(n)
     speed[1:] = np.linalg.norm(np.diff(root[:, [0, 2]], axis=0), axis=-1) * fps
     return speed, body
@@ -382,10 +390,10 @@ def _complies(layout: Layout, entity: str, rows: pa.Table, runs: Sequence[Force]
 
 def controllability_probe(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *, entity: str = "hunter",
                           temperature: float = 0.0, seed: int = 0, rules: str | Sequence[str] = "auto",
-                          free: Sequence[pa.Table] | None = None) -> dict[str, Any]:  # fmt: skip
+                          free: Sequence[pa.Table] | None = None, progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
     """Free / Force-GT / Force-Shuf over ``windows`` (module doc); ``free`` reuses Free rollouts already run
     with the same ``rules``. Returns RA-MPJPE summaries and per-window values per condition, the Force-GT <
-    Force-Shuf count and per-class compliance."""
+    Force-Shuf count and per-class compliance. ``progress`` is told each condition's rollouts (``run_windows``)."""
     c = _as_corpus(corpus)
     L = c.layout
     names = [e.name for e in L.articulated]
@@ -398,11 +406,12 @@ def controllability_probe(ckpt: Path | str, corpus: Corpus | Path | str, windows
     gt_streams = [tokens.encode(L, r, where=str(c.path))[0][:, i] for r in rec]
     gt = [force_windows(entity, s) for s in gt_streams]
     shuf = [force_windows(entity, s[np.random.default_rng([seed, k]).permutation(len(s))]) for k, s in enumerate(gt_streams)]
-    run = dict(temperature=temperature, seed=seed, rules=rules)
+    run = dict(temperature=temperature, seed=seed, rules=rules, progress=progress)
+    phase = "probe: {} rollouts".format
     tables = {
-        "free": list(free) if free is not None else run_windows(ckpt, c, windows, **run)[0],
-        "force_gt": run_windows(ckpt, c, windows, force=gt, **run)[0],
-        "force_shuf": run_windows(ckpt, c, windows, force=shuf, **run)[0],
+        "free": list(free) if free is not None else run_windows(ckpt, c, windows, phase=phase("Free"), **run)[0],
+        "force_gt": run_windows(ckpt, c, windows, force=gt, phase=phase("Force-GT"), **run)[0],
+        "force_shuf": run_windows(ckpt, c, windows, force=shuf, phase=phase("Force-Shuf"), **run)[0],
     }
     conditions = {}
     for cond, tabs in tables.items():
@@ -466,9 +475,10 @@ def _nanmean(v: Sequence[float]) -> float:
 
 
 def rule_ablation(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *, temperature: float = 0.0,
-                  seed: int = 0) -> dict[str, Any]:  # fmt: skip
+                  seed: int = 0, progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
     """Recorded / no rule / + collider / + collider + cap on the same windows: CFR, MMP, skate, separation per
-    condition, the rules that actually ran and a note where a rule could not (no terrain scan, one entity)."""
+    condition, the rules that actually ran and a note where a rule could not (no terrain scan, one entity).
+    ``progress`` is told each condition's rollouts (``run_windows``)."""
     c = _as_corpus(corpus)
     fps = model_fps(ckpt)
     fields = {w.stage: open_terrain_field(c, w.segment) for w in windows}
@@ -483,7 +493,8 @@ def rule_ablation(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequen
         }
     ]
     for name, rules in ABLATION:
-        tables, ran = run_windows(ckpt, c, windows, rules=rules or "none", temperature=temperature, seed=seed)
+        tables, ran = run_windows(ckpt, c, windows, rules=rules or "none", temperature=temperature, seed=seed, progress=progress,
+                                  phase=f"ablation: {name} rollouts")  # fmt: skip
         missing = {st: [r for r in rules if r not in got] for st, got in ran.items()}
         why = {"collider": "no terrain scan", "cap": "not two articulated entities"}
         note = "; ".join(f"stage {st}: " + ", ".join(f"{r} inactive ({why[r]})" for r in m) for st, m in missing.items() if m)

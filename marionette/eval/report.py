@@ -41,6 +41,7 @@ import torch
 from marionette.corpus import Corpus
 from marionette.eval import fvd
 from marionette.eval.protocol import (
+    Progress,
     Window,
     controllability_probe,
     model_fps,
@@ -68,9 +69,11 @@ def _chunk_frames(frames: int, extractor: Any, length: int) -> int:
 
 
 def _paint_and_score(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor, int]], chunks: int, steps: int, seed: int,
-                     resamples: int, extractor: Any) -> dict[str, Any]:  # fmt: skip
+                     resamples: int, extractor: Any, progress: Progress | None = None,
+                     phase: str = "painting clips") -> dict[str, Any]:  # fmt: skip
     """Paint each (rgb, pose, seed) clip's first 1 + chunks·(frames − 1) frames from its first RGB frame and score them
-    against the recorded RGB: the whole clips and per chunk, with bootstrap intervals (proxy extractor by default)."""
+    against the recorded RGB: the whole clips and per chunk, with bootstrap intervals (proxy extractor by default;
+    ``progress`` told per clip painted)."""
     from marionette.observation.model import generate
 
     f = model.config.frames
@@ -80,6 +83,8 @@ def _paint_and_score(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tenso
         for rgb, pose, k in clips:
             real.append(rgb[:T])
             gen.append(generate(model, pose[:T], rgb[0], chunks=chunks, steps=steps, seed=k).clamp(-1, 1))
+            if progress is not None:
+                progress(phase, len(gen), len(clips))
     real_v, gen_v = torch.stack(real), torch.stack(gen)
     ex = extractor or fvd.ProxyExtractor()
     return {"frames": T, "whole": fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed),
@@ -87,12 +92,13 @@ def _paint_and_score(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tenso
 
 
 def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor]], steps: int = 20, seed: int = 0,
-                    resamples: int = 200, max_frames: int | None = None, extractor: Any = None) -> dict[str, Any]:  # fmt: skip
+                    resamples: int = 200, max_frames: int | None = None, extractor: Any = None,
+                    progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
     """FVD (I3D ``extractor``) or proxy-FVD (default) of RGB the observation ``model`` paints from recorded pose clips against the recorded RGB.
 
     ``clips``: (rgb (T, 3, H, W) in [−1, 1], pose (T, 3, H, W) in [0, 1]) at the model's size, T ≥ the
     model's frames; each is relayed over as many model chunks as fit (1 + n·(frames − 1) frames, at most
-    ``max_frames``)."""
+    ``max_frames``). ``progress`` is told per clip painted."""
     if len(clips) < 2:
         raise ValueError(f"proxy-FVD needs at least 2 clips, got {len(clips)}")
     f = model.config.frames
@@ -102,7 +108,7 @@ def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor
     if n < 1:
         raise ValueError(f"clips of {min(len(r) for r, _ in clips)} frames are shorter than the model's {f}")
     scored = _paint_and_score(model, [(rgb, pose, seed + k) for k, (rgb, pose) in enumerate(clips)], n, steps, seed, resamples,
-                              extractor)  # fmt: skip
+                              extractor, progress, "proxy-FVD: painting recorded-pose chunks")  # fmt: skip
     return {"run": True, "clips": len(clips), "steps": steps, **scored,
             "what": "observation model on recorded pose-control chunks vs recorded RGB"}  # fmt: skip
 
@@ -143,23 +149,14 @@ class RolloutClip:
 def segment_chunks(c: Corpus, segment: str) -> list[dict[str, Any]]:
     """The video chunks of a segment in frame order: each chunk json's record with "key" and "rgb" (the
     rgb.mp4 bytes, None if the shard lacks it)."""
-    import tarfile
+    from marionette.corpus import video_shards
 
     vpath = c.video_path(c.segment_row(segment)["shard"])
     if not vpath.exists():
         return []
-    recs: dict[str, dict] = {}
-    rgb: dict[str, bytes] = {}
-    with tarfile.open(vpath) as tar:
-        for m in tar:
-            if not m.isfile() or not m.name.startswith(f"{segment}__c"):
-                continue
-            key, _, ext = m.name.partition(".")
-            if ext == "json":
-                recs[key] = json.loads(tar.extractfile(m).read())
-            elif ext == "rgb.mp4":
-                rgb[key] = tar.extractfile(m).read()
-    return sorted(({**r, "key": k, "rgb": rgb.get(k)} for k, r in recs.items()), key=lambda r: r["frames"][0])
+    chunks = video_shards.read_chunks(vpath, segment, kinds=("json", "rgb.mp4"))
+    recs = {k: video_shards.chunk_record(m["json"], k, str(vpath)) for k, m in chunks.items() if "json" in m}
+    return sorted(({**r, "key": k, "rgb": chunks[k].get("rgb.mp4")} for k, r in recs.items()), key=lambda r: r["frames"][0])
 
 
 def _horizon_times(table: pa.Table, seed_frames: int, seg_t: np.ndarray) -> tuple[int, int]:
@@ -181,7 +178,7 @@ def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: 
     chunk's size and reduced to ``size`` like the training clips (``reduce_codes``, area-averaged RGB). Raises
     ``WindowSkipped`` when the frames are not all in the segment's video chunks (or lack RGB, or a camera)."""
     from marionette.bridge.camera import recorded_cameras
-    from marionette.corpus import _fixed
+    from marionette.corpus import fixed_rows
     from marionette.eval.protocol import rollout_pose_codes
     from marionette.ingest.video import decode_frames
     from marionette.observation.data import check_size, pose_frames, rgb_frames
@@ -221,7 +218,7 @@ def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: 
     first = chunks[which[0]]
     K = np.asarray(first["K"], np.float64)[int(src[0] - first["frames"][0])][None]
     row = seg_rows.slice(int(idx[0]), 1)
-    start = recorded_cameras(K, _fixed(row["camera.pos"], 3), _fixed(row["camera.rot"], 4),
+    start = recorded_cameras(K, fixed_rows(row["camera.pos"], 3), fixed_rows(row["camera.rot"], 4),
                              row["valid"].to_numpy(zero_copy_only=False), W, H)  # fmt: skip
     if not start.valid[0]:
         raise WindowSkipped(f"no valid recorded camera at source frame {src[0]}")
@@ -230,11 +227,12 @@ def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: 
                        [chunks[k]["key"] for k in used])  # fmt: skip
 
 
-def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], model_frames: int,
-                  size: tuple[int, int]) -> tuple[list[tuple[int, RolloutClip]], list[dict[str, Any]], int]:  # fmt: skip
+def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], model_frames: int, size: tuple[int, int],
+                  progress: Progress | None = None) -> tuple[list[tuple[int, RolloutClip]], list[dict[str, Any]], int]:  # fmt: skip
     """(window index, clip) of every window whose clip can be made, the skipped ones with their reasons, and
-    the clip length T = 1 + n·(model_frames − 1) (the most model chunks every window's horizon holds; 0: none)."""
-    from marionette.eval.protocol import _terrain_scene
+    the clip length T = 1 + n·(model_frames − 1) (the most model chunks every window's horizon holds; 0: none);
+    ``progress`` told per window."""
+    from marionette.eval.protocol import terrain_scene
 
     rows = {s: c.read_segment(s) for s in {w.segment for w in windows}}
     avail = [_horizon_times(t, w.seed_frames, rows[w.segment]["t"].to_numpy())[1] for w, t in zip(windows, tables)]
@@ -249,22 +247,25 @@ def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Tabl
     out, skipped = [], []
     for k, (w, table) in enumerate(zip(windows, tables)):
         if w.stage not in scenes:
-            scenes[w.stage] = _terrain_scene(c, w.segment)
+            scenes[w.stage] = terrain_scene(c, w.segment)
         try:
             out.append((k, rollout_clip(c, w, table, T, size, rows[w.segment], chunks[w.segment], scenes[w.stage])))
         except WindowSkipped as err:
             skipped.append({"window": k, "segment": w.segment, "start": w.start, "reason": str(err)})
+        if progress is not None:
+            progress("proxy-FVD: rendering rollout clips", k + 1, len(windows))
     return out, skipped, T
 
 
 def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], steps: int = 20, seed: int = 0,
-                resamples: int = 200, max_frames: int | None = None, extractor: Any = None) -> dict[str, Any]:  # fmt: skip
+                resamples: int = 200, max_frames: int | None = None, extractor: Any = None,
+                progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
     """Proxy-FVD of the observation ``model`` painting each window's *rollout* (``rollout_clip``: bridge camera
     starting from the recorded view) from the recorded first frame, relayed over model chunks, against the
     recorded RGB of the same video frames: whole clips and per model chunk, with bootstrap intervals (the first
     ``max_frames`` frames of each clip, a whole number of model chunks, when given)."""
     f = model.config.frames
-    clips, skipped, T = rollout_clips(c, windows, tables, f, model.config.size)
+    clips, skipped, T = rollout_clips(c, windows, tables, f, model.config.size, progress)
     base = {"what": "observation model on the rollouts' pose-control video (bridge camera from the recorded view) vs recorded RGB",
             "skipped": skipped, "steps": steps}  # fmt: skip
     if len(clips) < 2:
@@ -272,7 +273,8 @@ def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequen
     n = (T - 1) // (f - 1) if max_frames is None else min((T - 1) // (f - 1), (int(max_frames) - 1) // (f - 1))
     if n < 1:
         return {"run": False, "reason": f"max_frames {max_frames} is shorter than one model chunk ({f})", **base}
-    scored = _paint_and_score(model, [(cl.rgb, cl.pose, seed + k) for k, cl in clips], n, steps, seed, resamples, extractor)
+    painted = [(cl.rgb, cl.pose, seed + k) for k, cl in clips]
+    scored = _paint_and_score(model, painted, n, steps, seed, resamples, extractor, progress, "proxy-FVD: painting rollouts")
     return {"run": True, **base, "clips": len(clips), **scored,
             "windows": [{"window": k, "source_frames": list(cl.source_frames), "chunks": cl.chunks} for k, cl in clips]}  # fmt: skip
 
@@ -488,13 +490,15 @@ def headline(report: dict) -> dict[str, float | int | None]:
 def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, *, observation: Path | str | None = None,
              segments: int = 8, seed_frames: int = 64, horizon: int = 120, seed: int = 0, log: Callable[[str], Any] = print,
              temperature: float = 0.0, entity: str = "hunter", render_size: tuple[int, int] = (72, 128),
-             fvd_steps: int = 20, fvd_frames: int | None = None, i3d: Path | str | None = None) -> dict[str, Any]:  # fmt: skip
+             fvd_steps: int = 20, fvd_frames: int | None = None, i3d: Path | str | None = None,
+             progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
     """Run the protocol (module doc) and write the report directory ``out_dir``.
 
     Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number),
     "windows" (count)}. ``fvd_steps``: sampling steps of the observation model; ``fvd_frames``: at most this many
     video frames of each proxy-FVD clip (None: whole chunks and whole rollouts); ``i3d``: an Inception-I3D safetensors
-    file, for FVD proper instead of the proxy."""
+    file, for FVD proper instead of the proxy; ``progress(phase, done, total)`` is told the progress of every long loop
+    (rollouts, per-window metrics, painting)."""
     c = Corpus(Path(corpus))
     out = Path(out_dir)
     _check_replaceable(out)  # before any compute
@@ -505,13 +509,17 @@ def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, 
     names = [e.name for e in c.layout.articulated]
     entity = entity if entity in names else names[-1]
     log(f"evaluate: {len(windows)} windows of {seed_frames} + {horizon} frames from split {split!r}")
-    free, ran = run_windows(dynamics_dir, c, windows, rules="auto", temperature=temperature, seed=seed)
+    free, ran = run_windows(
+        dynamics_dir, c, windows, rules="auto", temperature=temperature, seed=seed, progress=progress, phase="Free rollouts"
+    )
     log(f"evaluate: Free rollouts done (rules per stage {ran}); state-layer metrics")
-    state = state_layer(dynamics_dir, c, windows, free, render_size=render_size)
+    state = state_layer(dynamics_dir, c, windows, free, render_size=render_size, progress=progress)
     log("evaluate: controllability probe")
-    probe = controllability_probe(dynamics_dir, c, windows, entity=entity, temperature=temperature, seed=seed, free=free)
+    probe = controllability_probe(
+        dynamics_dir, c, windows, entity=entity, temperature=temperature, seed=seed, free=free, progress=progress
+    )
     log("evaluate: rule ablation")
-    ablation = rule_ablation(dynamics_dir, c, windows, temperature=temperature, seed=seed)
+    ablation = rule_ablation(dynamics_dir, c, windows, temperature=temperature, seed=seed, progress=progress)
     if observation is None:
         obs: dict[str, Any] = {"run": False, "reason": "no observation model given (--observation)"}
     else:
@@ -524,9 +532,13 @@ def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, 
                                            f"(skipped: {dict(list(skipped.items())[:3])})"}  # fmt: skip
         else:
             log(f"evaluate: proxy-FVD over {len(clips)} video chunks")
-            obs = observation_fvd(model, clips, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor)
+            obs = observation_fvd(
+                model, clips, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor, progress=progress
+            )
         log("evaluate: proxy-FVD of the Free rollouts through the bridge")
-        obs["rollouts"] = rollout_fvd(model, c, windows, free, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor)
+        obs["rollouts"] = rollout_fvd(
+            model, c, windows, free, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor, progress=progress
+        )
         obs["observation"] = str(observation)
     report = {
         "dynamics": str(dynamics_dir), "corpus": str(c.path), "split": split, "fps": fps, "seed": seed,

@@ -20,6 +20,7 @@ from marionette.ingest.sample import (
     ingest_sample,
     input_hash,
     known_record,
+    sample_inputs,
     sample_key,
     split_of,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "known_record",
     "load_stage_map",
     "read_sample",
+    "sample_inputs",
     "sample_key",
     "split_of",
 ]
@@ -104,7 +106,8 @@ def check_source(source: Path, refs: list[SampleRef]) -> None:
 
 
 def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, progress: bool) -> dict:
-    refs = discover(source)
+    skipped: list[tuple[str, str]] = []
+    refs = discover(source, skipped)
     check_source(source, refs)
     results: list[SampleResult] = []
     bar = None
@@ -128,4 +131,4 @@ def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, pro
         bar.close()
     info = finalize(corpus, options, load_stage_map(source))
     results.sort(key=lambda r: r.sample)
-    return {"info": info, "results": [r.__dict__ for r in results]}
+    return {"info": info, "results": [r.__dict__ for r in results], "skipped": [[str(p), why] for p, why in skipped]}

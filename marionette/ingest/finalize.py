@@ -17,6 +17,7 @@ import numpy as np
 import pyarrow as pa
 
 from marionette.corpus import paths
+from marionette.corpus.info import CorpusInfo
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
 from marionette.io import text_sha256, write_json, write_parquet
 from marionette.schema import load_scene
@@ -246,14 +247,14 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     """Derive segments.parquet, samples.parquet, quarantine.parquet, vocab.json, stats.json and info.json."""
     meta = corpus / "meta"
     info_path = meta / "info.json"
-    old_info = json.loads(info_path.read_text()) if info_path.exists() else None
+    old_info = CorpusInfo.read(info_path) if info_path.exists() else None
     if options is None:
         if old_info is None:
             raise FileNotFoundError(f"{info_path}: no corpus here and no ingest options given")
-        options = IngestOptions.from_json(old_info["ingest"])
+        options = IngestOptions.from_json(old_info.ingest)
     stages = dict(stages or {})
     if old_info:
-        stages = {**old_info.get("stages", {}), **stages}
+        stages = {**old_info.stages, **stages}
     layout = load_scene(options.scene)
     records = _load_records(meta / "samples")
     ingested = [r for r in records if r["status"] == "ingested"]
@@ -364,7 +365,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
         "state_path": "state/shard-{shard:06d}.arrow",
         "video_path": "video/shard-{shard:06d}.tar",
     }
-    write_json(info_path, info)
+    write_json(info_path, CorpusInfo.from_json(info, str(info_path)).to_json())
     return info
 
 

@@ -19,7 +19,15 @@ import pyarrow as pa
 
 from marionette import geometry as geo
 from marionette.ingest.video import VideoSettings, write_video_shard
-from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, SampleSkipped, read_sample
+from marionette.ingest.wildworld import (
+    MAX_MEMBER_BYTES,
+    RecordedSample,
+    SampleError,
+    SampleRef,
+    SampleSkipped,
+    check_in_tree,
+    read_sample,
+)
 from marionette.io import file_sha256, text_sha256, write_ipc, write_json
 from marionette.schema import Layout, load_scene, state_schema
 
@@ -37,6 +45,7 @@ class IngestOptions:
     video: VideoSettings = field(default_factory=VideoSettings)
     compression: str = "zstd"
     split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
+    max_member_bytes: int = MAX_MEMBER_BYTES  # a skeleton.npz member declaring more (inflated) is quarantined unread
 
     @property
     def layout(self) -> Layout:
@@ -116,7 +125,7 @@ def file_digests(ref: SampleRef, known: dict | None = None) -> dict[str, list]:
     """[size, mtime_ns, sha256] of a sample's input files; a file whose size and mtime match ``known``
     reuses its recorded digest, so a rerun over hundreds of hours of video reads no video bytes."""
     out: dict[str, list] = {}
-    for name, p in [(f, ref.path / f) for f in ("state.csv", "skeleton.npz", "rgb.mp4")] + [
+    for name, p in [(f, ref.path / f) for f in ("state.csv", "skeleton.npz", "rgb.mp4", "depth.mkv")] + [
         ("skeleton_edges.json", ref.edges_path)
     ]:
         if not p.exists():
@@ -135,6 +144,31 @@ def input_hash(ref: SampleRef, options: IngestOptions, digests: dict[str, list] 
     """Hash of a sample's file contents and the options: the cache key of its ingest."""
     digests = digests or file_digests(ref)
     return text_sha256(ref.name, options.key(), *(f"{k}:{v[2]}" for k, v in sorted(digests.items())))[:32]
+
+
+@dataclass(frozen=True)
+class SampleInputs:
+    """A sample's input hash and file digests, or why its files are not read: ``refused`` (a symlink
+    out of the source tree: never read, quarantined) or ``unreadable`` (an I/O error: retried)."""
+
+    hash: str
+    digests: dict[str, list] | None
+    refused: str = ""
+    unreadable: str = ""
+
+
+def sample_inputs(ref: SampleRef, options: IngestOptions, known: dict | None = None) -> SampleInputs:
+    """The cache key of a sample's ingest (``input_hash``), computed without reading anything outside the
+    source tree; ``known`` is its last record, whose digests are reused for files whose size and mtime match."""
+    try:
+        check_in_tree(ref)  # before anything is read: a symlink out of the source tree is never followed
+        digests = file_digests(ref, (known or {}).get("files"))
+    except SampleError as exc:
+        return SampleInputs(text_sha256(ref.name, options.key(), str(exc))[:32], None, refused=str(exc))
+    except OSError as exc:
+        why = f"{exc.filename or ref.path}: unreadable ({type(exc).__name__}: {exc.strerror or exc})"
+        return SampleInputs("unreadable", None, unreadable=why)
+    return SampleInputs(input_hash(ref, options, digests), digests)
 
 
 def valid_runs(valid: np.ndarray, min_len: int) -> list[tuple[int, int]]:
@@ -309,13 +343,9 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
     """Ingest one sample into the corpus staging area; no work when its input hash is unchanged."""
     corpus = Path(corpus)
     known = known_record(corpus, ref)
-    try:
-        digests = file_digests(ref, (known or {}).get("files"))
-    except OSError as exc:
-        digests = None
-        unreadable = f"{exc.filename or ref.path}: unreadable ({type(exc).__name__}: {exc.strerror or exc})"
-    h = input_hash(ref, options, digests) if digests is not None else "unreadable"
-    if digests is not None and is_unchanged(known, h):
+    inputs = sample_inputs(ref, options, known)
+    digests, h, refused, unreadable = inputs.digests, inputs.hash, inputs.refused, inputs.unreadable
+    if (digests is not None or refused) and is_unchanged(known, h):
         return SampleResult(ref.name, "unchanged", h, worker=worker)
     stage = staging_dir(corpus, ref)
     stage.mkdir(parents=True, exist_ok=True)
@@ -330,9 +360,11 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
         "source": str(ref.path.resolve()),
     }
     try:
+        if refused:
+            raise SampleError(refused)
         if digests is None:
             raise OSError(unreadable)
-        sample = read_sample(ref, layout, options.type_filter())
+        sample = read_sample(ref, layout, options.type_filter(), options.max_member_bytes)
         runs = valid_runs(sample.valid, options.min_segment_frames)
         if not runs:
             raise SampleError(

@@ -6,10 +6,13 @@ point is cx = W/2. Cropping x0 columns and scaling by s maps fx → s·fx and cx
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import tarfile
+import warnings
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import av
@@ -85,14 +88,57 @@ def chunk_spans(n_frames: int, chunk: int) -> list[tuple[int, int]]:
     return [(s, s + chunk) for s in starts]
 
 
-def encode_mp4(frames: np.ndarray, fps: float, settings: VideoSettings) -> bytes:
-    """Encode (T, H, W, 3) uint8 RGB frames as an H.264 mp4 in memory (one encoder thread: deterministic)."""
+@functools.cache
+def x264_cpu_flags() -> str:
+    """The CPU capabilities this process's libx264 detects, minus AVX-512, as its ``asm`` option.
+
+    With its AVX-512 code x264 is not deterministic: the same frames, encoded again in the same
+    process, gave another bitstream (decoded frames tens of levels apart), so two builds of the same
+    recordings differed; without it (and with ``mbtree=0`` or ``asm=0``) they never did. Every other
+    code path x264 detects is kept, so the encode is as fast as before. x264 reports what it
+    detected when an encoder opens (``using cpu capabilities: ...``); it trusts an ``asm`` list
+    blindly, so the list is only ever what it found itself. Where that line cannot be read, the
+    answer is ``"0"`` (plain C: deterministic, ~4× slower).
+    """
+    prev = av.logging.get_level()
+    av.logging.set_level(av.logging.INFO)
+    try:
+        with av.logging.Capture() as logs:
+            cc = av.CodecContext.create("libx264", "w")
+            cc.width, cc.height, cc.pix_fmt = 16, 16, "yuv420p"
+            cc.time_base = Fraction(1, 30)
+            cc.open()
+            del cc
+    finally:
+        av.logging.set_level(prev)
+    for _, name, message in logs:
+        if name == "libx264" and message.startswith("using cpu capabilities:"):
+            flags = message.split(":", 1)[1].split()
+            if flags == ["none!"]:
+                return "0"
+            return ",".join(f for f in flags if f.upper() != "AVX512") or "0"
+    warnings.warn("libx264 did not report its CPU capabilities: encoding without assembly (slower)", stacklevel=2)
+    return "0"
+
+
+def x264_params() -> str:
+    """``x264-params`` of every RGB chunk: one thread, one lookahead thread, no sliced threads, and
+    the CPU code paths of ``x264_cpu_flags`` — the same frames always give the same bytes."""
+    return f"threads=1:lookahead-threads=1:sliced-threads=0:asm={x264_cpu_flags()}"
+
+
+def encode_mp4(frames: np.ndarray, fps: float, settings: VideoSettings, params: str | None = None) -> bytes:
+    """Encode (T, H, W, 3) uint8 RGB frames as an H.264 mp4 in memory, deterministically with the default
+    ``params`` (``x264_params()``; the benchmark passes others to measure them)."""
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or not len(frames):
+        raise ValueError(f"encode_mp4: expected (T, H, W, 3) uint8 frames with T > 0, got {frames.shape} {frames.dtype}")
     buf = io.BytesIO()
+    options = {"crf": str(settings.crf), "preset": settings.preset, "x264-params": params or x264_params()}
     with av.open(buf, "w", format="mp4") as c:
-        s = c.add_stream("libx264", rate=int(round(fps)))
+        s = c.add_stream("libx264", rate=int(round(fps)), options=options)
         s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
         s.codec_context.thread_count = 1
-        s.options = {"crf": str(settings.crf), "preset": settings.preset, "x264-params": "threads=1:lookahead-threads=1"}
         for f in frames:
             for p in s.encode(av.VideoFrame.from_ndarray(f, format="rgb24")):
                 c.mux(p)
@@ -117,6 +163,18 @@ def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, n
                 if len(out_d) == len(indices):
                     break
     return out_l if indices is None else out_d
+
+
+def _open_video(path: Path) -> av.container.InputContainer:
+    """Open a video with at least one video stream; anything else raises SampleError naming the file."""
+    try:
+        c = av.open(str(path))
+    except av.error.FFmpegError as exc:
+        raise SampleError(f"{path}: unreadable video ({type(exc).__name__}: {exc})") from None
+    if not c.streams.video:
+        c.close()
+        raise SampleError(f"{path}: no video stream")
+    return c
 
 
 def tar_add(tar: tarfile.TarFile, name: str, data: bytes) -> None:
@@ -149,7 +207,7 @@ def write_video_shard(
     buffers: dict[tuple[str, int], list[np.ndarray]] = {(p[0], p[1]): [] for p in plan}
     with atomic_path(out) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
         if plan:
-            with av.open(str(rgb_path)) as c:
+            with _open_video(rgb_path) as c:
                 s = c.streams.video[0]
                 s.codec_context.thread_count = 1  # one codec thread: parallelism comes from workers
                 src_h, src_w = s.codec_context.height, s.codec_context.width
@@ -171,12 +229,15 @@ def write_video_shard(
                         if i > last:
                             break
                         continue
-                    img = fr.to_ndarray(format="rgb24")[y0 : y0 + ch, x0 : x0 + cw]
-                    small = (
-                        av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
-                        .reformat(width=settings.width, height=settings.height, interpolation="AREA")
-                        .to_ndarray(format="rgb24")
-                    )
+                    try:
+                        img = fr.to_ndarray(format="rgb24")[y0 : y0 + ch, x0 : x0 + cw]
+                        small = (
+                            av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+                            .reformat(width=settings.width, height=settings.height, interpolation="AREA")
+                            .to_ndarray(format="rgb24")
+                        )
+                    except (av.error.FFmpegError, ValueError) as exc:
+                        raise SampleError(f"{rgb_path}: cannot convert frame {i}: {type(exc).__name__}: {exc}") from None
                     for key in wanted[i]:
                         buffers[key].append(small)
                         seg, ci, a, b, K = pending[key]

@@ -7,13 +7,21 @@ state.csv hold scalars or Python tuple literals; invalid values are ``nan``. Lis
 
 Every error names the file and, where there is one, the row (1-based data row, header excluded)
 and column, and is raised as ``SampleError`` so the caller can quarantine the sample.
+
+Nothing is trusted: a sample directory, part or input file that is a symlink resolving outside the
+source root is refused; a skeleton.npz member is inflated only after the zip directory and its .npy
+header declare a float (N, J, 3) array the sample can need (N at most the state.csv rows plus
+``FRAME_SLACK``, J at most ``MAX_JOINTS``) within the per-member byte cap; depth.mkv must open as a
+video with as many frames as rgb.mp4.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +33,11 @@ import pyarrow.csv as pacsv
 
 from marionette.schema import Entity, Layout
 
-REQUIRED_FILES = ("rgb.mp4", "state.csv", "skeleton.npz")
+REQUIRED_FILES = ("rgb.mp4", "depth.mkv", "state.csv", "skeleton.npz")
+MAX_MEMBER_BYTES = 2 << 30  # default cap on one inflated skeleton.npz member (IngestOptions.max_member_bytes)
+MAX_JOINTS = 1024  # no rig comes near this; a member declaring more joints is refused unread
+FRAME_SLACK = 64  # a member may declare this many frames beyond the state.csv rows (and is then reported as a count mismatch)
+_NPY_HEADER_ROOM = 64 << 10  # bytes an .npy member may hold besides its array (magic + header)
 
 
 class SampleError(ValueError):
@@ -58,20 +70,63 @@ class SampleRef:
         return self.root / self.part / "skeleton_edges.json"
 
 
-def discover(source: Path) -> list[SampleRef]:
-    """All sample directories under ``source`` (a root holding ``data_part*/`` or one part), sorted."""
+_KNOWN_FILES = {"stages.json", "skeleton_edges.json"}  # files of the layout that are not samples
+
+
+def discover(source: Path, skipped: list | None = None) -> list[SampleRef]:
+    """All sample directories under ``source`` (a root holding ``data_part*/`` or one part), sorted.
+
+    Entries passed over (hidden names, files, directories that are not ``data_part<x>``) are appended
+    to ``skipped`` as (path, reason) pairs when a list is given.
+    """
     source = Path(source)
     if not source.is_dir():
         raise FileNotFoundError(f"{source}: source directory does not exist")
-    parts = sorted(p for p in source.iterdir() if p.is_dir() and p.name.startswith("data_part"))
+
+    def skip(p: Path, reason: str) -> None:
+        if skipped is not None:
+            skipped.append((str(p), reason))
+
+    def why_not(p: Path, what: str) -> str | None:
+        """Why ``p`` is not a ``what`` directory, or None when it is one."""
+        if p.name.startswith("."):
+            return f"hidden name (starts with '.'): not read as a {what}"
+        if p.is_symlink() and not p.exists():
+            return f"broken symlink (→ {p.readlink()})"
+        if not p.is_dir():
+            return f"not a directory: not read as a {what}"
+        return None
+
+    entries = sorted(source.iterdir())
+    parts = [p for p in entries if why_not(p, "part") is None and p.name.startswith("data_part")]
     if not parts and source.name.startswith("data_part"):
         parts, source = [source], source.parent
+    else:
+        for p in entries:
+            if p not in parts and p.name not in _KNOWN_FILES:
+                skip(p, why_not(p, "part") or "not named data_part<x>: not read as a part")
     refs = []
     for part in parts:
         for d in sorted(part.iterdir()):
-            if d.is_dir() and not d.name.startswith("."):
+            reason = why_not(d, "sample")
+            if reason is None:
                 refs.append(SampleRef(source, part.name, d.name))
+            elif d.name not in _KNOWN_FILES:
+                skip(d, reason)
     return refs
+
+
+def check_in_tree(ref: SampleRef) -> None:
+    """Refuse a sample whose part, directory or input files are symlinks resolving outside the source root."""
+    root = Path(ref.root).resolve()
+    for p in (ref.root / ref.part, ref.path, ref.edges_path, *(ref.path / f for f in REQUIRED_FILES)):
+        if p.is_symlink():
+            try:
+                target = p.resolve()
+            except (OSError, RuntimeError) as exc:  # RuntimeError: a symlink loop
+                raise SampleError(f"{p}: symlink cannot be resolved ({exc})") from None
+            if not target.is_relative_to(root):
+                raise SampleError(f"symlink leaves the source tree: {p} → {target}")
 
 
 @dataclass
@@ -230,16 +285,111 @@ def read_state_csv(path: Path, columns: list[str]) -> tuple[dict[str, pa.Chunked
 # skeleton.npz, edges, video
 
 
-def load_skeletons(path: Path) -> dict[str, np.ndarray]:
-    """All arrays of a skeleton.npz (no pickle); corrupt or truncated files raise SampleError."""
-    path = Path(path)
-    if not path.exists():
-        raise SampleError(f"{path}: missing")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
-        raise SampleError(f"{path}: unreadable, truncated or corrupt ({type(exc).__name__}: {exc})") from None
+# what reading a damaged zip member can raise (RuntimeError: encrypted; NotImplementedError: unknown compression)
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, RuntimeError, NotImplementedError)
+
+
+class SkeletonArchive:
+    """A skeleton.npz read member by member: the zip directory and each .npy header are checked against
+    the limits before a member is inflated, and only the members asked for are read."""
+
+    def __init__(self, path: Path, max_member_bytes: int = MAX_MEMBER_BYTES):
+        self.path = Path(path)
+        self.max_member_bytes = int(max_member_bytes)
+        if not self.path.exists():
+            raise SampleError(f"{self.path}: missing")
+        with self._open() as z:
+            self._members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}
+
+    @property
+    def keys(self) -> list[str]:
+        """Member names without ``.npy``, as ``numpy.load`` lists them."""
+        return sorted(self._members)
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._members
+
+    def _open(self) -> zipfile.ZipFile:
+        try:
+            return zipfile.ZipFile(self.path)
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+            raise SampleError(f"{self.path}: unreadable, truncated or corrupt ({type(exc).__name__}: {exc})") from None
+
+    def _bad(self, key: str, exc: BaseException) -> SampleError:
+        return SampleError(f"{self.path}: member {key}.npy unreadable, truncated or corrupt ({type(exc).__name__}: {exc})")
+
+    @staticmethod
+    def _read_header(fh) -> tuple[tuple[int, ...], np.dtype, bool]:  # noqa: ANN001 — a zip member stream
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise ValueError(f"unsupported .npy format version {version}")
+        return tuple(int(x) for x in shape), np.dtype(dtype), bool(fortran)
+
+    def header(self, key: str) -> tuple[tuple[int, ...], np.dtype]:
+        """(shape, dtype) a member declares, read from its .npy header without inflating the array."""
+        try:
+            with self._open() as z, z.open(self._members[key]) as fh:
+                shape, dtype, _ = self._read_header(fh)
+        except SampleError:
+            raise
+        except _ZIP_ERRORS as exc:
+            raise self._bad(key, exc) from None
+        return shape, dtype
+
+    def read(self, key: str, max_frames: int | None = None) -> np.ndarray:
+        """One member as an array. Only its .npy header is read before it must declare a float (N, J, 3) array
+        with N ≤ ``max_frames`` and J ≤ MAX_JOINTS of at most ``max_member_bytes`` bytes, and the zip directory
+        the same size; otherwise SampleError, and nothing is inflated."""
+        info = self._members[key]
+        cap = self.max_member_bytes
+        try:
+            with self._open() as z, z.open(info) as fh:
+                shape, dtype, fortran = self._read_header(fh)  # a few hundred bytes: numpy caps the header
+                head = fh.tell()
+                nbytes = math.prod(shape) * dtype.itemsize  # Python ints: a huge declared shape cannot overflow
+                described = f"{self.path}: member {key}.npy declares shape {shape} {dtype.str} ({nbytes:,} bytes)"
+                if dtype.kind != "f" or len(shape) != 3 or shape[2] != 3 or shape[1] > MAX_JOINTS:
+                    raise SampleError(f"{described}: expected a float (N, J, 3) array with J ≤ {MAX_JOINTS}; not inflated")
+                if max_frames is not None and shape[0] > max_frames:
+                    raise SampleError(f"{described}: more than the {max_frames} frames the sample can need; not inflated")
+                if nbytes > cap:
+                    raise SampleError(f"{described}: over the per-member cap of {cap:,} bytes (max_member_bytes); not inflated")
+                if info.file_size > cap + _NPY_HEADER_ROOM:
+                    raise SampleError(
+                        f"{described}, but the zip directory gives it {info.file_size:,} bytes uncompressed, over the "
+                        f"per-member cap of {cap:,} bytes (max_member_bytes); not inflated"
+                    )
+                if info.file_size != head + nbytes:
+                    raise SampleError(
+                        f"{described}, but the zip directory gives it {info.file_size:,} bytes ({head} of them header): "
+                        "not an .npy file numpy wrote"
+                    )
+                raw = np.empty(nbytes, np.uint8)
+                got = 0
+                while got < nbytes:  # in pieces: reading it whole would hold the data twice
+                    piece = fh.read(min(16 << 20, nbytes - got))
+                    if not piece:
+                        raise SampleError(f"{described}, but its data ends after {got:,} bytes (truncated)")
+                    raw[got : got + len(piece)] = np.frombuffer(piece, np.uint8)
+                    got += len(piece)
+                fh.read(1)  # reaching the end makes zipfile check the member's CRC
+        except SampleError:
+            raise
+        except _ZIP_ERRORS as exc:
+            raise self._bad(key, exc) from None
+        return raw.view(dtype).reshape(shape, order="F" if fortran else "C")
+
+
+def load_skeletons(
+    path: Path, keys: list[str] | None = None, max_frames: int | None = None, max_member_bytes: int = MAX_MEMBER_BYTES
+) -> dict[str, np.ndarray]:
+    """The named arrays (default: all) of a skeleton.npz, each checked before it is inflated (``SkeletonArchive``)."""
+    archive = SkeletonArchive(path, max_member_bytes)
+    return {k: archive.read(k, max_frames) for k in (archive.keys if keys is None else keys)}
 
 
 def load_edges(path: Path) -> dict[str, list[list[int]]]:
@@ -298,12 +448,16 @@ def _mode_type(type_id: np.ndarray) -> int | None:
     return int(vals[np.argmax(counts)])
 
 
-def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]] | None = None) -> RecordedSample:
+def read_sample(
+    ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]] | None = None, max_member_bytes: int = MAX_MEMBER_BYTES
+) -> RecordedSample:
     """Read a sample for ``layout``: every entity's kept joints, rotations, actions, and the camera.
 
     ``type_filter`` maps an entity name to the type ids to accept (default: its rig's ``type_ids``);
-    a sample whose entity has another type raises SampleSkipped.
+    a sample whose entity has another type raises SampleSkipped. ``max_member_bytes`` caps one
+    inflated skeleton.npz member.
     """
+    check_in_tree(ref)
     d = ref.path
     for f in REQUIRED_FILES:
         if not (d / f).exists():
@@ -321,9 +475,11 @@ def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]]
     def num(c: str) -> np.ndarray:
         return _parse_scalar_column(raw[c], csv_path, c)
 
-    skel = load_skeletons(d / "skeleton.npz")
+    npz = d / "skeleton.npz"
+    skel = SkeletonArchive(npz, max_member_bytes)
     edges = load_edges(ref.edges_path)
     n_video, fps, vh, vw = video_info(d / "rgb.mp4")
+    n_depth = video_info(d / "depth.mkv")[0]
 
     sample = RecordedSample(ref=ref, n_frames=n, fps=fps, video_size=(vh, vw))
     sample.camera_K = tup("camera.K", 4)
@@ -332,7 +488,7 @@ def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]]
     sample.camera_valid = (
         np.isfinite(sample.camera_K).all(1) & np.isfinite(sample.camera_pos).all(1) & np.isfinite(sample.camera_rot).all(1)
     )
-    counts = {"state.csv rows": n, "rgb.mp4 frames": n_video}
+    counts = {"state.csv rows": n, "rgb.mp4 frames": n_video, "depth.mkv frames": n_depth}
     for e in layout.entities:
         c = per_entity[e.name]
         type_id = num(c["type_id"])
@@ -344,13 +500,14 @@ def read_sample(ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]]
             raise SampleSkipped(f"{e.name} type {t} is outside the requested slice {sorted(allowed)}")
         key = f"{e.source_kind}{e.source_index}_{t}"
         if key not in skel:
-            raise SampleError(f"{d / 'skeleton.npz'}: no key {key!r} for entity {e.name!r} (keys: {sorted(skel)})")
-        arr = skel[key]
-        if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] != len(e.rig.source_joints):
+            raise SampleError(f"{npz}: no key {key!r} for entity {e.name!r} (keys: {skel.keys})")
+        shape, _ = skel.header(key)
+        if len(shape) != 3 or shape[2] != 3 or shape[1] != len(e.rig.source_joints):
             raise SampleError(
-                f"{d / 'skeleton.npz'}: key {key!r} has shape {arr.shape}, rig {e.rig.name!r} expects (N, {len(e.rig.source_joints)}, 3)"
+                f"{npz}: key {key!r} has shape {shape}, rig {e.rig.name!r} expects (N, {len(e.rig.source_joints)}, 3)"
             )
         _check_edges(ref.edges_path, edges, e)
+        arr = skel.read(key, max_frames=n + FRAME_SLACK)
         counts[f"skeleton.npz {key} frames"] = arr.shape[0]
         joints = arr[:, list(e.rig.keep_source_index), :].astype(np.float64) if arr.shape[0] == n else None
         if joints is None:

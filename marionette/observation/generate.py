@@ -58,25 +58,41 @@ def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tup
     return pose_frames(np.stack(list(iter_codes(pose_path))), f), rgb_frames(first[None], f)[0]
 
 
-def main(args: argparse.Namespace) -> Path:
-    model = load_model(args.ckpt)
-    pose, first = load_inputs(args.pose, args.first_frame, model.config.size)
+def paint_video(
+    ckpt: Path,
+    pose: Path,
+    first_frame: Path,
+    out: Path,
+    *,
+    chunks: int | None = None,
+    steps: int = 20,
+    seed: int = 0,
+    fps: float = 30.0,
+) -> Path:
+    """Paint the pose video ``pose`` from ``first_frame`` with the observation model at ``ckpt`` into the mp4 ``out``
+    (``chunks`` model chunks relayed, default as many as the pose video holds)."""
+    model = load_model(ckpt)
+    pose_t, first_t = load_inputs(pose, first_frame, model.config.size)
     t0 = time.perf_counter()
-    video = generate(model, pose, first, chunks=args.chunks, steps=args.steps, seed=args.seed)
+    video = generate(model, pose_t, first_t, chunks=chunks, steps=steps, seed=seed)
     took = time.perf_counter() - t0
     frames = ((video.permute(0, 2, 3, 1).numpy() + 1.0) * 127.5).round().clip(0, 255).astype(np.uint8)
     h, w = frames.shape[1:3]
-    write_bytes(args.out, encode_mp4(frames, args.fps, VideoSettings(height=h, width=w, crf=18)))
-    print(f"wrote {args.out}: {len(frames)} frames {w}×{h} ({(len(frames) - 1) / took:.1f} generated frames/s, {args.steps} steps)")
-    return args.out
+    write_bytes(out, encode_mp4(frames, fps, VideoSettings(height=h, width=w, crf=18)))
+    print(f"wrote {out}: {len(frames)} frames {w}×{h} ({(len(frames) - 1) / took:.1f} generated frames/s, {steps} steps)")
+    return Path(out)
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The generate command's arguments."""
+    from marionette.cli import non_negative_int, positive_float, positive_int
+
     ap.add_argument("ckpt", type=Path, help="an observation checkpoint or training directory")
-    ap.add_argument("--pose", type=Path, required=True, help="a pose-control G-buffer video (.mkv)")
-    ap.add_argument("--first-frame", type=Path, required=True, help="the first frame (an image of the pose video's size)")
+    pose_help = "a pose-control G-buffer video (.mkv), from `marionette export-chunk` or `marionette render`"
+    ap.add_argument("--pose", type=Path, required=True, help=pose_help)
+    ap.add_argument("--first-frame", type=Path, required=True, help="the first frame: an image of the pose video's size")
     ap.add_argument("--out", type=Path, required=True, help="output .mp4")
-    ap.add_argument("--chunks", type=int, default=None, help="chunks to relay (default: as many as the pose video holds)")
-    ap.add_argument("--steps", type=int, default=20, help="sampling steps per chunk")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--chunks", type=positive_int, default=None, help="chunks to relay (default: all the pose video holds)")
+    ap.add_argument("--steps", type=positive_int, default=20, help="sampling steps per chunk")
+    ap.add_argument("--seed", type=non_negative_int, default=0, help="seed of the sampling noise")
+    ap.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of the output video")

@@ -5,7 +5,9 @@ at the model's size (the corpus's chunk size divided by ``reduce``); step s draw
 (chunk, start) from ``numpy.random.default_rng([seed, s])``, so a resumed run sees the same batches.
 Objective: the rectified-flow loss of ``model.flow_loss`` with noise from a generator seeded by
 (seed, s); with probability ``reference_swap`` a clip's given first frame is a random frame of another
-train chunk (its targets unchanged), which teaches the model to place bodies by the pose. AdamW, linear warm-up then cosine decay to a tenth, gradient clipping at 1.
+train chunk (its targets unchanged), which teaches the model to place bodies by the pose. AdamW, linear
+warm-up then cosine decay to a tenth, gradient clipping at 1 (the loop, resume and checkpoints are
+``marionette.training``'s, shared with the dynamics trainer).
 Evaluation, on the held-out split ("test", or the train split when there is none): the flow loss of
 every held-out chunk's first clip at 8 fixed (s, ε) draws (seed 1234), so successive evaluations
 compare like with like. Checkpoints: ``dynamics.checkpoint`` (safetensors + JSON, atomic, ``latest``).
@@ -19,8 +21,6 @@ ranks; rank 0 evaluates and writes checkpoints and ``summary.json``.
 from __future__ import annotations
 
 import argparse
-import json
-import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -28,14 +28,15 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.distributed as dist
 
+from marionette import training
 from marionette.corpus import Corpus
-from marionette.distributed import process_group_from_env, rank_world, train_under_torchrun
+from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
-from marionette.io import check_json_fields, write_json
+from marionette.io import check_json_fields
 from marionette.observation.data import Clip, ClipSource
-from marionette.observation.model import OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
+from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
+from marionette.training import knob
 
 HELD_OUT = "test"
 EVAL_DRAWS = 8
@@ -46,26 +47,32 @@ REFERENCE_SWAP = 0.2  # the default under pose control (docs/tradeoffs.md, "Obse
 class ObservationTrainConfig:
     """Every knob of an observation training run; saved in each checkpoint's meta."""
 
-    preset: str = "tiny"
-    steps: int = 1000
-    batch_size: int = 4
-    frames: int | None = None  # clip length (4k + 1); None: the preset's
-    reduce: int = 4  # the corpus chunk's size / the model's
-    patch: int | None = None  # None: the preset's
-    lr: float = 3e-4
-    warmup: int = 50
-    seed: int = 0
-    checkpoint_every: int = 0
-    control: str = "pose"  # "pose", or "actions": the pixel-AR baseline (first frame + action schedule)
-    # probability that a clip's given first frame is a frame of another chunk; None: 0.2 under pose control, 0 for the
-    # baseline (which can learn where bodies are only from its first frame)
-    reference_swap: float | None = None
+    preset: str = knob("tiny", "network size (observation.model.OBS_PRESETS)", choices=sorted(OBS_PRESETS))
+    steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
+    batch_size: int = knob(4, "clips per step and process", min=1)
+    frames: int | None = knob(None, "clip length in frames, 4k + 1; default: the preset's", min=5)
+    reduce: int = knob(4, "the corpus chunk's height and width divided by the model's", min=1)
+    patch: int | None = knob(None, "patch side in pixels; default: the preset's", min=1)
+    lr: float = knob(3e-4, "peak learning rate", above=0.0)
+    warmup: int = knob(50, "linear warm-up steps", min=0)
+    seed: int = knob(0, "seed of the initial weights, the clips drawn and the noise", min=0)
+    checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
+    control: str = knob(
+        "pose", "pose: pose-control video; actions: the pixel-AR baseline (first frame + action schedule)", choices=CONTROLS
+    )
+    # None: 0.2 under pose control, 0 for the baseline (which can learn where bodies are only from its first frame)
+    reference_swap: float | None = knob(
+        None,
+        "probability that a training clip's first frame comes from another chunk "
+        "(teaches pose-following); default: 0.2 under pose control, 0 for the baseline",
+        min=0.0,
+        below=1.0,
+    )
 
     def __post_init__(self) -> None:
-        if self.preset not in OBS_PRESETS:
-            raise ValueError(f"unknown observation preset {self.preset!r}; known: {sorted(OBS_PRESETS)}")
-        if self.reference_swap is not None and not 0.0 <= self.reference_swap < 1.0:
-            raise ValueError(f"reference_swap {self.reference_swap} is not a probability in [0, 1)")
+        training.check_knobs(self)
+        if self.frames is not None and (self.frames - 1) % 4:
+            raise ValueError(f"ObservationTrainConfig.frames: clips are 4k + 1 frames, not {self.frames}")
         if self.reference_swap and self.control != "pose":
             raise ValueError("reference_swap needs pose control: the baseline learns where bodies are from its first frame")
 
@@ -87,7 +94,7 @@ class ObservationTrainConfig:
 
 def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationConfig:
     """The preset's network at the corpus's chunk size divided by ``reduce``."""
-    video = corpus.info["ingest"]["video"]
+    video = corpus.info.video
     h, w = int(video["height"]), int(video["width"])
     if h % config.reduce or w % config.reduce:
         raise ValueError(f"{corpus.path}: chunks of {h}×{w} do not divide by reduce={config.reduce}")
@@ -97,8 +104,15 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
         from marionette.dynamics.data import ActionTokens
 
         vocab = ActionTokens.from_corpus(corpus).sizes
-    return replace(base, height=h // config.reduce, width_px=w // config.reduce, frames=config.frames or base.frames,
-                   patch=config.patch or base.patch, control=config.control, vocab_sizes=vocab)  # fmt: skip
+    return replace(
+        base,
+        height=h // config.reduce,
+        width_px=w // config.reduce,
+        frames=config.frames or base.frames,
+        patch=config.patch or base.patch,
+        control=config.control,
+        vocab_sizes=vocab,
+    )
 
 
 def control_of(clip: Clip, control: str) -> torch.Tensor:
@@ -106,15 +120,15 @@ def control_of(clip: Clip, control: str) -> torch.Tensor:
     return clip.pose if control == "pose" else clip.actions
 
 
-def _lr(step: int, config: ObservationTrainConfig) -> float:
-    if step < config.warmup:
-        return (step + 1) / config.warmup
-    progress = min((step - config.warmup) / max(config.steps - config.warmup, 1), 1.0)
-    return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress))
+def _noise_seed(seed: int, step: int, rank: int) -> int:
+    # The seeds of the flow-matching noise (s, ε) at step s, not training.noise_seed's: the checkpoints written
+    # with these resume to an uninterrupted run's weights only while the seeds stay.
+    return seed * 1_000_003 + step if rank == 0 else hash((seed, step, rank)) % 2**62
 
 
-def _batch(chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str, rank: int = 0,
-           swap: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+def _batch(
+    chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str, rank: int = 0, swap: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Step ``step``'s clips, their controls and their given first frames: with probability ``swap``, a clip's
     is a random frame of another chunk (reference swap), else its own frame 0."""
     rng = np.random.default_rng([seed, step] if rank == 0 else [seed, step, rank])
@@ -145,11 +159,21 @@ def held_out_loss(model: VideoDiT, chunks: list[Clip]) -> float:
     return total / max(len(chunks) * EVAL_DRAWS, 1)
 
 
-def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: ObservationTrainConfig,
-          log: Callable[[str], Any] = print, *, stop_at: int | None = None) -> dict:  # fmt: skip
-    """Train (or resume from ``latest_checkpoint(out_dir)``) for ``config.steps`` steps; returns a summary."""
-    rank, world = rank_world()
-    log = log if rank == 0 else (lambda *_: None)
+def train(
+    corpus_path: Corpus | Path | str,
+    out_dir: Path | str,
+    config: ObservationTrainConfig,
+    log: Callable[[str], Any] = print,
+    *,
+    stop_at: int | None = None,
+    progress: bool = False,
+) -> dict:
+    """Train (or resume from the latest checkpoint in ``out_dir``) for ``config.steps`` steps; returns a summary.
+
+    ``stop_at`` ends the run after that many steps (checkpointed), as an interruption would; ``progress``:
+    a progress bar over the steps (rank 0)."""
+    rank = rank_world()[0]
+    log = training.rank_zero_log(log)
     out_dir = Path(out_dir)
     config = replace(config, reference_swap=config.swap)  # saved and compared on resume as the probability in effect
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
@@ -159,68 +183,79 @@ def train(corpus_path: Corpus | Path | str, out_dir: Path | str, config: Observa
     chunks = list(src.chunks())
     if not chunks:
         first = dict(list(src.skipped.items())[:3])
-        raise ValueError(f"{corpus.path}: no train chunk with a pose target and ≥ {mc.frames} frames; {len(src.skipped)} skipped, e.g. {first}")
+        raise ValueError(
+            f"{corpus.path}: no train chunk with a pose target and ≥ {mc.frames} frames; {len(src.skipped)} skipped, e.g. {first}"
+        )
     held_split = HELD_OUT if corpus.segment_ids(HELD_OUT) else "train"
     held = list(ClipSource(corpus, held_split, mc.frames, mc.size, actions=actions).chunks())
     model = VideoDiT(mc, seed=config.seed)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=0.0)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr(s, config))
-    step, history, evals = 0, [], []
-    ckpt = latest_checkpoint(out_dir)
-    if ckpt is not None:
-        meta = load_checkpoint(ckpt, model, opt, sched)
-        if {**meta["train_config"], "checkpoint_every": 0} != {**config.to_json(), "checkpoint_every": 0}:
-            raise ValueError(f"{ckpt}: was trained with another config; use a fresh out_dir")
-        step, history, evals = int(meta["step"]), list(meta["losses"]), list(meta["evals"])
-        log(f"resumed from {ckpt} at step {step}")
+    sched = training.warmup_cosine(opt, config.warmup, config.steps, 0.1)
+    run = training.resume(out_dir, model, opt, sched, {"train_config": config, "observation_config": mc})
+    if run.resumed_from is not None:
+        log(f"resumed from {run.resumed_from} at step {run.step}")
     params = sum(p.numel() for p in model.parameters())
-    log(f"{len(chunks)} train chunks, {len(held)} held-out ({held_split}); clips {mc.frames}×{mc.height}×{mc.width_px}, "
-        f"{mc.tokens} tokens; {params:,} parameters")  # fmt: skip
-    if not evals and rank == 0:
-        evals.append({"step": 0, "held_out_loss": held_out_loss(model, held)})
-    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    log(
+        f"{len(chunks)} train chunks, {len(held)} held-out ({held_split}); clips {mc.frames}×{mc.height}×{mc.width_px}, "
+        f"{mc.tokens} tokens; {params:,} parameters"
+    )
+    if not run.evals and rank == 0:
+        run.evals.append({"step": 0, "held_out_loss": held_out_loss(model, held)})
+    net = training.ddp(model, torch.device("cpu"))
 
     def checkpoint(at: int) -> Path | None:
         if rank != 0:
             return None
-        meta = {"train_config": config.to_json(), "observation_config": mc.to_json(), "losses": history, "evals": evals,
-                "kind": "observation"}  # fmt: skip
+        meta = {
+            "train_config": config.to_json(),
+            "observation_config": mc.to_json(),
+            "losses": run.history,
+            "evals": run.evals,
+            "kind": "observation",
+        }
         return save_checkpoint(out_dir, at, model, opt, sched, meta)
 
-    end = config.steps if stop_at is None else min(stop_at, config.steps)
-    started = step
-    model.train()
-    while step < end:
+    def loss_at(step: int) -> dict[str, torch.Tensor]:
         rgb, ctrl, first = _batch(chunks, mc.frames, config.batch_size, config.seed, step, config.control, rank, config.swap)
-        noise = torch.Generator().manual_seed(config.seed * 1_000_003 + step if rank == 0 else hash((config.seed, step, rank)) % 2**62)
-        loss = flow_loss(net, rgb, ctrl, noise, first)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        sched.step()
-        step += 1
-        value = loss.detach().clone()
-        if world > 1:
-            dist.all_reduce(value)
-            value /= world
-        history.append({"step": step, "loss": float(value)})
-        if config.checkpoint_every and step % config.checkpoint_every == 0 and step < end:
-            checkpoint(step)
-    if step > started:
-        if rank == 0:
-            evals.append({"step": step, "held_out_loss": held_out_loss(model, held)})
-        last = checkpoint(step)
-    else:
-        last = ckpt
-    summary = {"steps": step, "evals": evals, "checkpoint": str(last) if last else None, "parameters": params,
-               "chunks": len(chunks), "held_out": len(held), "held_out_split": held_split}  # fmt: skip
+        noise = torch.Generator().manual_seed(_noise_seed(config.seed, step, rank))
+        return {"loss": flow_loss(net, rgb, ctrl, noise, first)}
+
+    end = config.steps if stop_at is None else min(stop_at, config.steps)
+    training.run_steps(
+        run,
+        end,
+        loss_at,
+        model,
+        opt,
+        sched,
+        seed=config.seed,
+        objective="loss",
+        grad_clip=1.0,
+        checkpoint=checkpoint,
+        checkpoint_every=config.checkpoint_every,
+        log=log,
+        progress=progress,
+        desc=f"train observation ({config.control})",
+    )
+    if run.step > run.started and rank == 0:
+        run.evals.append({"step": run.step, "held_out_loss": held_out_loss(model, held)})
+    last = training.final_checkpoint(run, checkpoint)
+    evals = run.evals
     if rank == 0:
-        log(f"held-out flow loss {evals[0]['held_out_loss']:.4f} at initialisation → {evals[-1]['held_out_loss']:.4f} at step {step}")
-        write_json(out_dir / "summary.json", summary)
-    if world > 1:
-        dist.barrier()  # nobody tears the group down before rank 0 has written
-    return {**summary, "losses": history}
+        log(
+            f"held-out flow loss {evals[0]['held_out_loss']:.4f} at initialisation → {evals[-1]['held_out_loss']:.4f} at step {run.step}"
+        )
+    summary = {
+        "steps": run.step,
+        "evals": evals,
+        "checkpoint": str(last) if last else None,
+        "parameters": params,
+        "chunks": len(chunks),
+        "held_out": len(held),
+        "held_out_split": held_split,
+        "losses": run.history,
+    }
+    return training.finish(out_dir, summary)
 
 
 def load_model(ckpt_dir: Path | str) -> VideoDiT:
@@ -239,21 +274,32 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
     return model.eval()
 
 
-def train_in_processes(corpus: Path | str, out_dir: Path | str, config: ObservationTrainConfig, nproc: int) -> dict:
-    """Train under ``torchrun --standalone`` with ``nproc`` processes; the summary rank 0 wrote."""
-    return train_under_torchrun("marionette.observation.train", corpus, out_dir, config.to_json(), nproc)
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The arguments of ``marionette train observation`` and ``python -m marionette.observation.train``: the
+    corpus, ``--out``, ``--config``, one flag per ``ObservationTrainConfig`` field, ``--nproc``, ``--progress``."""
+    training.add_arguments(ap, ObservationTrainConfig)
+
+
+def run(
+    corpus: Path | str,
+    out_dir: Path | str,
+    config: ObservationTrainConfig,
+    *,
+    nproc: int = 1,
+    progress: bool = False,
+    log: Callable[[str], Any] = print,
+) -> dict:
+    """Train in this process, or with ``nproc`` > 1 under torchrun (gloo on CPU), returning the summary
+    (from torchrun: the one rank 0 wrote, losses left out)."""
+    return training.launch(
+        "marionette.observation.train", train, corpus, out_dir, config, nproc=nproc, progress=progress, log=log
+    )
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """``python -m marionette.observation.train CORPUS --out DIR --config JSON`` (one process per rank under torchrun)."""
-    ap = argparse.ArgumentParser(prog="python -m marionette.observation.train")
-    ap.add_argument("corpus", type=Path)
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--config", type=Path, required=True, help="an ObservationTrainConfig JSON")
-    a = ap.parse_args(argv)
-    config = ObservationTrainConfig.from_json(json.loads(a.config.read_text()))
-    with process_group_from_env():
-        return train(a.corpus, a.out, config)
+    """``python -m marionette.observation.train CORPUS --out DIR [--steps N] ...``; under torchrun one
+    process per rank."""
+    return training.main(argv, "python -m marionette.observation.train", __doc__.splitlines()[0], ObservationTrainConfig, run)
 
 
 if __name__ == "__main__":

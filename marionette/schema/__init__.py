@@ -256,16 +256,6 @@ def load_rig(name: str, schema_dir: Path = SCHEMA_DIR) -> Rig:
     return rig_from_json(_read_json(path), str(path))
 
 
-def rigs_for_edges_key(edges_key: str, schema_dir: Path = SCHEMA_DIR) -> list[Rig]:
-    """All rigs declared for a skeleton_edges.json key."""
-    out = []
-    for path in sorted((Path(schema_dir) / "rigs").glob("*.json")):
-        rig = load_rig(path.stem, schema_dir)
-        if rig.edges_key == edges_key:
-            out.append(rig)
-    return out
-
-
 def build_layout(scene: str, entities: list[Entity]) -> Layout:
     """Lay out a scene's state vector in the generic order (roots+joints, attachments, rotations)."""
     names = [e.name for e in entities]
@@ -320,11 +310,6 @@ def load_scene(name: str, schema_dir: Path = SCHEMA_DIR) -> Layout:
         except KeyError as exc:
             raise SchemaError(f"{path}: entity {i} lacks {exc}") from None
     return build_layout(d["name"], ents)
-
-
-def scene_names(schema_dir: Path = SCHEMA_DIR) -> list[str]:
-    """Names of the declared scenes."""
-    return sorted(p.stem for p in (Path(schema_dir) / "scenes").glob("*.json"))
 
 
 def layout_from_json(d: dict) -> Layout:

@@ -129,11 +129,6 @@ class StageTerrain:
         """Height (m) of the ground layer at (x, z)."""
         return ground_height(x, z)
 
-    @staticmethod
-    def in_bounds(x, z) -> np.ndarray:
-        """True inside the arena."""
-        return in_arena(x, z)
-
 
 def terrain_mesh(cell_m: float = 1.0, extent_m: float = 80.0) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """Triangle meshes of the stage: [(material, vertices (V, 3) float32, triangles (T, 3) uint32)].

@@ -1,0 +1,400 @@
+"""The skeleton both trainers share: config knobs and the flags made from them, the warm-up + cosine
+schedule, resume, the step loop, checkpoints, DDP helpers, the summary, and the launch under torchrun.
+
+A trainer declares its config as a frozen dataclass whose fields are ``knob``s (a default, a help text,
+the values it accepts), builds its data, model and optimizer, and hands ``run_steps`` a function that
+computes the loss terms of global step s. That function draws everything random from (seed, s, rank)
+(``noise_generator``; torch's global RNG, which dropout draws from, is seeded per step by the loop), so
+a run resumed from a checkpoint draws what the uninterrupted run would have: with the weights,
+optimizer and scheduler restored by ``resume``, the losses and final weights are bit-identical (same
+config, world size and device).
+
+    run = resume(out, model, opt, sched, {"train_config": config, ...})   # or a fresh Run at step 0
+    run_steps(run, end, loss_at, model, opt, sched, ...)                # records, checkpoints, progress bar
+    last = final_checkpoint(run, checkpoint)                            # unless nothing was trained
+    finish(out, summary)                                                # summary.json (rank 0), barrier
+
+Under DDP (``launch`` with nproc > 1 relaunches the command under torchrun) every rank runs the same
+loop on its own batches; gradients are averaged by ``DistributedDataParallel`` (``ddp``), the logged
+terms by ``mean_over_ranks``; rank 0 alone logs, shows the progress bar and writes checkpoints and the
+summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import MISSING, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import Tensor, nn
+
+from marionette.distributed import process_group_from_env, rank_world, train_under_torchrun
+from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
+from marionette.io import write_json
+
+SUMMARY = "summary.json"  # the last run's summary (losses left out), written by rank 0 into the training directory
+CADENCE_FIELDS = ("eval_every", "checkpoint_every")  # config fields a resumed run may change
+
+
+# -- config knobs and their flags --------------------------------------------------------------------
+
+
+def knob(
+    default: Any,
+    help: str,
+    *,
+    choices: Sequence[Any] | None = None,
+    min: float | None = None,
+    max: float | None = None,
+    above: float | None = None,
+    below: float | None = None,
+) -> Any:
+    """A config field with its help text and the values it accepts (``choices``; ``min`` ≤ v ≤ ``max``,
+    ``above`` < v < ``below``, each element of a tuple); ``check_knobs`` and the flags of
+    ``add_config_arguments`` both enforce them."""
+    limits = {"choices": choices, "min": min, "max": max, "above": above, "below": below}
+    return field(default=default, metadata={"help": help, **limits})
+
+
+def knob_problem(f: Any, value: Any) -> str | None:
+    """What is wrong with ``value`` for the knob ``f`` (a dataclass field), or None; None is accepted where
+    the default is None."""
+    m = f.metadata
+    if value is None and f.default is None:
+        return None
+    if m.get("choices") is not None and value not in m["choices"]:
+        return f"{value!r} is not one of {list(m['choices'])}"
+    for v in value if isinstance(value, tuple) else (value,):
+        if not isinstance(v, int | float) or isinstance(v, bool):
+            continue
+        if m.get("min") is not None and v < m["min"]:
+            return f"must be at least {m['min']}, not {v}"
+        if m.get("max") is not None and v > m["max"]:
+            return f"must be at most {m['max']}, not {v}"
+        if m.get("above") is not None and v <= m["above"]:
+            return f"must be greater than {m['above']}, not {v}"
+        if m.get("below") is not None and v >= m["below"]:
+            return f"must be less than {m['below']}, not {v}"
+    return None
+
+
+def check_knobs(config: Any) -> None:
+    """Fail, naming the field, on a value its knob does not accept."""
+    for f in fields(config):
+        problem = knob_problem(f, getattr(config, f.name))
+        if problem:
+            raise ValueError(f"{type(config).__name__}.{f.name}: {problem}")
+
+
+def _flag_type(kind: type, problem: Callable[[Any], str | None]) -> Callable[[str], Any]:
+    """An argparse type: ``kind`` of the text, refused (exit 2, the problem named) where ``problem`` says so."""
+
+    def parse(s: str) -> Any:
+        try:
+            v = kind(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, not {s!r}") from None
+        if kind is float and not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"expected a finite number, not {s!r}")
+        if (why := problem(v)) is not None:
+            raise argparse.ArgumentTypeError(why)
+        return v
+
+    return parse
+
+
+def add_config_arguments(ap: argparse.ArgumentParser, cls: type) -> None:
+    """One flag per field of the config dataclass ``cls`` (``--batch-size`` for ``batch_size``), its help
+    text ending in the default; every flag defaults to None, so ``config_from_args`` sees which were given."""
+    for f in fields(cls):
+        flag = "--" + f.name.replace("_", "-")
+        text = f.metadata.get("help", "")
+        if f.default is not None and f.default is not MISSING:
+            shown = " ".join(map(str, f.default)) if isinstance(f.default, tuple) else str(f.default)
+            text += f" (default: {shown})"
+        text = text.replace("%", "%%")
+        kind = str(f.type).removesuffix(" | None")
+        if kind == "bool":
+            ap.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
+        elif kind == "str":
+            ap.add_argument(flag, choices=f.metadata.get("choices"), default=None, help=text)
+        elif kind in ("int", "float"):
+            check = _flag_type(int if kind == "int" else float, lambda v, f=f: knob_problem(f, v))
+            ap.add_argument(flag, type=check, default=None, help=text, metavar=f.name.upper())
+        elif kind == "tuple[float, float]":
+            check = _flag_type(float, lambda v, f=f: knob_problem(f, v))
+            ap.add_argument(flag, type=check, nargs=2, default=None, help=text, metavar=("A", "B"))
+        else:
+            raise TypeError(f"{cls.__name__}.{f.name}: no flag for a field of type {f.type}")
+
+
+def config_from_args(cls: type, args: argparse.Namespace) -> Any:
+    """The config of parsed arguments: the ``--config`` JSON when given, then the flags that were given."""
+    base = {}
+    if getattr(args, "config", None):
+        try:
+            base = cls.from_json(json.loads(Path(args.config).read_text())).to_json()
+        except (json.JSONDecodeError, TypeError, ValueError) as exc:
+            raise ValueError(f"{args.config}: not a {cls.__name__} JSON: {exc}") from exc
+    over = {f.name: getattr(args, f.name) for f in fields(cls) if getattr(args, f.name, None) is not None}
+    return cls.from_json({**base, **over})
+
+
+def add_arguments(ap: argparse.ArgumentParser, cls: type) -> None:
+    """A training command's arguments: the corpus, ``--out``, ``--config``, one flag per field of ``cls``,
+    ``--nproc`` and ``--progress``."""
+    ap.add_argument("corpus", type=Path, help="the corpus directory")
+    ap.add_argument("--out", type=Path, required=True, help="training directory (checkpoints; a rerun resumes from it)")
+    ap.add_argument("--config", type=Path, help=f"a JSON of {cls.__name__} fields; the flags below override it")
+    add_config_arguments(ap, cls)
+    at_least_one = _flag_type(int, lambda v: None if v >= 1 else f"must be at least 1, not {v}")
+    ap.add_argument(
+        "--nproc",
+        type=at_least_one,
+        default=1,
+        metavar="N",
+        help="processes: > 1 relaunches this command under torchrun (DDP) (default: %(default)s)",
+    )
+    ap.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="a progress bar over the training steps (default: on)",
+    )
+
+
+# -- schedule, noise, DDP ----------------------------------------------------------------------------
+
+
+def lr_factor(step: int, warmup: int, steps: int, min_ratio: float) -> float:
+    """Multiplier of the peak learning rate at optimizer step ``step`` (0-based): linear warm-up over
+    ``warmup`` steps, then cosine decay to ``min_ratio`` at ``steps``."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min((step - warmup) / max(steps - warmup, 1), 1.0)
+    return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def warmup_cosine(
+    optimizer: torch.optim.Optimizer, warmup: int, steps: int, min_ratio: float
+) -> torch.optim.lr_scheduler.LambdaLR:
+    """The ``lr_factor`` schedule as a ``LambdaLR`` (its state, plain numbers, goes into checkpoints)."""
+    # a lambda, not a functools.partial: LambdaLR saves the __dict__ of callable objects in its state
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, warmup, steps, min_ratio))
+
+
+def noise_seed(seed: int, step: int, rank: int, stream: int = 0) -> int:
+    """The noise seed of one (seed, step, rank) and ``stream`` (0: the trainer's own noise, 1: torch's global
+    RNG during the step): distinct for every tuple, a function of the step so that a resumed run draws
+    what an uninterrupted one would."""
+    words = [int(seed), int(step), int(rank)] + ([int(stream)] if stream else [])
+    return int(np.random.SeedSequence(words).generate_state(1, np.uint64)[0] >> 1)
+
+
+def noise_generator(seed: int, step: int, rank: int) -> torch.Generator:
+    """A CPU generator seeded by ``noise_seed(seed, step, rank)``."""
+    return torch.Generator().manual_seed(noise_seed(seed, step, rank))
+
+
+def ddp(module: nn.Module, device: torch.device) -> nn.Module:
+    """``module`` wrapped in ``DistributedDataParallel`` inside a process group of more than one rank, else itself."""
+    if rank_world()[1] == 1:
+        return module
+    return nn.parallel.DistributedDataParallel(module, device_ids=[device.index] if device.type == "cuda" else None)
+
+
+def mean_over_ranks(values: Tensor) -> Tensor:
+    """``values`` averaged over the ranks of the process group (in place; unchanged outside one)."""
+    world = rank_world()[1]
+    if world > 1:
+        dist.all_reduce(values)
+        values /= world
+    return values
+
+
+def rank_zero_log(log: Callable[[str], Any]) -> Callable[[str], None]:
+    """``log`` on rank 0 (written around a progress bar, which it would otherwise break), nothing elsewhere."""
+    if rank_world()[0] != 0:
+        return lambda *_: None
+    from tqdm import tqdm
+
+    def say(message: str) -> None:
+        with tqdm.external_write_mode():
+            log(message)
+
+    return say
+
+
+# -- resume, the loop, checkpoints, summary ----------------------------------------------------------
+
+
+@dataclass
+class Run:
+    """Where a training run stands: the steps done, their records and the evaluations (all saved in each
+    checkpoint), and the checkpoint it resumed from."""
+
+    step: int = 0
+    history: list[dict] = field(default_factory=list)
+    evals: list[dict] = field(default_factory=list)
+    resumed_from: Path | None = None
+    started: int = 0  # the step this call began at
+
+
+def resume(
+    out_dir: Path | str,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    configs: dict[str, Any],
+    may_change: Sequence[str] = CADENCE_FIELDS,
+) -> Run:
+    """The run in ``out_dir``: a fresh one, or the latest checkpoint's after checking that each config
+    (meta key → config dataclass with ``from_json``) is the one it saved, fields in ``may_change`` aside,
+    and restoring the model, optimizer, scheduler and torch RNG. A mismatch names the fields that differ."""
+    ckpt = latest_checkpoint(Path(out_dir))
+    if ckpt is None:
+        return Run()
+    meta = read_meta(ckpt)
+    differ = []
+    for key, mine in configs.items():
+        try:
+            saved = type(mine).from_json(meta[key])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{ckpt}: its {key} does not read: {exc}") from exc
+        names = [f.name for f in fields(mine) if f.name not in may_change and getattr(saved, f.name) != getattr(mine, f.name)]
+        differ += names if key == "train_config" else [f"{key}.{n}" for n in names]
+    if differ:
+        why = " (steps shapes the learning-rate schedule: a run cannot be extended)" if "steps" in differ else ""
+        raise ValueError(f"{ckpt}: was trained with another config (differs in {differ}){why}; use a fresh out_dir")
+    load_checkpoint(ckpt, model, optimizer, scheduler)
+    step = int(meta["step"])
+    return Run(step, list(meta["losses"]), list(meta.get("evals", [])), ckpt, step)
+
+
+def run_steps(
+    run: Run,
+    end: int,
+    loss_at: Callable[[int], dict[str, Tensor]],
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    *,
+    seed: int,
+    objective: str,
+    grad_clip: float,
+    checkpoint: Callable[[int], Path | None],
+    checkpoint_every: int = 0,
+    evaluate: Callable[[int], Any] | None = None,
+    eval_every: int = 0,
+    on_record: Callable[[dict], Any] | None = None,
+    log: Callable[[str], Any] = print,
+    progress: bool = False,
+    desc: str = "train",
+) -> None:
+    """Optimise from ``run.step`` to ``end``: per step, the terms ``loss_at(step)`` (``objective`` among
+    them, the one minimised), backward, gradient clipping, optimizer and scheduler steps, then the record
+    ``{"step", *terms, "grad_norm", "lr"}`` (terms averaged over ranks) appended to ``run.history``, logged
+    (or shown on the progress bar, rank 0, with ``progress``) and given to ``on_record``; ``evaluate`` and
+    ``checkpoint`` every ``eval_every`` / ``checkpoint_every`` steps before ``end`` (0: never here).
+
+    What draws from torch's global RNG during a step (dropout) draws from ``noise_seed(seed, step, rank, 1)``,
+    the caller's RNG state left as it was: a fresh run is reproducible and a resumed one exact."""
+    from tqdm import tqdm
+
+    rank = rank_world()[0]
+    bar = tqdm(
+        total=end,
+        initial=run.step,
+        desc=desc,
+        unit="step",
+        dynamic_ncols=True,
+        disable=not progress or rank != 0 or run.step >= end,
+    )
+    devices = [torch.cuda.current_device()] if torch.cuda.is_available() else []
+    model.train()
+    while run.step < end:
+        with torch.random.fork_rng(devices):
+            torch.manual_seed(noise_seed(seed, run.step, rank, 1))
+            terms = loss_at(run.step)
+            optimizer.zero_grad(set_to_none=True)
+            terms[objective].backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+        lr = optimizer.param_groups[0]["lr"]
+        optimizer.step()
+        scheduler.step()
+        run.step += 1
+        values = mean_over_ranks(torch.stack([v.detach().float() for v in terms.values()] + [grad_norm.detach().float()]))
+        record = {"step": run.step, **dict(zip([*terms, "grad_norm"], values.tolist(), strict=True)), "lr": lr}
+        run.history.append(record)
+        if on_record is not None:
+            on_record(record)
+        if bar.disable:
+            log(" ".join(f"{k} {v:.5g}" if isinstance(v, float) else f"{k} {v}" for k, v in record.items()))
+        else:
+            bar.set_postfix_str(f"{objective} {record[objective]:.4g} lr {lr:.3g}", refresh=False)
+            bar.update(1)
+        if evaluate is not None and eval_every and run.step % eval_every == 0 and run.step < end:
+            evaluate(run.step)
+        if checkpoint_every and run.step % checkpoint_every == 0 and run.step < end:
+            checkpoint(run.step)
+    bar.close()
+
+
+def final_checkpoint(run: Run, checkpoint: Callable[[int], Path | None]) -> Path | None:
+    """The run's last checkpoint: written now if this call trained, else the one it resumed from (a
+    finished run asked again does no work)."""
+    return checkpoint(run.step) if run.step > run.started else run.resumed_from
+
+
+def finish(out_dir: Path | str, summary: dict) -> dict:
+    """Write ``summary`` (its ``losses`` left out) to ``<out_dir>/summary.json`` on rank 0, wait for every
+    rank, and return it."""
+    rank, world = rank_world()
+    if rank == 0:
+        write_json(Path(out_dir) / SUMMARY, {k: v for k, v in summary.items() if k != "losses"})
+    if world > 1:
+        dist.barrier()  # nobody returns (and tears the group down) before rank 0 has written
+    return summary
+
+
+# -- launching ---------------------------------------------------------------------------------------
+
+
+def launch(
+    module: str,
+    train: Callable[..., dict],
+    corpus: Path | str,
+    out_dir: Path | str,
+    config: Any,
+    *,
+    nproc: int = 1,
+    progress: bool = False,
+    log: Callable[[str], Any] = print,
+) -> dict:
+    """``train(corpus, out_dir, config, log, progress=)`` in this process (in torchrun's process group when
+    launched by it), or, with ``nproc`` > 1 outside one, ``python -m module`` in ``nproc`` processes under
+    torchrun, returning the summary rank 0 wrote (losses left out; the ranks print their own log)."""
+    if nproc > 1 and "WORLD_SIZE" not in os.environ:
+        return train_under_torchrun(module, corpus, out_dir, config.to_json(), nproc, SUMMARY, progress=progress)
+    with process_group_from_env():
+        return train(corpus, out_dir, config, log, progress=progress)
+
+
+def main(argv: list[str] | None, prog: str, description: str, cls: type, run: Callable[..., dict]) -> dict:
+    """A trainer module's ``python -m`` entry (also what torchrun runs): parse ``add_arguments(cls)``, then
+    ``run(corpus, out, config, nproc=, progress=)``; prints the summary unless it is one rank of many."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
+    add_arguments(ap, cls)
+    a = ap.parse_args(argv)
+    summary = run(a.corpus, a.out, config_from_args(cls, a), nproc=a.nproc, progress=a.progress)
+    if "WORLD_SIZE" not in os.environ:
+        print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
+    return summary

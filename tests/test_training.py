@@ -1,0 +1,80 @@
+"""The training skeleton: flags generated from a config dataclass (help, defaults, validation), the
+warm-up + cosine schedule, per-step seeds, and the resume check naming the fields that differ."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import pytest
+import torch
+
+from marionette import training
+from marionette.dynamics.train import TrainConfig
+from marionette.observation.train import ObservationTrainConfig
+
+
+def _parser(cls) -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="t")
+    training.add_arguments(ap, cls)
+    return ap
+
+
+def test_flags_come_from_the_config_fields_with_help_defaults_and_checks(tmp_path, capsys):
+    ap = _parser(ObservationTrainConfig)
+    text = " ".join(ap.format_help().split())
+    for flag in ("--preset", "--control", "--steps", "--batch-size", "--frames", "--reduce", "--patch", "--lr", "--warmup",
+                 "--seed", "--checkpoint-every", "--reference-swap", "--nproc", "--out", "--progress"):  # fmt: skip
+        assert flag in text
+    assert "(default: 1000)" in text and "(default: pose)" in text and "default: the preset's" in text
+    a = ap.parse_args(["c", "--out", str(tmp_path), "--steps", "7", "--control", "actions"])
+    assert training.config_from_args(ObservationTrainConfig, a) == ObservationTrainConfig(steps=7, control="actions")
+    for bad in (["--steps", "0"], ["--batch-size", "-1"], ["--reference-swap", "1.5"], ["--control", "x"], ["--preset", "huge"],
+                ["--lr", "nan"], ["--nproc", "0"]):  # fmt: skip
+        with pytest.raises(SystemExit) as exit_:
+            ap.parse_args(["c", "--out", str(tmp_path), *bad])
+        assert exit_.value.code == 2
+        assert bad[0] in capsys.readouterr().err
+    with pytest.raises(ValueError, match="frames"):
+        training.config_from_args(ObservationTrainConfig, ap.parse_args(["c", "--out", str(tmp_path), "--frames", "6"]))
+
+
+def test_config_json_then_flags(tmp_path):
+    (tmp_path / "c.json").write_text(json.dumps(TrainConfig(steps=5, lr=1e-3).to_json()))
+    a = _parser(TrainConfig).parse_args(
+        ["c", "--out", "o", "--config", str(tmp_path / "c.json"), "--steps", "9", "--betas", "0.8", "0.9"]
+    )
+    assert training.config_from_args(TrainConfig, a) == TrainConfig(steps=9, lr=1e-3, betas=(0.8, 0.9))
+    with pytest.raises(ValueError, match="dropout"):
+        TrainConfig(dropout=1.0)
+
+
+def test_schedule_warms_up_then_decays_to_the_floor():
+    f = [training.lr_factor(s, 10, 110, 0.1) for s in range(120)]
+    assert f[0] == pytest.approx(0.1) and f[9] == 1.0 and f[10] == 1.0
+    assert f[60] == pytest.approx(0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 0.5)))
+    assert f[110] == pytest.approx(0.1) and f[119] == pytest.approx(0.1)
+    assert all(a >= b for a, b in zip(f[10:], f[11:]))
+
+
+def test_noise_seeds_differ_per_step_rank_and_stream():
+    seeds = {training.noise_seed(0, s, r, k) for s in range(50) for r in range(4) for k in range(2)}
+    assert len(seeds) == 400 and training.noise_seed(3, 7, 1) == training.noise_seed(3, 7, 1)
+
+
+def test_resume_names_the_fields_that_differ(tmp_path):
+    from marionette.dynamics.checkpoint import save_checkpoint
+
+    model = torch.nn.Linear(2, 2)
+    opt = torch.optim.AdamW(model.parameters())
+    sched = training.warmup_cosine(opt, 2, 10, 0.1)
+    cfg = ObservationTrainConfig(steps=10, reference_swap=0.2)
+    save_checkpoint(tmp_path, 3, model, opt, sched, {"train_config": cfg.to_json(), "losses": [{"step": 1}], "evals": []})
+    run = training.resume(tmp_path, model, opt, sched, {"train_config": ObservationTrainConfig(steps=10, reference_swap=0.2,
+                                                                                               checkpoint_every=5)})  # fmt: skip
+    assert (run.step, run.started, run.history, run.resumed_from.name) == (3, 3, [{"step": 1}], "step-00000003")
+    with pytest.raises(ValueError, match=r"differs in \['steps', 'lr'\].*cannot be extended"):
+        training.resume(
+            tmp_path, model, opt, sched, {"train_config": ObservationTrainConfig(steps=20, lr=1e-3, reference_swap=0.2)}
+        )
