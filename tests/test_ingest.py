@@ -31,7 +31,7 @@ def _segments(c: Corpus):
 
 def test_corpus_shape(corpus):
     c = Corpus(corpus, expect="duel")
-    info = c.info
+    info = c.info.to_json()
     assert info["layout"]["dim"] == 276 and info["layout"]["slices"]["weapon.points"] == [258, 264]
     assert info["features"]["state"]["shape"] == [276]
     assert info["total_ingested"] == SYNTH["recordings"] and info["total_quarantined"] == 0

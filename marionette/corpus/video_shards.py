@@ -13,6 +13,7 @@ it and the member. Nothing is ever extracted to disk.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import tarfile
@@ -97,9 +98,16 @@ def add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
     tar.addfile(info, io.BytesIO(data))
 
 
+@contextlib.contextmanager
+def writer(path: Path) -> Iterator[tarfile.TarFile]:
+    """An open shard to ``add_member`` to; it appears under ``path`` only when the block completes."""
+    with atomic_path(path) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
+        yield tar
+
+
 def write_members(path: Path, members: list[tuple[str, bytes]]) -> None:
     """Write a shard of ``members`` (name, bytes) atomically."""
-    with atomic_path(path) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
+    with writer(path) as tar:
         for name, data in members:
             add_member(tar, name, data)
 
@@ -115,4 +123,5 @@ __all__ = [
     "read_chunks",
     "read_members",
     "write_members",
+    "writer",
 ]

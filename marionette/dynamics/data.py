@@ -103,7 +103,8 @@ RELATIVE_SCALE_M = 5.0  # the relative feature's unit: fighters stand a few metr
 TERRAIN_DIR = "terrain-features"
 
 
-def _as_corpus(corpus: Corpus | Path | str) -> Corpus:
+def as_corpus(corpus: Corpus | Path | str) -> Corpus:
+    """``corpus`` itself, or the Corpus at that path."""
     return corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
 
 
@@ -140,7 +141,7 @@ class Normaliser:
         cls, corpus: Corpus | Path | str, layout: Layout | None = None, std_floor: float = DEFAULT_STD_FLOOR
     ) -> Normaliser:
         """The normaliser of a corpus's ``stats.json`` state statistics (train split), std floored at ``std_floor``."""
-        c = _as_corpus(corpus)
+        c = as_corpus(corpus)
         layout = layout or c.layout
         if layout.hash != c.layout.hash:
             raise SchemaError(
@@ -261,7 +262,7 @@ class ActionTokens:
     @classmethod
     def from_corpus(cls, corpus: Corpus | Path | str) -> ActionTokens:
         """Entity token tables of a corpus (its vocab.json and layout)."""
-        c = _as_corpus(corpus)
+        c = as_corpus(corpus)
         return cls.from_vocab(c.vocab, c.layout)
 
     def encode(self, layout: Layout, table: pa.Table, where: str = "") -> tuple[np.ndarray, np.ndarray]:
@@ -400,7 +401,7 @@ def _shard_stages(c: Corpus, shard: int) -> dict[str, str]:
 
 def terrain_feature_path(corpus: Corpus | Path | str, shard: int, fps: float = DEFAULT_FPS, method: str = "linear") -> Path:
     """Where a shard's terrain features live under its current key (module doc: the key)."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     stages = sorted(set(_shard_stages(c, shard).values()))
     geometry = json.dumps([PATCH_SIZE, PATCH_CELL_M, PATCH_AHEAD_M, N_CLEARANCES])
     terrain = json.dumps({st: stage_chunk_hashes(c, st) for st in stages}, sort_keys=True)
@@ -425,7 +426,7 @@ def terrain_feature_shard(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Terrain features (n, N, 132) float32 and ``known`` (n, N, 132) bool, row-aligned with
     ``corpus.dynamics_shard(shard, fps, method)``; cached, recomputed only when the key changes."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     layout = c.layout
     view = c.dynamics_shard(shard, fps, method)
     path = terrain_feature_path(c, shard, fps, method)
@@ -493,7 +494,7 @@ class WindowData:
         fps: float = DEFAULT_FPS,
         method: str = "linear",
     ):
-        c = _as_corpus(corpus)
+        c = as_corpus(corpus)
         self.corpus, self.split, self.terrain, self.fps, self.method = c, split, terrain, fps, method
         self.relative = relative
         self.layout = c.layout

@@ -47,7 +47,7 @@ from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, r
 from marionette.dynamics.data import (
     ActionTokens,
     Normaliser,
-    _as_corpus,
+    as_corpus,
     compute_terrain_features,
     relative_of_rows,
     relative_roots,
@@ -142,7 +142,7 @@ class Rollout:
     def __init__(self, ckpt: Path | str, corpus: Corpus | Path | str, *, temperature: float = 0.0, seed: int = 0,
                  rules: str | Sequence[str] = "auto", terrain_field: Any = None, cached: bool = True,
                  dtype: torch.dtype = torch.float32) -> None:  # fmt: skip
-        self.corpus = _as_corpus(corpus)
+        self.corpus = as_corpus(corpus)
         self.layout = self.corpus.layout
         self.ckpt = checkpoint_dir(ckpt)
         meta = read_meta(self.ckpt)
@@ -456,7 +456,7 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
     end, token) with END exclusive, in predicted-frame indices; ``terrain_field`` defaults to the
     segment's scanned stage (None when it was never scanned). ``cached=False`` recomputes each frame
     (``ModelStream``); ``dtype`` is the models' (bfloat16 for the half-precision path)."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     L = c.layout
     if terrain_field is None:
         terrain_field = open_terrain_field(c, segment)
@@ -608,7 +608,7 @@ def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: floa
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The rollout command's arguments (shared by ``marionette rollout`` and ``python -m``), each checked as it is parsed."""
-    from marionette.cli import HelpFormatter, non_negative_float, non_negative_int, positive_int, size_hxw
+    from marionette.options import HelpFormatter, non_negative_float, non_negative_int, positive_int, size_hxw
 
     ap.formatter_class = HelpFormatter  # every option's default in --help, under either entry point
     ap.add_argument("ckpt", type=Path, help="a checkpoint directory or a training output directory")
@@ -628,32 +628,40 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--size", type=size_hxw, default=(352, 640), metavar="HxW", help="render size, HxW")
 
 
-def run(args: argparse.Namespace, log=print) -> pa.Table:
-    """Run a parsed rollout command: the rollout, its table, and the optional render."""
-    rules = args.rules if args.rules in ("auto", "none") else tuple(r for r in args.rules.split(",") if r)
-    c = _as_corpus(args.corpus)
-    fps = float(read_meta(checkpoint_dir(args.ckpt))["train_config"].get("fps", 20.0))
-    script = script_from_args(args.script_root, args.horizon, fps, c.layout)
+def write_rollout(ckpt: Path, corpus: Corpus | Path, segment: str, out: Path, *, horizon: int, seed_frames: int = 64,
+                  temperature: float = 0.0, seed: int = 0, force: Sequence = (), script_root: Sequence = (),
+                  rules: str = "auto", render: Path | None = None, size: tuple[int, int] = (352, 640),
+                  log=print) -> pa.Table:  # fmt: skip
+    """The rollout command: roll ``horizon`` frames out from ``segment``, write the table to ``out`` (and render it
+    through the follow camera to ``render``); ``force`` and ``script_root`` as ``add_arguments`` parses them, ``rules``
+    "auto", "none" or a comma list."""
+    rules_in = rules if rules in ("auto", "none") else tuple(r for r in rules.split(",") if r)
+    c = as_corpus(corpus)
+    fps = float(read_meta(checkpoint_dir(ckpt))["train_config"].get("fps", 20.0))
+    script = script_from_args(list(script_root), horizon, fps, c.layout)
     started = time.perf_counter()
-    table = rollout(args.ckpt, c, args.segment, args.seed_frames, args.horizon, args.temperature, args.seed, args.force,
-                    script_root=script, rules=rules)  # fmt: skip
+    table = rollout(ckpt, c, segment, seed_frames, horizon, temperature, seed, list(force), script_root=script, rules=rules_in)
     took = time.perf_counter() - started
-    write_ipc(args.out, table)
-    log(f"{args.out}: {table.num_rows} rows ({args.horizon} predicted, {args.horizon / took:.0f} frames/s incl. loading)")
-    if args.render is not None:
+    write_ipc(out, table)
+    log(f"{out}: {table.num_rows} rows ({horizon} predicted, {horizon / took:.0f} frames/s incl. loading)")
+    if render is not None:
         from marionette.bridge.targets import TerrainScene, render_rows
 
-        terrain = TerrainScene.of_stage(c.terrain(args.segment))
-        meta = render_rows(c.layout, table, args.render, terrain, camera="follow", size=args.size)
-        log(f"{args.render}: {meta.width}×{meta.height} at {meta.fps:g} fps (follow camera)")
+        meta = render_rows(c.layout, table, render, TerrainScene.of_stage(c.terrain(segment)), camera="follow", size=size)
+        log(f"{render}: {meta.width}×{meta.height} at {meta.fps:g} fps (follow camera)")
     return table
+
+
+ARGUMENTS = ("ckpt", "corpus", "segment", "out", "horizon", "seed_frames", "temperature", "seed", "force", "script_root",
+             "rules", "render", "size")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> pa.Table:
     """``python -m marionette.dynamics.rollout DIR CORPUS --segment ID --horizon N --out STATES.arrow [...]``."""
     ap = argparse.ArgumentParser(prog="python -m marionette.dynamics.rollout", description=__doc__.splitlines()[0])
     add_arguments(ap)
-    return run(ap.parse_args(argv))
+    parsed = vars(ap.parse_args(argv))
+    return write_rollout(**{k: parsed[k] for k in ARGUMENTS})
 
 
 if __name__ == "__main__":

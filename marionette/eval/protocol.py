@@ -45,7 +45,7 @@ import pyarrow as pa
 from marionette.bridge.rules import enabled_rules
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.checkpoint import read_meta
-from marionette.dynamics.data import ActionTokens, _as_corpus
+from marionette.dynamics.data import ActionTokens, as_corpus
 from marionette.dynamics.rollout import (
     Force,
     Rollout,
@@ -93,7 +93,7 @@ def model_fps(ckpt: Path | str) -> float:
 def select_windows(corpus: Corpus | Path | str, n: int, seed_frames: int = 64, horizon: int = 120, seed: int = 0,
                    split: str = "test", segments: Sequence[str] | None = None, fps: float = 20.0) -> list[Window]:  # fmt: skip
     """``n`` windows (module doc), deterministic in ``seed``; ``segments`` names them instead of a split."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     if n < 1 or seed_frames < 1 or horizon < 1:
         raise ValueError(f"need n ≥ 1 windows of seed_frames ≥ 1 and horizon ≥ 1, not {n}, {seed_frames}, {horizon}")
     length = seed_frames + horizon
@@ -140,7 +140,7 @@ def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
     """Roll every window out (seed rows + horizon predicted rows, ``rollout``'s table) with optional
     per-window ``force``; returns the tables in window order and the rules that ran per stage.
     ``progress(phase, done, total)`` is told the predicted window-frames done after each frame step."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     force = [()] * len(windows) if force is None else list(force)
     if len(force) != len(windows):
         raise ValueError(f"{len(windows)} windows but {len(force)} force lists")
@@ -313,7 +313,7 @@ def state_layer(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
                 render_size: tuple[int, int] | None = (72, 128), progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
     """The state-layer table over windows: per "<metric>/<entity>" the generated and recorded summaries,
     per-window values, and per entity the root drift (windows, horizon) for curves (``progress`` told per window)."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     fps = model_fps(ckpt)
     per = []
     scenes: dict[str, tuple[Any, Any]] = {}
@@ -394,7 +394,7 @@ def controllability_probe(ckpt: Path | str, corpus: Corpus | Path | str, windows
     """Free / Force-GT / Force-Shuf over ``windows`` (module doc); ``free`` reuses Free rollouts already run
     with the same ``rules``. Returns RA-MPJPE summaries and per-window values per condition, the Force-GT <
     Force-Shuf count and per-class compliance. ``progress`` is told each condition's rollouts (``run_windows``)."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     L = c.layout
     names = [e.name for e in L.articulated]
     if entity not in names:
@@ -479,7 +479,7 @@ def rule_ablation(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequen
     """Recorded / no rule / + collider / + collider + cap on the same windows: CFR, MMP, skate, separation per
     condition, the rules that actually ran and a note where a rule could not (no terrain scan, one entity).
     ``progress`` is told each condition's rollouts (``run_windows``)."""
-    c = _as_corpus(corpus)
+    c = as_corpus(corpus)
     fps = model_fps(ckpt)
     fields = {w.stage: open_terrain_field(c, w.segment) for w in windows}
     rec = [recorded_rows(c, w, fps) for w in windows]

@@ -18,6 +18,7 @@ import numpy as np
 import pyarrow as pa
 
 from marionette import geometry as geo
+from marionette.corpus import paths, state_table
 from marionette.ingest.video import VideoSettings, write_video_shard
 from marionette.ingest.wildworld import (
     MAX_MEMBER_BYTES,
@@ -29,7 +30,7 @@ from marionette.ingest.wildworld import (
     read_sample,
 )
 from marionette.io import file_sha256, text_sha256, write_ipc, write_json
-from marionette.schema import Layout, load_scene, state_schema
+from marionette.schema import Layout, load_scene
 
 INGEST_VERSION = "1"
 
@@ -278,38 +279,30 @@ def action_stats(layout: Layout, state: np.ndarray, sample: RecordedSample, a: i
 
 
 def _segment_table(layout: Layout, sample: RecordedSample, seg_id: str, a: int, b: int, state: np.ndarray) -> pa.Table:
-    """Rows [a, b) of a sample as a state-shard table."""
-    schema = state_schema(layout)
-    n = b - a
-    cols: dict[str, pa.Array] = {
-        "segment": pa.array([seg_id] * n, pa.string()),
-        "sample": pa.array([sample.ref.name] * n, pa.string()),
-        "frame": pa.array(np.arange(a, b, dtype=np.int32)),
-        "t": pa.array(np.arange(a, b, dtype=np.float64) / sample.fps),
-        "state": pa.FixedSizeListArray.from_arrays(pa.array(state.reshape(-1), pa.float32()), layout.dim),
+    """Rows [a, b) of a sample as a state-shard table (``marionette.corpus.state_table``)."""
+    cols: dict = {
+        "segment": seg_id,
+        "sample": sample.ref.name,
+        "frame": np.arange(a, b, dtype=np.int32),
+        "t": np.arange(a, b, dtype=np.float64) / sample.fps,
+        "state": state,
     }
-
-    def fixed(x: np.ndarray, w: int) -> pa.Array:
-        return pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(x, np.float64).reshape(-1)), w)
-
     for e in layout.articulated:
         tr = sample.entities[e.name]
-        cols[f"{e.name}.type_id"] = pa.array(tr.type_id[a:b].astype(np.int32))
-        cols[f"{e.name}.action"] = pa.array(tr.action[a:b])
-        cols[f"{e.name}.motion_frame"] = pa.array(tr.motion_frame[a:b])
-        cols[f"{e.name}.hp"] = pa.array(tr.hp[a:b])
-        cols[f"{e.name}.root_world"] = fixed(tr.joints_world[a:b, 0], 3)
-        cols[f"{e.name}.rot_world"] = fixed(tr.rot[a:b], 4)
-        cols[f"{e.name}.pos_check_m"] = pa.array(
-            np.nan_to_num(np.linalg.norm(tr.pos[a:b] - tr.joints_world[a:b, 0], axis=1), nan=-1).astype(np.float32)
-        )
+        cols[f"{e.name}.type_id"] = tr.type_id[a:b].astype(np.int32)
+        cols[f"{e.name}.action"] = tr.action[a:b]
+        cols[f"{e.name}.motion_frame"] = tr.motion_frame[a:b]
+        cols[f"{e.name}.hp"] = tr.hp[a:b]
+        cols[f"{e.name}.root_world"] = tr.joints_world[a:b, 0]
+        cols[f"{e.name}.rot_world"] = tr.rot[a:b]
+        cols[f"{e.name}.pos_check_m"] = np.nan_to_num(np.linalg.norm(tr.pos[a:b] - tr.joints_world[a:b, 0], axis=1), nan=-1)
     for e in layout.attachments:
-        cols[f"{e.name}.type_id"] = pa.array(sample.entities[e.name].type_id[a:b].astype(np.int32))
-    cols["camera.K"] = fixed(sample.camera_K[a:b], 4)
-    cols["camera.pos"] = fixed(sample.camera_pos[a:b], 3)
-    cols["camera.rot"] = fixed(sample.camera_rot[a:b], 4)
-    cols["valid"] = pa.array(np.ones(n, bool))
-    return pa.Table.from_pydict(cols, schema=schema)
+        cols[f"{e.name}.type_id"] = sample.entities[e.name].type_id[a:b].astype(np.int32)
+    cols["camera.K"] = sample.camera_K[a:b]
+    cols["camera.pos"] = sample.camera_pos[a:b]
+    cols["camera.rot"] = sample.camera_rot[a:b]
+    cols["valid"] = True
+    return state_table(layout, cols, n=b - a)
 
 
 def segment_states(layout: Layout, sample: RecordedSample, runs: list[tuple[int, int]]):
@@ -322,12 +315,13 @@ def segment_states(layout: Layout, sample: RecordedSample, runs: list[tuple[int,
 
 
 def staging_dir(corpus: Path, ref: SampleRef) -> Path:
-    return Path(corpus) / "staging" / sample_key(ref)
+    """``<corpus>/staging/<key>``: where a sample is staged (``marionette.corpus.paths``)."""
+    return paths.staging_dir(corpus, sample_key(ref))
 
 
 def known_record(corpus: Path, ref: SampleRef) -> dict | None:
     """The newest record of the sample: staged (ingested, not yet finalized) or committed."""
-    for p in (staging_dir(corpus, ref) / "record.json", Path(corpus) / "meta" / "samples" / f"{sample_key(ref)}.json"):
+    for p in (staging_dir(corpus, ref) / "record.json", paths.sample_record(corpus, sample_key(ref))):
         if p.exists():
             return json.loads(p.read_text())
     return None

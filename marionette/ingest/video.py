@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 import io
 import json
-import tarfile
 import warnings
 from dataclasses import dataclass
 from fractions import Fraction
@@ -18,8 +17,8 @@ from pathlib import Path
 import av
 import numpy as np
 
+from marionette.corpus import video_shards
 from marionette.ingest.wildworld import SampleError
-from marionette.io import atomic_path
 
 
 @dataclass(frozen=True)
@@ -177,12 +176,6 @@ def _open_video(path: Path) -> av.container.InputContainer:
     return c
 
 
-def tar_add(tar: tarfile.TarFile, name: str, data: bytes) -> None:
-    info = tarfile.TarInfo(name)
-    info.size, info.mtime, info.mode = len(data), 0, 0o644  # fixed mtime: reruns give identical bytes
-    tar.addfile(info, io.BytesIO(data))
-
-
 def write_video_shard(
     out: Path,
     rgb_path: Path,
@@ -193,7 +186,7 @@ def write_video_shard(
 ) -> list[dict]:
     """Write a webdataset tar of RGB chunks for ``segments`` [(segment id, start, stop, K (n,4))].
 
-    Keys are ``<segment>__c<chunk:05d>`` (no dots); members ``rgb.mp4`` and ``json``. The source is
+    Keys and members as ``marionette.corpus.video_shards`` defines them (``rgb.mp4`` and ``json``). The source is
     decoded once, sequentially. Returns the json records written.
     """
     wanted: dict[int, list[tuple[str, int]]] = {}
@@ -205,7 +198,7 @@ def write_video_shard(
                 wanted.setdefault(f, []).append((seg, ci))
     records: list[dict] = []
     buffers: dict[tuple[str, int], list[np.ndarray]] = {(p[0], p[1]): [] for p in plan}
-    with atomic_path(out) as tmp, tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
+    with video_shards.writer(out) as tar:
         if plan:
             with _open_video(rgb_path) as c:
                 s = c.streams.video[0]
@@ -255,9 +248,9 @@ def write_video_shard(
                                 "K": np.round(cr.intrinsics(K), 6).tolist(),
                             }
                             mp4 = encode_mp4(np.stack(buffers.pop(key)), fps, settings)
-                            name = f"{seg}__c{ci:05d}"
-                            tar_add(tar, f"{name}.rgb.mp4", mp4)
-                            tar_add(tar, f"{name}.json", json.dumps(rec, sort_keys=True).encode())
+                            key = video_shards.chunk_key(seg, ci)
+                            video_shards.add_member(tar, video_shards.member_name(key, "rgb.mp4"), mp4)
+                            video_shards.add_member(tar, video_shards.member_name(key, "json"), json.dumps(rec, sort_keys=True).encode())
                             records.append(rec)
                 if buffers:
                     (seg, ci), got = next(iter(buffers.items()))

@@ -85,7 +85,7 @@ def paint_video(
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The generate command's arguments."""
-    from marionette.cli import non_negative_int, positive_float, positive_int
+    from marionette.options import non_negative_int, positive_float, positive_int
 
     ap.add_argument("ckpt", type=Path, help="an observation checkpoint or training directory")
     pose_help = "a pose-control G-buffer video (.mkv), from `marionette export-chunk` or `marionette render`"

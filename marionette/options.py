@@ -1,0 +1,126 @@
+"""Command-line option types and help formatting, shared by every entry point (``marionette`` and the
+modules' ``python -m`` commands): each type checks its value as it is parsed, so a bad option exits 2
+with a message naming it, before any work starts."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+X264_CRF = (0, 51)  # libx264's constant-rate-factor range for 8-bit video
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Help with every option's default, written as it is typed (``176x320``); flags without a value
+    (switches) and defaults of None (their help says what happens) are left as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        d = action.default
+        if "%(default)" in text or not action.option_strings or action.nargs == 0 or d is None or d is argparse.SUPPRESS:
+            return text
+        if isinstance(d, list | tuple) and not d:
+            return text
+        shown = "x".join(str(v) for v in d) if isinstance(d, tuple) else str(d)
+        return f"{text} (default: {shown.replace('%', '%%')})"
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose help shows defaults (``HelpFormatter``); its subparsers are Parsers too."""
+
+    def __init__(self, *args, formatter_class: type = HelpFormatter, **kwargs) -> None:
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
+
+
+def _integer(s: str) -> int:
+    try:
+        return int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, not {s!r}") from None
+
+
+def _number(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, not {s!r}") from None
+    if v != v or v in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, not {s!r}")
+    return v
+
+
+def int_at_least(lo: int) -> Callable[[str], int]:
+    """An argparse type: an integer ≥ ``lo``."""
+
+    def parse(s: str) -> int:
+        v = _integer(s)
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be at least {lo}, not {v}")
+        return v
+
+    parse.__name__ = f"integer ≥ {lo}"
+    return parse
+
+
+positive_int = int_at_least(1)
+non_negative_int = int_at_least(0)
+
+
+def positive_float(s: str) -> float:
+    """An argparse type: a finite number > 0."""
+    v = _number(s)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be greater than 0, not {s}")
+    return v
+
+
+def non_negative_float(s: str) -> float:
+    """An argparse type: a finite number ≥ 0."""
+    v = _number(s)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, not {s}")
+    return v
+
+
+def x264_crf(s: str) -> int:
+    """An argparse type: an x264 constant rate factor, 0 (lossless) to 51."""
+    v = _integer(s)
+    lo, hi = X264_CRF
+    if not lo <= v <= hi:
+        raise argparse.ArgumentTypeError(f"x264's crf runs from {lo} to {hi} (lower is better), not {v}")
+    return v
+
+
+def chunk_frames(s: str) -> int:
+    """An argparse type: frames per video chunk, 4k + 1 and at least 5 (the video models' temporal stride is 4)."""
+    v = _integer(s)
+    if v < 5 or (v - 1) % 4:
+        raise argparse.ArgumentTypeError(f"chunk frames are 4k + 1 and at least 5 (e.g. 41, 81), not {v}")
+    return v
+
+
+def size_hxw(s: str) -> tuple[int, int]:
+    """An argparse type: ``HxW`` with both sides > 0."""
+    try:
+        h, w = (int(v) for v in s.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be HxW, e.g. 176x320, not {s!r}") from None
+    if h <= 0 or w <= 0:
+        raise argparse.ArgumentTypeError(f"size {s!r}: height and width must both be greater than 0")
+    return h, w
+
+
+def even_size_hxw(s: str) -> tuple[int, int]:
+    """An argparse type: ``HxW`` with both sides > 0 and even (H.264 in yuv420p halves the chroma planes)."""
+    h, w = size_hxw(s)
+    if h % 2 or w % 2:
+        raise argparse.ArgumentTypeError(f"size {s!r}: H.264 video needs an even height and width")
+    return h, w
+
+
+def even_int(s: str) -> int:
+    """An argparse type: an even integer > 0 (a side of an H.264 video)."""
+    v = _integer(s)
+    if v <= 0 or v % 2:
+        raise argparse.ArgumentTypeError(f"an H.264 video side is an even number greater than 0, not {v}")
+    return v
