@@ -95,11 +95,32 @@ SPEED_HEADER = [
     "bytes/frame",
     "target",
 ]
-STEP_HEADER = ["size (H×W)", "`bone_segments`", "`Rasterizer.render_planes`", "float path: `render` + `to_codes`",
-               "`write_gbuffer` (planes in)", "ours: render + encode", "reference: project + `cv2.line`",
-               "reference: x264 encode", "reference: render + encode"]  # fmt: skip
-CODEC_HEADER = ["codec", "encode frames/s", "decode frames/s", "bytes/frame", "ids exact %", "covered → bg %", "bg → covered %",
-                "terrain h max m", "terrain h p99 m", "bone h max m", "bone h p99 m", "depth max m", "depth p99 m"]  # fmt: skip
+STEP_HEADER = [
+    "size (H×W)",
+    "`bone_segments`",
+    "`Rasterizer.render_planes`",
+    "float path: `render` + `to_codes`",
+    "`write_gbuffer` (planes in)",
+    "ours: render + encode",
+    "reference: project + `cv2.line`",
+    "reference: x264 encode",
+    "reference: render + encode",
+]
+CODEC_HEADER = [
+    "codec",
+    "encode frames/s",
+    "decode frames/s",
+    "bytes/frame",
+    "ids exact %",
+    "covered → bg %",
+    "bg → covered %",
+    "terrain h max m",
+    "terrain h p99 m",
+    "bone h max m",
+    "bone h p99 m",
+    "depth max m",
+    "depth p99 m",
+]
 
 
 # -- input ----------------------------------------------------------------------------------------------
@@ -127,8 +148,15 @@ class Clip:
         """The recorded camera at H × W: intrinsics mapped by the centred crop + resize (as ``render_rows``)."""
         crop = CropResize.fit(self.src_size[0], self.src_size[1], H, W)
         rot = np.nan_to_num(fixed_rows(self.rows["camera.rot"], 4))
-        return recorded_cameras(fixed_rows(self.rows["camera.K"], 4), fixed_rows(self.rows["camera.pos"], 3), rot, np.ones(len(self), bool),
-                                W, H, crop=crop)  # fmt: skip
+        return recorded_cameras(
+            fixed_rows(self.rows["camera.K"], 4),
+            fixed_rows(self.rows["camera.pos"], 3),
+            rot,
+            np.ones(len(self), bool),
+            W,
+            H,
+            crop=crop,
+        )
 
     def meta(self, H: int, W: int) -> GBufferMeta:
         s = self.settings
@@ -153,8 +181,18 @@ def make_clip(tmp: Path, seconds: float, frames: int, seed: int) -> Clip:
     settings = RenderSettings()
     roots_y = np.concatenate([skel.joints[e.name][:, 0, 1] for e in layout.articulated])
     fps = round(1.0 / float(np.median(np.diff(t))), 6)
-    return Clip(segment, layout, rows, bones, bones_s, terrain, source_size(corpus, segment), height_range(terrain, roots_y, settings),
-                fps, settings)  # fmt: skip
+    return Clip(
+        segment,
+        layout,
+        rows,
+        bones,
+        bones_s,
+        terrain,
+        source_size(corpus, segment),
+        height_range(terrain, roots_y, settings),
+        fps,
+        settings,
+    )
 
 
 # -- ours -------------------------------------------------------------------------------------------------
@@ -206,8 +244,17 @@ def skeleton_frames(clip: Clip, cams: Cameras, colours) -> Iterable[np.ndarray]:
 # -- generic encode / decode through PyAV -------------------------------------------------------------------
 
 
-def encode_video(path: Path, frames: Iterable[np.ndarray], W: int, H: int, fps: float, codec: str, pix_fmt: str, in_format: str,
-                 options: dict[str, str]) -> int:  # fmt: skip
+def encode_video(
+    path: Path,
+    frames: Iterable[np.ndarray],
+    W: int,
+    H: int,
+    fps: float,
+    codec: str,
+    pix_fmt: str,
+    in_format: str,
+    options: dict[str, str],
+) -> int:
     """Encode (H, W, 3) arrays given as ``in_format`` with ``codec`` in ``pix_fmt`` (PyAV's swscale converts); one thread."""
     n = 0
     with av.open(str(path), "w") as c:
@@ -260,8 +307,13 @@ def bench_speed(clip: Clip, sizes: list[tuple[int, int]], repeats: int, tmp: Pat
             frames = list(render_frames(rast, clip, cams))
             t_encode, _ = time_call(lambda f=frames, m=meta, p=ours: write_gbuffer(p, f, m), repeats)
             del frames
-            t_float, _ = time_call(lambda r=rast, c=cams, s=clip.settings: drain(to_codes(r.render(c, i, clip.bones[i], clip.h[0], clip.h[1],
-                                   s.z_near, s.z_far, s.cull_m)) for i in range(len(clip))), repeats)  # fmt: skip
+            t_float, _ = time_call(
+                lambda r=rast, c=cams, s=clip.settings: drain(
+                    to_codes(r.render(c, i, clip.bones[i], clip.h[0], clip.h[1], s.z_near, s.z_far, s.cull_m))
+                    for i in range(len(clip))
+                ),
+                repeats,
+            )
             t_both, _ = time_call(lambda r=rast, c=cams, m=meta, p=ours: write_gbuffer(p, render_frames(r, clip, c), m), repeats)
         ours_bytes = ours.stat().st_size / n
 
@@ -275,14 +327,52 @@ def bench_speed(clip: Clip, sizes: list[tuple[int, int]], repeats: int, tmp: Pat
         ref_bytes = ref.stat().st_size / n
 
         met = t_both <= t_ref_both  # ours' frames/s ≥ the reference's
-        speed.append([label, "ours: G-buffer with terrain, FFV1 gbrp10le lossless", fps(t_render), fps(t_encode), fps(t_both),
-                      f"{ours_bytes:,.0f}", ""])  # fmt: skip
-        speed.append([label, "reference: skeleton lines, x264 yuv420p crf 18", fps(t_ref_render), fps(t_ref_encode), fps(t_ref_both),
-                      f"{ref_bytes:,.0f}", ""])  # fmt: skip
-        speed.append([label, "target: lossless G-buffer with terrain ≥ the reference's total frames/s", "", "",
-                      f"{t_ref_both / t_both:.2f}× the reference", "", "**met**" if met else "**not met**"])  # fmt: skip
-        steps.append([label, ms(clip.bones_s), ms(t_render), ms(t_float), ms(t_encode), ms(t_both), ms(t_ref_render),
-                      ms(t_ref_encode), ms(t_ref_both)])  # fmt: skip
+        speed.append(
+            [
+                label,
+                "ours: G-buffer with terrain, FFV1 gbrp10le lossless",
+                fps(t_render),
+                fps(t_encode),
+                fps(t_both),
+                f"{ours_bytes:,.0f}",
+                "",
+            ]
+        )
+        speed.append(
+            [
+                label,
+                "reference: skeleton lines, x264 yuv420p crf 18",
+                fps(t_ref_render),
+                fps(t_ref_encode),
+                fps(t_ref_both),
+                f"{ref_bytes:,.0f}",
+                "",
+            ]
+        )
+        speed.append(
+            [
+                label,
+                "target: lossless G-buffer with terrain ≥ the reference's total frames/s",
+                "",
+                "",
+                f"{t_ref_both / t_both:.2f}× the reference",
+                "",
+                "**met**" if met else "**not met**",
+            ]
+        )
+        steps.append(
+            [
+                label,
+                ms(clip.bones_s),
+                ms(t_render),
+                ms(t_float),
+                ms(t_encode),
+                ms(t_both),
+                ms(t_ref_render),
+                ms(t_ref_encode),
+                ms(t_ref_both),
+            ]
+        )
     return speed, steps
 
 
@@ -330,10 +420,26 @@ def codecs() -> list[Codec]:
             Codec("(ii) libx265 yuv444p10le crf 12 (swscale RGB ↔ YUV)", ".mkv", "libx265", "yuv444p10le", "gbrp10le", opts)
         )
     elif "libx264" in av.codecs_available:
-        out.append(Codec("(ii) libx264 yuv444p10le crf 12 (swscale RGB ↔ YUV)", ".mkv", "libx264", "yuv444p10le", "gbrp10le",
-                         {"crf": "12", "preset": "fast"}))  # fmt: skip
-    out.append(Codec("(iii) libx264 yuv420p crf 18, 8-bit (codes >> 2 as rgb24)", ".mp4", "libx264", "yuv420p", "rgb24",
-                     {"crf": "18", "preset": "fast"}))  # fmt: skip
+        out.append(
+            Codec(
+                "(ii) libx264 yuv444p10le crf 12 (swscale RGB ↔ YUV)",
+                ".mkv",
+                "libx264",
+                "yuv444p10le",
+                "gbrp10le",
+                {"crf": "12", "preset": "fast"},
+            )
+        )
+    out.append(
+        Codec(
+            "(iii) libx264 yuv420p crf 18, 8-bit (codes >> 2 as rgb24)",
+            ".mp4",
+            "libx264",
+            "yuv420p",
+            "rgb24",
+            {"crf": "18", "preset": "fast"},
+        )
+    )
     return out
 
 
@@ -403,11 +509,18 @@ def bench_codecs(clip: Clip, size: tuple[int, int], repeats: int, tmp: Path):
             assert th[0] <= meta.height_bound(True), f"terrain height error {th[0]} m over the bound {meta.height_bound(True)} m"
             assert bh[0] <= meta.height_bound(False), f"bone height error {bh[0]} m over the bound {meta.height_bound(False)} m"
             assert dp[0] <= meta.depth_bound(), f"depth error {dp[0]} m over the bound {meta.depth_bound()} m"
-        rows.append([
-            cd.name, f"{n / t_enc:.1f}", f"{n / t_dec:.1f}", f"{path.stat().st_size / n:,.0f}",
-            f"{100 * err.id_exact / err.covered:.3f}", f"{100 * err.lost / err.covered:.3f}", f"{100 * err.gained / max(err.background, 1):.3f}",
-            *(f"{v:.4f}" for v in (*th, *bh, *dp)),
-        ])  # fmt: skip
+        rows.append(
+            [
+                cd.name,
+                f"{n / t_enc:.1f}",
+                f"{n / t_dec:.1f}",
+                f"{path.stat().st_size / n:,.0f}",
+                f"{100 * err.id_exact / err.covered:.3f}",
+                f"{100 * err.lost / err.covered:.3f}",
+                f"{100 * err.gained / max(err.background, 1):.3f}",
+                *(f"{v:.4f}" for v in (*th, *bh, *dp)),
+            ]
+        )
     return rows, meta
 
 

@@ -68,8 +68,15 @@ SEED = 32
 def make_corpus(root: Path, recordings: int, seconds: float, seed: int, scan: bool) -> Path:
     from marionette.synth import generate
 
-    generate(root / "recordings", recordings=recordings, seconds=seconds, seed=seed, width=96 if not scan else 160,
-             height=54 if not scan else 90, workers=2)  # fmt: skip
+    generate(
+        root / "recordings",
+        recordings=recordings,
+        seconds=seconds,
+        seed=seed,
+        width=96 if not scan else 160,
+        height=54 if not scan else 90,
+        workers=2,
+    )
     opts = IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28))
     build_corpus(root / "recordings", root / "corpus", opts, workers=2, progress=False)
     if scan:
@@ -129,7 +136,9 @@ def model_only_fps(model: DynamicsModel, batch: int, dtype: torch.dtype, steps: 
         full = c.window - 1
         spec = net.spec
         kv = torch.randn(batch, spec.heads, c.window, spec.head_dim, generator=g).to(dtype)  # a full ring (window slots)
-        s.cache = type(s.cache)(tuple(kv.clone() for _ in range(spec.layers)), tuple(kv.clone() for _ in range(spec.layers)), full, full)
+        s.cache = type(s.cache)(
+            tuple(kv.clone() for _ in range(spec.layers)), tuple(kv.clone() for _ in range(spec.layers)), full, full
+        )
         streams.append(s)
     with torch.inference_mode():  # as Rollout steps
         for _ in range(2):
@@ -189,13 +198,38 @@ def part_rollout(scanned: Path, horizon: int, work: Path) -> None:
             recompute = batch / recompute_seconds(ro.model, batch, dtype)
             ceiling = batch * bw * 1e9 / (n_params * (4 if dtype == torch.float32 else 2))
             name = "fp32" if dtype == torch.float32 else "bf16"
-            rows.append([batch, name, f"{overall:.1f}", f"{tail:.1f}", f"{only:.1f}", f"{recompute:.2f}", f"{ceiling:.0f}",
-                         ", ".join(ro.enabled)])  # fmt: skip
+            rows.append(
+                [
+                    batch,
+                    name,
+                    f"{overall:.1f}",
+                    f"{tail:.1f}",
+                    f"{only:.1f}",
+                    f"{recompute:.2f}",
+                    f"{ceiling:.0f}",
+                    ", ".join(ro.enabled),
+                ]
+            )
             print(f"batch {batch} {name}: {overall:.1f} frames/s", file=sys.stderr)
-    print(f"\n### Rollout, paper preset ({counts['ActionGPT']:,} + {counts['PoseGPT']:,} parameters), seed 64 frames, "
-          f"{horizon} predicted; memory copy {bw:.1f} GB/s\n")  # fmt: skip
-    print(table(["batch", "dtype", "cached, frames/s (whole horizon)", "cached, last 128 frames", "model only, full cache",
-                 "recomputed, steady state", "weight-streaming ceiling", "rules"], rows))  # fmt: skip
+    print(
+        f"\n### Rollout, paper preset ({counts['ActionGPT']:,} + {counts['PoseGPT']:,} parameters), seed 64 frames, "
+        f"{horizon} predicted; memory copy {bw:.1f} GB/s\n"
+    )
+    print(
+        table(
+            [
+                "batch",
+                "dtype",
+                "cached, frames/s (whole horizon)",
+                "cached, last 128 frames",
+                "model only, full cache",
+                "recomputed, steady state",
+                "weight-streaming ceiling",
+                "rules",
+            ],
+            rows,
+        )
+    )
 
 
 # -- training ----------------------------------------------------------------------------------------
@@ -210,8 +244,9 @@ def part_train(corpus: Path) -> None:
         data = WindowData(c, "train", normaliser=nz)
         sampler = WindowSampler(data, window, cfg.batch_size, seed=0)
         tokens = ActionTokens.from_corpus(c)
-        dyn = DynamicsConfig.preset(preset, c.layout, tokens.sizes, window=window, terrain=(False,) * len(tokens.sizes),
-                                    residual=cfg.residual)  # fmt: skip
+        dyn = DynamicsConfig.preset(
+            preset, c.layout, tokens.sizes, window=window, terrain=(False,) * len(tokens.sizes), residual=cfg.residual
+        )
         model = DynamicsModel(dyn)
         opt, _ = make_optimizer(model, cfg)
         it = batches_from(sampler, 0)
@@ -226,8 +261,16 @@ def part_train(corpus: Path) -> None:
             if k >= 2:
                 times.append(time.perf_counter() - t0)
         step = float(np.median(times))
-        rows.append([preset, window, cfg.batch_size, f"{1 / step:.2f}", f"{cfg.batch_size / step:.1f}",
-                     f"{cfg.batch_size * (window + 1) / step:.0f}"])  # fmt: skip
+        rows.append(
+            [
+                preset,
+                window,
+                cfg.batch_size,
+                f"{1 / step:.2f}",
+                f"{cfg.batch_size / step:.1f}",
+                f"{cfg.batch_size * (window + 1) / step:.0f}",
+            ]
+        )
     print("\n### Training speed (fp32, AdamW, all cores)\n")
     print(table(["preset", "window", "batch", "steps/s", "samples/s (windows)", "frames/s"], rows))
 
@@ -268,16 +311,27 @@ def part_window(corpus: Path, steps: int, work: Path) -> None:
     for window in (16, 32, 64):
         out = work / f"tiny-w{window}"
         t0 = time.perf_counter()
-        s = train(c, out, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=window, lr=2e-3, warmup=50),
-                  log=lambda *_: None)  # fmt: skip
+        s = train(
+            c, out, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=window, lr=2e-3, warmup=50), log=lambda *_: None
+        )
         took = time.perf_counter() - t0
         for dtype in (torch.float32, torch.bfloat16):
             err, fps = force_gt(c, out, seeds, 40, dtype)
-            rows.append([window, "fp32" if dtype == torch.float32 else "bf16", f"{err:.4f}", f"{fps:.0f}",
-                         f"{s['eval']['action_accuracy']:.4f}", f"{took:.0f}"])  # fmt: skip
+            rows.append(
+                [
+                    window,
+                    "fp32" if dtype == torch.float32 else "bf16",
+                    f"{err:.4f}",
+                    f"{fps:.0f}",
+                    f"{s['eval']['action_accuracy']:.4f}",
+                    f"{took:.0f}",
+                ]
+            )
             print(f"window {window} {dtype}: {err:.4f}", file=sys.stderr)
-    print(f"\n### Window and dtype against hunter RA-MPJPE (tiny preset, {steps} steps, Force-GT, {len(seeds)} held-out "
-          "seeds, 32 + 40 frames)\n")  # fmt: skip
+    print(
+        f"\n### Window and dtype against hunter RA-MPJPE (tiny preset, {steps} steps, Force-GT, {len(seeds)} held-out "
+        "seeds, 32 + 40 frames)\n"
+    )
     print(table(["window", "dtype", "RA-MPJPE (m)", "rollout frames/s", "held-out next-action acc.", "training s"], rows))
 
 
@@ -290,20 +344,40 @@ def separation(table_, layout) -> np.ndarray:
 def part_relative(corpus: Path, steps: int, work: Path) -> None:
     c = Corpus(corpus)
     recorded = np.concatenate([separation(c.dynamics_segment(s), c.layout) for s in c.segment_ids("test")])
-    rows = [["recorded (held-out)", "", f"{recorded.mean():.2f}", f"{np.percentile(recorded, 95):.2f}",
-             f"{(recorded > 6).mean():.1%}", f"{recorded.max():.1f}"]]  # fmt: skip
+    rows = [
+        [
+            "recorded (held-out)",
+            "",
+            f"{recorded.mean():.2f}",
+            f"{np.percentile(recorded, 95):.2f}",
+            f"{(recorded > 6).mean():.1%}",
+            f"{recorded.max():.1f}",
+        ]
+    ]
     segs = c.segment_ids("test")
     for relative in (False, True):
         out = work / f"tiny-rel{int(relative)}"
-        train(c, out, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50, relative=relative),
-              log=lambda *_: None)  # fmt: skip
+        train(
+            c,
+            out,
+            TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50, relative=relative),
+            log=lambda *_: None,
+        )
         seps = []
         for seg in segs[:3]:
             t = rollout(out, c, seg, SEED, 2000, rules="none", temperature=1.0, seed=1)
             seps.append(separation(t, c.layout)[SEED:])
         sep = np.concatenate(seps)
-        rows.append([f"relative feature {'on' if relative else 'off'}", len(seps), f"{sep.mean():.2f}",
-                     f"{np.percentile(sep, 95):.2f}", f"{(sep > 6).mean():.1%}", f"{sep.max():.1f}"])  # fmt: skip
+        rows.append(
+            [
+                f"relative feature {'on' if relative else 'off'}",
+                len(seps),
+                f"{sep.mean():.2f}",
+                f"{np.percentile(sep, 95):.2f}",
+                f"{(sep > 6).mean():.1%}",
+                f"{sep.max():.1f}",
+            ]
+        )
         print(f"relative {relative}: {sep.mean():.2f}", file=sys.stderr)
     print(f"\n### Separation over 2,000-frame free rollouts (tiny preset, {steps} steps, temperature 1, rules off)\n")
     print(table(["model", "rollouts", "mean (m)", "p95 (m)", "share > 6 m", "max (m)"], rows))
@@ -326,15 +400,28 @@ def part_heads(corpus: Path, steps: int, work: Path) -> None:
     rows = [["recorded (train split)", "", "", f"{np.median(rec_cv):.4f}", f"{rec_cv.max():.3f}"]]
     for residual, noise in ((True, 0.0), (False, 0.1)):
         out = work / f"tiny-res{int(residual)}"
-        train(c, out, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50, residual=residual,
-                                  input_noise=noise), log=lambda *_: None)  # fmt: skip
+        train(
+            c,
+            out,
+            TrainConfig(
+                preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50, residual=residual, input_noise=noise
+            ),
+            log=lambda *_: None,
+        )
         t = rollout(out, c, seg, SEED, 2000, rules="auto")
         w = world_of_rows(c.layout, t)
         span = max(float(np.ptp(w[e.name][SEED:, 0], axis=0).max()) for e in c.layout.articulated)
         cv = np.concatenate([bone_cv(w[e.name][SEED:], e.rig) for e in c.layout.articulated])
         finite = bool(np.isfinite(fixed_rows(t["state"], c.layout.dim)).all())
-        rows.append([f"{'residual, clean inputs' if residual else 'absolute, input noise 0.1 (default)'}", f"{span:,.0f}",
-                     str(finite), f"{np.median(cv):.4f}", f"{cv.max():.3f}"])  # fmt: skip
+        rows.append(
+            [
+                f"{'residual, clean inputs' if residual else 'absolute, input noise 0.1 (default)'}",
+                f"{span:,.0f}",
+                str(finite),
+                f"{np.median(cv):.4f}",
+                f"{cv.max():.3f}",
+            ]
+        )
         print(f"residual {residual}: span {span:.0f}", file=sys.stderr)
     print(f"\n### Heads: residual on clean inputs against absolute on noised inputs (tiny, {steps} steps, 2,000 frames)\n")
     print(table(["model", "root path extent (m)", "finite", "bone-length CV median", "max"], rows))

@@ -20,10 +20,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import preamble, table  # noqa: E402
-
 import av  # noqa: E402
 import numpy as np  # noqa: E402
+from common import preamble, table  # noqa: E402
 
 from marionette.ingest import video as V  # noqa: E402
 from marionette.synth import generate  # noqa: E402
@@ -79,11 +78,18 @@ def main() -> None:
                     s["bytes"].append(len(data))
                     s["psnr"].append(np.mean([psnr(x, y) for x, y in zip(V.decode_frames(data), ch)]))
     print(preamble("Deterministic RGB chunk encoding"))
-    print(f"{len(chunks)} chunks of {settings.chunk_frames} frames at {settings.width}×{settings.height}, crf {settings.crf}, "
-          f"{settings.preset}; x264 asm: {V.x264_cpu_flags()}\n")  # fmt: skip
+    print(
+        f"{len(chunks)} chunks of {settings.chunk_frames} frames at {settings.width}×{settings.height}, crf {settings.crf}, "
+        f"{settings.preset}; x264 asm: {V.x264_cpu_flags()}\n"
+    )
     rows = [
-        [name, f"{statistics.median(s['t']) * 1e3:.0f}", f"{np.mean(s['bytes']) / 1e3:.1f}", f"{np.mean(s['psnr']):.2f}",
-         max(len(d) for d in s["digests"])]  # fmt: skip
+        [
+            name,
+            f"{statistics.median(s['t']) * 1e3:.0f}",
+            f"{np.mean(s['bytes']) / 1e3:.1f}",
+            f"{np.mean(s['psnr']):.2f}",
+            max(len(d) for d in s["digests"]),
+        ]
         for name, s in stats.items()
     ]
     print(table(["x264-params", "ms per chunk (median)", "KB per chunk", "PSNR dB", "distinct bitstreams"], rows))

@@ -42,9 +42,13 @@ def main() -> None:
             t0 = time.perf_counter()
             r = observation_fvd(model, clips, steps=steps, seed=0, max_frames=frames)
             w = r["whole"]
-            rows.append([frames, steps, f"{w['value']:.2f}", f"[{w['low']:.2f}, {w['high']:.2f}]", f"{time.perf_counter() - t0:.1f}"])
+            rows.append(
+                [frames, steps, f"{w['value']:.2f}", f"[{w['low']:.2f}, {w['high']:.2f}]", f"{time.perf_counter() - t0:.1f}"]
+            )
             print(f"  {rows[-1]}", flush=True)
-    print(f"\n### proxy-FVD of the observation model ({len(clips)} held-out chunks at {model.config.height}×{model.config.width_px})\n")
+    print(
+        f"\n### proxy-FVD of the observation model ({len(clips)} held-out chunks at {model.config.height}×{model.config.width_px})\n"
+    )
     print(table(["clip frames", "sampling steps", "proxy-FVD", "95 % interval", "seconds"], rows))
     g = torch.Generator().manual_seed(0)
     videos = torch.rand(8, 16, 3, 36, 64, generator=g) * 2 - 1

@@ -65,8 +65,23 @@ ROOF_M = 6.0  # the hand-built second layer lies this far above the ground (> 2 
 CHUNKS_X, CHUNKS_Z = range(-12, -8), range(6, 10)  # 4 × 4 chunks: x ∈ [−1200, −800), z ∈ [600, 1000)
 STEP_MARGIN_M = 1.5  # a query reads the 2 × 2 cells around it: within 1.5 m of a step they may straddle it
 CELL_STEP_MARGIN_M = 0.6  # the scan test's margin around a cell centre
-SCAN_HEADER = ["varied", "voxel m", "stride", "max depth m", "image ny", "frames", "time s", "frames/s", "points kept", "cells",
-               "layers", "RMSE all m", "layers away", "RMSE away m", "p99 away m"]  # fmt: skip
+SCAN_HEADER = [
+    "varied",
+    "voxel m",
+    "stride",
+    "max depth m",
+    "image ny",
+    "frames",
+    "time s",
+    "frames/s",
+    "points kept",
+    "cells",
+    "layers",
+    "RMSE all m",
+    "layers away",
+    "RMSE away m",
+    "p99 away m",
+]
 
 
 # -- fields -------------------------------------------------------------------------------------------
@@ -149,8 +164,12 @@ def bench_queries(fields, n: int, repeats: int):
         t_tor, h_tor = time_call(lambda r=region, p=(tx, tz, tr): query_torch(r, *p), repeats)
         h_tor = h_tor.numpy().astype(np.float64)
         width = field.width
-        for method, t in (("bilinear `query`", t_bil), ("bilinear `query_reference` (numpy)", t_ref),
-                          ("nearest `cell_height`", t_near), ("bilinear `query_torch` f32", t_tor)):  # fmt: skip
+        for method, t in (
+            ("bilinear `query`", t_bil),
+            ("bilinear `query_reference` (numpy)", t_ref),
+            ("nearest `cell_height`", t_near),
+            ("bilinear `query_torch` f32", t_tor),
+        ):
             qps = n / t
             met = ("**met**" if qps >= TARGET_QPS else "**not met**") if method == "bilinear `query`" else ""
             extra = f"{region.nx}×{region.nz} cells, built in {1e3 * t_region:.0f} ms" if "torch" in method else ""

@@ -17,13 +17,23 @@ from prefect.cache_policies import NO_CACHE
 
 
 @task(cache_policy=NO_CACHE, task_run_name="evaluate-{dynamics}")
-def run_protocol(dynamics: str, corpus: str, out: str, observation: str | None, segments: int, seed_frames: int, horizon: int,
-                 seed: int) -> dict:  # fmt: skip
+def run_protocol(
+    dynamics: str, corpus: str, out: str, observation: str | None, segments: int, seed_frames: int, horizon: int, seed: int
+) -> dict:
     """The whole protocol (``marionette.eval.report.evaluate``); returns its summary."""
     from marionette.eval.report import evaluate as run
 
-    return run(dynamics, corpus, out, observation=observation, segments=segments, seed_frames=seed_frames, horizon=horizon,
-               seed=seed, log=get_run_logger().info)  # fmt: skip
+    return run(
+        dynamics,
+        corpus,
+        out,
+        observation=observation,
+        segments=segments,
+        seed_frames=seed_frames,
+        horizon=horizon,
+        seed=seed,
+        log=get_run_logger().info,
+    )
 
 
 @flow(name="evaluate")

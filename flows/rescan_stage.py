@@ -26,8 +26,9 @@ from terrain_scan.scan import ScanOptions
 def refresh_corpus(corpus: str, stage: str | None, incremental: bool, options: ScanOptions, render_targets: bool) -> dict:
     """Scan the stage(s), then render the pose targets whose inputs changed; logs each line of the summary."""
     logger = get_run_logger()
-    done = pipeline.refresh(Path(corpus), stage, incremental=incremental, scan_options=options, pose=render_targets,
-                            log=logger.info)  # fmt: skip
+    done = pipeline.refresh(
+        Path(corpus), stage, incremental=incremental, scan_options=options, pose=render_targets, log=logger.info
+    )
     for line in done.lines():
         logger.info(line)
     return {**done.terrain, **({"_pose_targets": done.pose} if done.pose is not None else {})}
@@ -47,11 +48,16 @@ def report_markdown(corpus: str, report: dict) -> str:
             f"| {st} | {len(r['scanned'])} | {len(r['unchanged'])} | {len(r['failed'])} | {len(r['chunks_written'])} "
             f"| {len(r['chunks_unchanged'])} | {len(r['chunks_removed'])} | {r['layers']} |"
         )
-    failed = [f"- terrain `{st}/{rec}`: {why}" for st, r in report.items() if st != "_pose_targets" for rec, why in r["failed"].items()]
+    failed = [
+        f"- terrain `{st}/{rec}`: {why}" for st, r in report.items() if st != "_pose_targets" for rec, why in r["failed"].items()
+    ]
     pose = report.get("_pose_targets")
     if pose is not None:
-        lines += ["", f"pose targets: {len(pose['rendered'])} of {pose['chunks']} video chunks rendered, shards rewritten: "
-                      f"{pose['shards_rewritten']}, failed: {len(pose['failed'])}"]  # fmt: skip
+        lines += [
+            "",
+            f"pose targets: {len(pose['rendered'])} of {pose['chunks']} video chunks rendered, shards rewritten: "
+            f"{pose['shards_rewritten']}, failed: {len(pose['failed'])}",
+        ]
         failed += [f"- pose `{k}`: {why}" for k, why in sorted(pose["failed"].items())]
     return "\n".join(lines + ([""] + failed if failed else []))
 

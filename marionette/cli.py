@@ -490,8 +490,18 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
     states, video = out / f"{seg}-rollout.arrow", out / f"{seg}-rollout.mkv"
     force = [(entity, 40, 60, attack)] if attack is not None else []
     print(f"[7/9] rollout of {seg}: 32 seed frames, 200 predicted (10 s), {entity} forced to attack over frames 40–59, rules on")
-    write_rollout(runs, c, seg, states, horizon=200, seed_frames=32, force=force, render=video, size=(352, 640),
-                  log=lambda m: print("   ", m))  # fmt: skip
+    write_rollout(
+        runs,
+        c,
+        seg,
+        states,
+        horizon=200,
+        seed_frames=32,
+        force=force,
+        render=video,
+        size=(352, 640),
+        log=lambda m: print("   ", m),
+    )
 
 
 def _demo_observation(c, out: Path, steps: int) -> None:
@@ -575,8 +585,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--chunk-frames", type=chunk_frames, default=81, help="frames per video chunk (4k + 1, at least 5)")
     s.add_argument("--crf", type=x264_crf, default=20, help="x264 quality of the video chunks, 0..51 (lower is better)")
     s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd", help="codec of the Arrow state shards")
-    s.add_argument("--max-member-bytes", type=positive_int, default=2 << 30,
-                   help="largest skeleton.npz array a sample may declare, bytes (checked before it is inflated)")  # fmt: skip
+    s.add_argument(
+        "--max-member-bytes",
+        type=positive_int,
+        default=2 << 30,
+        help="largest skeleton.npz array a sample may declare, bytes (checked before it is inflated)",
+    )
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.add_argument("--no-terrain", dest="terrain", action="store_false", help="skip the incremental terrain scan after ingest")
     s.add_argument("--no-pose", dest="pose", action="store_false", help="skip rendering the pose-control targets after ingest")

@@ -236,7 +236,9 @@ def to_local(points_world: np.ndarray, origin_world: np.ndarray, R: np.ndarray) 
 
 def to_world(points_local: np.ndarray, origin_world: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Inverse of ``to_local``: X = x_t + R_t p. (N,K,3), (N,3), (N,3,3) → (N,K,3) float64."""
-    return np.asarray(origin_world, np.float64)[:, None, :] + np.asarray(points_local, np.float64) @ transpose(np.asarray(R, np.float64))
+    return np.asarray(origin_world, np.float64)[:, None, :] + np.asarray(points_local, np.float64) @ transpose(
+        np.asarray(R, np.float64)
+    )
 
 
 def world_to_state(layout, joints_world: dict[str, np.ndarray], rot_world: dict[str, np.ndarray]) -> np.ndarray:

@@ -47,8 +47,16 @@ class RefreshReport:
         return out
 
 
-def refresh(corpus: Path, stage: str | None = None, incremental: bool = True, scan_options=None, terrain: bool = True,
-            pose: bool = True, progress: bool = False, log=lambda *_: None) -> RefreshReport:  # fmt: skip
+def refresh(
+    corpus: Path,
+    stage: str | None = None,
+    incremental: bool = True,
+    scan_options=None,
+    terrain: bool = True,
+    pose: bool = True,
+    progress: bool = False,
+    log=lambda *_: None,
+) -> RefreshReport:
     """Scan the terrain of one stage (or all), then bring every pose target up to date, under the corpus lock.
 
     ``scan_options`` is a ``terrain_scan.scan.ScanOptions`` (default: the synthetic game's depth decoder).
@@ -65,8 +73,16 @@ def refresh(corpus: Path, stage: str | None = None, incremental: bool = True, sc
     return report
 
 
-def build(source: Path, corpus: Path, options, workers: int = 1, terrain: bool = True, pose: bool = True,
-          progress: bool = True, log=lambda *_: None) -> dict:  # fmt: skip
+def build(
+    source: Path,
+    corpus: Path,
+    options,
+    workers: int = 1,
+    terrain: bool = True,
+    pose: bool = True,
+    progress: bool = True,
+    log=lambda *_: None,
+) -> dict:
     """Ingest every sample under ``source`` (``marionette.ingest.build_corpus``), then ``refresh`` the corpus;
     returns the build report with "refresh" (a RefreshReport) and "failures" (counts by kind) added."""
     from marionette.ingest import build_corpus

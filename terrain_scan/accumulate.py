@@ -61,8 +61,15 @@ class ScanResult:
     points: np.ndarray | None = field(default=None, repr=False)  # (P, 3) kept world points, if asked for
 
     def counters(self) -> dict[str, int]:
-        keys = ("frames_total", "frames_used", "frames_skipped_camera", "points_valid", "points_masked", "points_kept",
-                "contacts_added")  # fmt: skip
+        keys = (
+            "frames_total",
+            "frames_used",
+            "frames_skipped_camera",
+            "points_valid",
+            "points_masked",
+            "points_kept",
+            "contacts_added",
+        )
         return {k: getattr(self, k) for k in keys}
 
 
@@ -140,8 +147,9 @@ def entity_bones(sample: RecordedSample, layout: Layout, frame: int, radius_scal
     return out
 
 
-def contact_observations(sample: RecordedSample, layout: Layout, ts: int, speed: float = 0.2, window: int = 2,
-                         tol_m: float = 0.05, hits: int = 1) -> Observations:  # fmt: skip
+def contact_observations(
+    sample: RecordedSample, layout: Layout, ts: int, speed: float = 0.2, window: int = 2, tol_m: float = 0.05, hits: int = 1
+) -> Observations:
     """Ground contacts of every articulated entity (rule in the module docstring)."""
     parts = []
     dt_s = 1.0 / (sample.fps or 30.0)
@@ -218,8 +226,14 @@ def depth_frames(path: Path) -> Iterator[np.ndarray]:
             i += 1
 
 
-def ground_cloud(points: np.ndarray, voxel_m: float, min_normal_y: float, normal_radius_voxels: float = 4.0,
-                 outlier_neighbors: int = 16, outlier_std: float = 2.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def ground_cloud(
+    points: np.ndarray,
+    voxel_m: float,
+    min_normal_y: float,
+    normal_radius_voxels: float = 4.0,
+    outlier_neighbors: int = 16,
+    outlier_std: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Down-sample, drop outliers, estimate upward normals, keep walkable points: (P, 3) points, (P, 3) normals."""
     if len(points) < 3:
         return np.zeros((0, 3)), np.zeros((0, 3))
@@ -267,10 +281,20 @@ def image_normals(G: np.ndarray, eye: np.ndarray) -> np.ndarray:
         return np.where((np.sum(n * (eye - G), axis=-1) < 0)[..., None], -n, n)
 
 
-def frame_points(codes: np.ndarray, sample: RecordedSample, layout: Layout, i: int, decoder: DepthDecoder,
-                 max_depth_m: float = 20.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
-                 mask_radius_scale: float = 3.0, mask_margin_m: float = 0.3,
-                 image_normal_y: float = 0.8) -> tuple[np.ndarray, int]:  # fmt: skip
+def frame_points(
+    codes: np.ndarray,
+    sample: RecordedSample,
+    layout: Layout,
+    i: int,
+    decoder: DepthDecoder,
+    max_depth_m: float = 20.0,
+    smooth_radius: int = 3,
+    smooth_tol: float = 1.0,
+    edge_rel: float = 0.1,
+    mask_radius_scale: float = 3.0,
+    mask_margin_m: float = 0.3,
+    image_normal_y: float = 0.8,
+) -> tuple[np.ndarray, int]:
     """One frame's non-character world points (P, 3) and how many valid points were masked as characters.
 
     The frame's camera must be valid. Codes are de-quantised (``smooth_codes``), pixels next to a
@@ -301,13 +325,29 @@ def frame_points(codes: np.ndarray, sample: RecordedSample, layout: Layout, i: i
 # the scan
 
 
-def scan_sample(sample: RecordedSample, layout: Layout, frames: Iterable[np.ndarray], decoder: DepthDecoder,
-                recording_ts: int = 0, frame_stride: int = 1, voxel_m: float = 0.25, min_normal_y: float = 0.5,
-                max_depth_m: float = 20.0, smooth_radius: int = 3, smooth_tol: float = 1.0, edge_rel: float = 0.1,
-                normal_radius_voxels: float = 2.0, mask_radius_scale: float = 3.0, mask_margin_m: float = 0.3,
-                image_normal_y: float = 0.8,
-                contact_speed: float = 0.2, contact_window: int = 2, contact_tol_m: float = 0.05, contact_hits: int = 1,
-                keep_points: bool = False) -> ScanResult:  # fmt: skip
+def scan_sample(
+    sample: RecordedSample,
+    layout: Layout,
+    frames: Iterable[np.ndarray],
+    decoder: DepthDecoder,
+    recording_ts: int = 0,
+    frame_stride: int = 1,
+    voxel_m: float = 0.25,
+    min_normal_y: float = 0.5,
+    max_depth_m: float = 20.0,
+    smooth_radius: int = 3,
+    smooth_tol: float = 1.0,
+    edge_rel: float = 0.1,
+    normal_radius_voxels: float = 2.0,
+    mask_radius_scale: float = 3.0,
+    mask_margin_m: float = 0.3,
+    image_normal_y: float = 0.8,
+    contact_speed: float = 0.2,
+    contact_window: int = 2,
+    contact_tol_m: float = 0.05,
+    contact_hits: int = 1,
+    keep_points: bool = False,
+) -> ScanResult:
     """Scan a read sample with its depth frames (codes, (H, W) uint8); see ``scan_recording``."""
     res = ScanResult(Observations.empty(), int(recording_ts))
     stride = max(1, int(frame_stride))
@@ -322,8 +362,20 @@ def scan_sample(sample: RecordedSample, layout: Layout, frames: Iterable[np.ndar
         if sample.camera_valid is None or not sample.camera_valid[i]:
             res.frames_skipped_camera += 1
             continue
-        P, masked = frame_points(codes, sample, layout, i, decoder, max_depth_m, smooth_radius, smooth_tol, edge_rel,
-                                 mask_radius_scale, mask_margin_m, image_normal_y)  # fmt: skip
+        P, masked = frame_points(
+            codes,
+            sample,
+            layout,
+            i,
+            decoder,
+            max_depth_m,
+            smooth_radius,
+            smooth_tol,
+            edge_rel,
+            mask_radius_scale,
+            mask_margin_m,
+            image_normal_y,
+        )
         res.frames_used += 1
         res.points_valid += len(P) + masked
         res.points_masked += masked
@@ -350,8 +402,15 @@ def scan_sample(sample: RecordedSample, layout: Layout, frames: Iterable[np.ndar
     return res
 
 
-def scan_recording(ref: SampleRef, layout: Layout, decoder: DepthDecoder, frame_stride: int = 1, voxel_m: float = 0.25,
-                   min_normal_y: float = 0.5, **options) -> ScanResult:  # fmt: skip
+def scan_recording(
+    ref: SampleRef,
+    layout: Layout,
+    decoder: DepthDecoder,
+    frame_stride: int = 1,
+    voxel_m: float = 0.25,
+    min_normal_y: float = 0.5,
+    **options,
+) -> ScanResult:
     """Scan one recording (``data_part<x>/<id>/``): its depth frames and contacts → merged observations.
 
     ``options`` are ``scan_sample``'s (depth range, character mask, contact rule, ``keep_points``).

@@ -108,8 +108,9 @@ def _cap(layers: Observations, max_layers: int) -> Observations:
     return kept.take(np.lexsort((kept.h, kept.gz, kept.gx)))
 
 
-def drop_aliases(layers: Observations, fraction: float = ALIAS_FRACTION, dominance: float = ALIAS_DOMINANCE,
-                 merge_m: float = MERGE_M) -> Observations:  # fmt: skip
+def drop_aliases(
+    layers: Observations, fraction: float = ALIAS_FRACTION, dominance: float = ALIAS_DOMINANCE, merge_m: float = MERGE_M
+) -> Observations:
     """Drop the layers that are a neighbouring cell's surface seen a few centimetres across a cell edge.
 
     A surface that ends on a cell edge (a wall's side, a deck's rim) leaks points a few cm into the

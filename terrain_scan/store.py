@@ -106,8 +106,14 @@ class Stage:
             except (json.JSONDecodeError, UnicodeDecodeError) as exc:
                 raise ValueError(f"{path}: not a terrain stage manifest ({exc})") from None
         else:
-            self.manifest = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "max_layers": max_layers,
-                             "fill_rounds": fill_rounds, "recordings": {}, "chunks": {}}  # fmt: skip
+            self.manifest = {
+                "format": MANIFEST_FORMAT,
+                "version": MANIFEST_VERSION,
+                "max_layers": max_layers,
+                "fill_rounds": fill_rounds,
+                "recordings": {},
+                "chunks": {},
+            }
 
     def file(self, rel: str) -> Path:
         """A file of the stage named by its (checked) manifest, resolved inside the stage directory."""
@@ -136,9 +142,12 @@ class Stage:
         cx, cz, _ = split_cell(obs.gx, obs.gz)
         chunks = sorted({(int(a), int(b)) for a, b in zip(cx, cz)})
         self.manifest["recordings"][recording] = {
-            "input_hash": input_hash, "ts": int(ts), "observations": len(obs),
-            "file": contribution_file(recording), "chunks": [list(c) for c in chunks],
-        }  # fmt: skip
+            "input_hash": input_hash,
+            "ts": int(ts),
+            "observations": len(obs),
+            "file": contribution_file(recording),
+            "chunks": [list(c) for c in chunks],
+        }
         write_json(self.dir / "manifest.json", self.manifest)
 
     def remove(self, recording: str) -> None:

@@ -48,7 +48,12 @@ def test_follow_camera_at_another_rate_and_a_rollout_table(scanned, tmp_path):
     seg = c.segment_ids()[0]
     rows = c.read_segment(seg)
     out = tmp_path / "follow.mkv"
-    assert main(["render", str(scanned), "--segment", seg, "--camera", "follow", "--size", "90x160", "--fps", "20", "--out", str(out)]) == 0
+    assert (
+        main(
+            ["render", str(scanned), "--segment", seg, "--camera", "follow", "--size", "90x160", "--fps", "20", "--out", str(out)]
+        )
+        == 0
+    )
     frames, meta = decode_gbuffer(out)
     t = rows["t"].to_numpy()
     assert (meta.width, meta.height, meta.fps) == (160, 90, 20.0)
@@ -60,7 +65,18 @@ def test_follow_camera_at_another_rate_and_a_rollout_table(scanned, tmp_path):
     write_ipc(tmp_path / "states.arrow", rows)
     out2 = tmp_path / "rollout.mkv"
     stage = next((scanned / "terrain").iterdir())
-    argv = ["render", str(tmp_path / "states.arrow"), "--terrain", str(stage), "--size", "90x160", "--fps", "20", "--out", str(out2)]
+    argv = [
+        "render",
+        str(tmp_path / "states.arrow"),
+        "--terrain",
+        str(stage),
+        "--size",
+        "90x160",
+        "--fps",
+        "20",
+        "--out",
+        str(out2),
+    ]
     assert main(argv) == 0
     assert out2.read_bytes() == out.read_bytes()
     # a rollout has no recorded camera

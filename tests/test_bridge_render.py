@@ -191,8 +191,9 @@ def test_far_from_the_origin_renders_like_the_origin(rast):
         assert (masks[0] == m).mean() > 0.995
 
 
-@pytest.mark.parametrize("d6", [np.zeros(6), np.array([1.0, 0, 0, 2.0, 0, 0]), np.array([1e8, 0, 0, 0, 1e8, 0]),
-                                np.array([np.nan, 0, 0, 0, 1, 0])])  # fmt: skip
+@pytest.mark.parametrize(
+    "d6", [np.zeros(6), np.array([1.0, 0, 0, 2.0, 0, 0]), np.array([1e8, 0, 0, 0, 1e8, 0]), np.array([np.nan, 0, 0, 0, 1, 0])]
+)
 def test_degenerate_rotations_never_give_nan_pixels(rast, d6):
     layout = load_scene("duel")
     if not np.isfinite(d6).all():
@@ -248,7 +249,9 @@ def test_resampling_keeps_bone_lengths_and_source_frames():
     m = layout.entity("monster")
     bones = np.array(m.rig.bones)
     length = lambda J: np.linalg.norm(J[:, bones[:, 0]] - J[:, bones[:, 1]], axis=-1)  # noqa: E731
-    np.testing.assert_allclose(length(out.joints["monster"]), np.broadcast_to(length(src.joints["monster"])[:1], (31, len(bones))), atol=1e-5)
+    np.testing.assert_allclose(
+        length(out.joints["monster"]), np.broadcast_to(length(src.joints["monster"])[:1], (31, len(bones))), atol=1e-5
+    )
     # output times that fall on source frames give the source skeleton
     np.testing.assert_allclose(out.joints["monster"][::3], src.joints["monster"][::2], atol=1e-9)
     # the hunter is invalid at 0.5 s (source row 10): the output frames around it are too

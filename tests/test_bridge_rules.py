@@ -142,8 +142,11 @@ def test_collider_blocks_a_wall_per_cell_and_passes_a_step_and_a_jump():
         x = out["hunter"][:, 0, 0]
         assert 9.9 < x.max() < 10.0 and x[-1] == x.max()  # stopped before the wall cell, held there
         np.testing.assert_array_equal(out["hunter"][:50, :, [0, 2]], seq["hunter"][:50, :, [0, 2]])  # moving freely up to it
-        np.testing.assert_allclose(out["weapon"][:, :, [0, 2]] - seq["weapon"][:, :, [0, 2]],
-                                   np.broadcast_to(out["hunter"][:, :1, [0, 2]] - seq["hunter"][:, :1, [0, 2]], (n, 2, 2)), atol=1e-12)  # fmt: skip
+        np.testing.assert_allclose(
+            out["weapon"][:, :, [0, 2]] - seq["weapon"][:, :, [0, 2]],
+            np.broadcast_to(out["hunter"][:, :1, [0, 2]] - seq["hunter"][:, :1, [0, 2]], (n, 2, 2)),
+            atol=1e-12,
+        )
 
     out = apply_rules(SOLO, seq, field_of(block(1.0)))  # a 1 m step: walked onto, lifted onto its top
     np.testing.assert_array_equal(out["hunter"][..., [0, 2]], seq["hunter"][..., [0, 2]])

@@ -75,8 +75,14 @@ def test_a_rescan_rerenders_only_the_chunks_that_see_the_change(scanned):
     stage = Stage(stage_dir(scanned, "default"))
     # new ground west of the arena, in a chunk of its own (x in [-1100, -1000)): some cameras look that way
     gx, gz = (a.ravel() for a in np.meshgrid(np.arange(-1040, -1000), np.arange(820, 880), indexing="ij"))
-    obs = Observations(gx, gz, np.full(len(gx), 25.0), np.tile([0.0, 1.0, 0.0], (len(gx), 1)), np.ones(len(gx), np.int64),
-                       np.zeros(len(gx), np.int64))  # fmt: skip
+    obs = Observations(
+        gx,
+        gz,
+        np.full(len(gx), 25.0),
+        np.tile([0.0, 1.0, 0.0], (len(gx), 1)),
+        np.ones(len(gx), np.int64),
+        np.zeros(len(gx), np.int64),
+    )
     stage.put("extra/west", obs, "test", 0)
     rebuilt = stage.rebuild()
     assert rebuilt.written == [(-11, 8)]

@@ -62,8 +62,10 @@ def test_learning_beats_every_baseline(tiny_dynamics):
     _, s = tiny_dynamics
     ev, base = s["eval"], s["baselines"]
     print(f"\nheld-out windows {ev['windows']} after {s['steps']} steps; parameters {s['parameters']}")
-    print(f"next-action accuracy: model {ev['action_accuracy']:.4f}, copy-last {base['copy_last_action_accuracy']:.4f}, "
-          f"most-frequent {base['most_frequent_action_accuracy']:.4f}")  # fmt: skip
+    print(
+        f"next-action accuracy: model {ev['action_accuracy']:.4f}, copy-last {base['copy_last_action_accuracy']:.4f}, "
+        f"most-frequent {base['most_frequent_action_accuracy']:.4f}"
+    )
     print(f"body MSE (normalised): model {ev['body_mse']:.5f}, copy-last {base['copy_last_body_mse']:.5f}")
     print(f"root MSE (normalised): model {ev['root_mse']:.5f}, constant velocity {base['constant_velocity_root_mse']:.5f}")
     assert ev["action_accuracy"] > base["copy_last_action_accuracy"]
@@ -90,9 +92,11 @@ def test_forcing_an_attack_swings_the_weapon_within_10_frames(corpus, ckpt):
             fast[token].append(bool(tip_speed(corpus, table).max() > FAST_TIP_MPS))
     rates = {t: float(np.mean(v)) for t, v in fast.items()}
     forced = float(np.mean([x for t in attacks for x in fast[t]]))
-    print(f"\n{len(seeds)} held-out seeds; tip > {FAST_TIP_MPS} m/s within 10 frames: free {rates[None]:.2f}, "
-          + ", ".join(f"forced token {t} (composite {int(tokens.composites[hi][t])}) {rates[t]:.2f}" for t in attacks)
-          + f"; all attacks {forced:.2f}")  # fmt: skip
+    print(
+        f"\n{len(seeds)} held-out seeds; tip > {FAST_TIP_MPS} m/s within 10 frames: free {rates[None]:.2f}, "
+        + ", ".join(f"forced token {t} (composite {int(tokens.composites[hi][t])}) {rates[t]:.2f}" for t in attacks)
+        + f"; all attacks {forced:.2f}"
+    )
     assert forced >= 0.7
     assert all(rates[t] > rates[None] + 0.2 for t in attacks)
 
@@ -113,8 +117,10 @@ def test_forcing_the_recorded_stream_beats_a_shuffled_one(corpus, ckpt):
             table = rollout(ckpt, corpus, seg, SEED, H, force=force_windows("hunter", s), rules="none", start=start)
             out.append(ra_mpjpe(table, recorded, corpus.layout, "hunter"))
     gt, shuf = np.array(gt), np.array(shuf)
-    print(f"\nhunter RA-MPJPE over {len(seeds)} held-out seeds, horizon {H}: Force-GT {gt.mean():.4f} ± {gt.std():.4f} m, "
-          f"Force-Shuf {shuf.mean():.4f} ± {shuf.std():.4f} m; Force-GT lower on {(gt < shuf).sum()} of {len(gt)}")  # fmt: skip
+    print(
+        f"\nhunter RA-MPJPE over {len(seeds)} held-out seeds, horizon {H}: Force-GT {gt.mean():.4f} ± {gt.std():.4f} m, "
+        f"Force-Shuf {shuf.mean():.4f} ± {shuf.std():.4f} m; Force-GT lower on {(gt < shuf).sum()} of {len(gt)}"
+    )
     assert gt.mean() < shuf.mean()
 
 
@@ -150,9 +156,11 @@ def test_ten_thousand_frames_stay_finite_with_steady_bones(corpus, ckpt):
         pred = bone_cv(world[e.name][SEED:], e.rig)
         rec = bone_cv(np.concatenate(recorded[e.name]), e.rig)
         roots = world[e.name][SEED:, 0]
-        print(f"{e.name}: bone-length CV median {np.median(pred):.4f} (recorded {np.median(rec):.4f}), mean {pred.mean():.4f} "
-              f"(recorded {rec.mean():.4f}), max {pred.max():.3f} (recorded {rec.max():.3f}); roots span "
-              f"{np.ptp(roots, axis=0).round(1)} m")  # fmt: skip
+        print(
+            f"{e.name}: bone-length CV median {np.median(pred):.4f} (recorded {np.median(rec):.4f}), mean {pred.mean():.4f} "
+            f"(recorded {rec.mean():.4f}), max {pred.max():.3f} (recorded {rec.max():.3f}); roots span "
+            f"{np.ptp(roots, axis=0).round(1)} m"
+        )
         # A "bone" joins kept joints and may span dropped ones (the drake's toe-hand crosses a wrist):
         # the recording's own CV reaches 0.2 there, so the bar is the median bone.
         assert np.median(pred) < 0.05
@@ -172,9 +180,11 @@ def test_bf16_drift_and_root_integration_error(corpus, ckpt):
     joint = np.linalg.norm((p16 - p16[:, :1]) - (p32 - p32[:, :1]), axis=-1).mean(1)
     root = np.linalg.norm(p16[:, 0] - p32[:, 0], axis=-1)
     same_tokens = (fp32["hunter.action"].to_numpy() == bf16["hunter.action"].to_numpy())[SEED:].mean()
-    print(f"\nbf16 vs fp32 over {H} frames: root-aligned joint drift at 10/50/200 frames {joint[9]:.4f}/{joint[49]:.4f}/"
-          f"{joint[-1]:.4f} m, root distance {root[9]:.3f}/{root[49]:.3f}/{root[-1]:.3f} m, same hunter token on "
-          f"{same_tokens:.0%} of frames")  # fmt: skip
+    print(
+        f"\nbf16 vs fp32 over {H} frames: root-aligned joint drift at 10/50/200 frames {joint[9]:.4f}/{joint[49]:.4f}/"
+        f"{joint[-1]:.4f} m, root distance {root[9]:.3f}/{root[49]:.3f}/{root[-1]:.3f} m, same hunter token on "
+        f"{same_tokens:.0%} of frames"
+    )
     assert np.isfinite(p16).all() and joint[:10].max() < 0.1
 
     table = rollout(ckpt, c, seg, SEED, 2000, rules="none")
@@ -193,7 +203,9 @@ def test_bf16_drift_and_root_integration_error(corpus, ckpt):
         f32[k] = acc
     e64 = np.linalg.norm(f64 - truth, axis=1).max()
     e32 = np.linalg.norm(f32 - truth, axis=1).max()
-    print(f"root integration over 2,000 frames 7 km from the origin: float64 of the float32 state {e64:.2e} m, "
-          f"float32 accumulator {e32:.2e} m")  # fmt: skip
+    print(
+        f"root integration over 2,000 frames 7 km from the origin: float64 of the float32 state {e64:.2e} m, "
+        f"float32 accumulator {e32:.2e} m"
+    )
     assert e64 < 1e-3
     assert e32 > e64  # why the table's roots are integrated in float64

@@ -156,8 +156,22 @@ def test_rules_keep_the_hunter_out_of_the_ground(ckpt, scanned, segment):
 def test_the_rollout_renders_with_the_follow_camera(ckpt, scanned, segment, tmp_path):
     c = Corpus(scanned)
     out = tmp_path / "states.arrow"
-    main([str(ckpt), str(scanned), "--segment", segment, "--seed-frames", "4", "--horizon", "4", "--out", str(out),
-          "--force", f"{c.layout.articulated[0].name}:0:2:1"])  # fmt: skip
+    main(
+        [
+            str(ckpt),
+            str(scanned),
+            "--segment",
+            segment,
+            "--seed-frames",
+            "4",
+            "--horizon",
+            "4",
+            "--out",
+            str(out),
+            "--force",
+            f"{c.layout.articulated[0].name}:0:2:1",
+        ]
+    )
     table = read_ipc(out)
     assert table.num_rows == 8
     terrain = TerrainScene.of_stage(stage_dir(scanned, c.segment_row(segment)["stage"]))
@@ -171,13 +185,56 @@ def test_cli_trains_then_rolls_out_with_a_scripted_root_and_renders(scanned, seg
 
     c = Corpus(scanned)
     runs = tmp_path / "runs"
-    assert cli(["train", "dynamics", str(scanned), "--out", str(runs), "--steps", "3", "--batch-size", "4", "--window", "16",
-                "--warmup", "1"]) == 0  # fmt: skip
+    assert (
+        cli(
+            [
+                "train",
+                "dynamics",
+                str(scanned),
+                "--out",
+                str(runs),
+                "--steps",
+                "3",
+                "--batch-size",
+                "4",
+                "--window",
+                "16",
+                "--warmup",
+                "1",
+            ]
+        )
+        == 0
+    )
     out, video = tmp_path / "states.arrow", tmp_path / "rollout.mkv"
     hunter = c.layout.entity("hunter").name
-    assert cli(["rollout", str(runs), str(scanned), "--segment", segment, "--seed-frames", "8", "--horizon", "10",
-                "--script-root", f"{hunter}:2:7:0,0,2.5", "--force", f"{hunter}:0:3:1", "--rules", "none",
-                "--out", str(out), "--render", str(video), "--size", "72x128"]) == 0  # fmt: skip
+    assert (
+        cli(
+            [
+                "rollout",
+                str(runs),
+                str(scanned),
+                "--segment",
+                segment,
+                "--seed-frames",
+                "8",
+                "--horizon",
+                "10",
+                "--script-root",
+                f"{hunter}:2:7:0,0,2.5",
+                "--force",
+                f"{hunter}:0:3:1",
+                "--rules",
+                "none",
+                "--out",
+                str(out),
+                "--render",
+                str(video),
+                "--size",
+                "72x128",
+            ]
+        )
+        == 0
+    )
     table = read_ipc(out)
     delta = fixed_rows(table["state"], c.layout.dim)[8:, c.layout.slice(f"{hunter}.root")]
     np.testing.assert_allclose(delta[2:7], np.tile([0.0, 0.0, 2.5 / 20], (5, 1)), atol=1e-5)  # 2.5 m/s forward at 20 fps
@@ -185,8 +242,26 @@ def test_cli_trains_then_rolls_out_with_a_scripted_root_and_renders(scanned, seg
     frames, meta = decode_gbuffer(video)
     assert len(frames) == 18 and (meta.height, meta.width) == (72, 128)
     assert any((f.id >= 60).any() for f in frames)  # bone ids (weapon, drake or hunter) are in the picture
-    assert cli(["rollout", str(runs), str(scanned), "--segment", segment, "--horizon", "4", "--seed-frames", "8",
-                "--script-root", "dragon:0:1:0,0,1", "--out", str(tmp_path / "x.arrow")]) == 2  # fmt: skip
+    assert (
+        cli(
+            [
+                "rollout",
+                str(runs),
+                str(scanned),
+                "--segment",
+                segment,
+                "--horizon",
+                "4",
+                "--seed-frames",
+                "8",
+                "--script-root",
+                "dragon:0:1:0,0,1",
+                "--out",
+                str(tmp_path / "x.arrow"),
+            ]
+        )
+        == 2
+    )
 
 
 def test_relative_feature_known_answer_far_from_the_origin():

@@ -82,8 +82,10 @@ def test_penetration_hinge_on_recorded_bodies(scanned_corpus):
     value = hinge(f.body, f.body, f.root, f.terrain, known)
     clear, ok = f.terrain[..., N_PATCH:], known[..., N_PATCH:]
     expected = torch.where(ok, torch.relu(0.15 - clear.double()) ** 2, 0.0).sum() / ok.sum()
-    print(f"\nhinge on recorded bodies {value.item():.5f} over {int(ok.sum())} known key joints; "
-          f"clearance median {clear[ok].median().item():.3f} m")  # fmt: skip
+    print(
+        f"\nhinge on recorded bodies {value.item():.5f} over {int(ok.sum())} known key joints; "
+        f"clearance median {clear[ok].median().item():.3f} m"
+    )
     assert ok.sum() > 100
     assert value.item() == pytest.approx(expected.item(), rel=1e-4, abs=1e-7)
     body = f.body.clone().requires_grad_(True)
@@ -123,8 +125,12 @@ def test_resume_is_exact(split_corpus, tmp_path):
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     print(f"\nresume: 12 losses identical, {whole['losses'][0]['total']:.5f} → {whole['losses'][-1]['total']:.5f}")
     with pytest.raises(ValueError, match="another config"):
-        train(split_corpus, tmp_path / "split", TrainConfig(**{**cfg.to_json(), "betas": (0.9, 0.95), "lr": 5e-4}),
-              log=lambda *_: None)  # fmt: skip
+        train(
+            split_corpus,
+            tmp_path / "split",
+            TrainConfig(**{**cfg.to_json(), "betas": (0.9, 0.95), "lr": 5e-4}),
+            log=lambda *_: None,
+        )
 
 
 def test_ddp_two_processes_gloo_and_resume(split_corpus, tmp_path):
@@ -132,8 +138,25 @@ def test_ddp_two_processes_gloo_and_resume(split_corpus, tmp_path):
     process; a run resumed from step 2 of 4 continues the same loss sequence."""
     out = tmp_path / "ddp"
     marionette = str(Path(sys.executable).with_name("marionette"))
-    args = [str(split_corpus), "--out", str(out), "--preset", "tiny", "--steps", "4", "--batch-size", "4", "--window", "16",
-            "--warmup", "2", "--checkpoint-every", "2", "--nproc", "2"]  # fmt: skip
+    args = [
+        str(split_corpus),
+        "--out",
+        str(out),
+        "--preset",
+        "tiny",
+        "--steps",
+        "4",
+        "--batch-size",
+        "4",
+        "--window",
+        "16",
+        "--warmup",
+        "2",
+        "--checkpoint-every",
+        "2",
+        "--nproc",
+        "2",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}
     r = subprocess.run([marionette, "train", "dynamics", *args], capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
@@ -158,4 +181,6 @@ def test_ddp_two_processes_gloo_and_resume(split_corpus, tmp_path):
     assert [x["total"] for x in again["losses"]] == [x["total"] for x in meta["losses"]]
     resumed = load_file(str(latest_checkpoint(out) / "model.safetensors"))
     assert all(torch.equal(resumed[k], weights[k]) for k in weights)
-    print(f"\nDDP 2×gloo: losses {[round(x['total'], 4) for x in meta['losses']]}, checkpoint loads; resumed from step 2: identical")
+    print(
+        f"\nDDP 2×gloo: losses {[round(x['total'], 4) for x in meta['losses']]}, checkpoint loads; resumed from step 2: identical"
+    )

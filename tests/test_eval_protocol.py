@@ -120,8 +120,11 @@ def test_state_layer_reports_generated_beside_recorded(ckpt, corpus, windows, fr
 def test_probe_conditions_differ_and_classes_are_broken_down(ckpt, corpus, windows, free):
     p = controllability_probe(ckpt, corpus, windows, free=free[0])
     means = [p["conditions"][c]["mean"] for c in PROBE_CONDITIONS]
-    print(f"\nprobe over {N} windows: " + ", ".join(f"{c} {p['conditions'][c]['mean']:.4f} ± {p['conditions'][c]['std']:.4f} m"
-                                                    for c in PROBE_CONDITIONS) + f"; GT < Shuf on {p['force_gt_beats_shuf']}")  # fmt: skip
+    print(
+        f"\nprobe over {N} windows: "
+        + ", ".join(f"{c} {p['conditions'][c]['mean']:.4f} ± {p['conditions'][c]['std']:.4f} m" for c in PROBE_CONDITIONS)
+        + f"; GT < Shuf on {p['force_gt_beats_shuf']}"
+    )
     assert all(np.isfinite(means)) and len(set(means)) == 3
     assert 0 <= p["force_gt_beats_shuf"] <= p["compared"] == N
     assert p["compliance"] and set(p["compliance"]) <= {"stationary", "locomotion", "attack", "other"}

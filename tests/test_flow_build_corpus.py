@@ -264,8 +264,16 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
     copy = tmp_path / "corpus"
     shutil.copytree(corpus, copy)
     out = tmp_path / "observation"
-    params = {"corpus": copy, "out": out, "steps": 4, "batch_size": 2, "frames": 5, "reduce": 4, "patch": 2,
-              "checkpoint_every": 2}
+    params = {
+        "corpus": copy,
+        "out": out,
+        "steps": 4,
+        "batch_size": 2,
+        "frames": 5,
+        "reduce": 4,
+        "patch": 2,
+        "checkpoint_every": 2,
+    }
     run_id = run_deployment(local_prefect, deployment="train-observation/weekly", **params)
     from marionette.dynamics.checkpoint import latest_checkpoint
 
@@ -289,13 +297,22 @@ def test_evaluate_deployment_writes_the_report_and_publishes_it(local_prefect, c
     runs = tmp_path / "dynamics"
     train(corpus, runs, TrainConfig(preset="tiny", steps=4, batch_size=4, window=16), log=lambda *_: None)
     out = tmp_path / "report"
-    params = {"dynamics": runs, "corpus": corpus, "out": out, "observation": "null", "segments": 2, "seed_frames": 16, "horizon": 24}
+    params = {
+        "dynamics": runs,
+        "corpus": corpus,
+        "out": out,
+        "observation": "null",
+        "segments": 2,
+        "seed_frames": 16,
+        "horizon": 24,
+    }
     run_id = run_deployment(local_prefect, deployment="evaluate/weekly", **params)
     report = json.loads((out / "report.json").read_text())
     assert (out / "report.md").read_text().startswith("# Evaluation")
     assert all((out / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for name in ("ablation", "compliance", "drift"))
     artifacts = httpx.post(
-        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["evaluation-report", "evaluation-headline"]}}}
+        f"{local_prefect['api']}/artifacts/filter",
+        json={"artifacts": {"key": {"any_": ["evaluation-report", "evaluation-headline"]}}},
     ).json()
     mine = {a["key"]: a for a in artifacts if a["flow_run_id"] == run_id}
     assert set(mine) == {"evaluation-report", "evaluation-headline"}

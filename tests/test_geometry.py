@@ -179,4 +179,6 @@ def test_empty_and_single_frame_sequences():
     assert back["hunter"]["joints"].shape == (0, 32, 3)
     t = np.array([0.5])
     np.testing.assert_allclose(geo.resample_positions(t, np.ones((1, 3)), np.array([0.0, 0.5, 1.0])), np.ones((3, 3)))
-    np.testing.assert_allclose(geo.resample_quats(t, geo.yaw_quat(np.array([0.3])), np.array([0.0, 1.0])), geo.yaw_quat(np.array([0.3, 0.3])))
+    np.testing.assert_allclose(
+        geo.resample_quats(t, geo.yaw_quat(np.array([0.3])), np.array([0.0, 1.0])), geo.yaw_quat(np.array([0.3, 0.3]))
+    )

@@ -13,9 +13,9 @@ import pytest
 from conftest import TEST_OPTIONS
 
 from marionette.corpus import Corpus
+from marionette.corpus.lock import corpus_lock
 from marionette.ingest import build_corpus, finalize
 from marionette.ingest import sample as sample_mod
-from marionette.corpus.lock import corpus_lock
 from marionette.ingest.sample import valid_runs
 from marionette.ingest.video import CropResize
 from marionette.synth import load_truth

@@ -66,8 +66,15 @@ def test_public_layout_conformance(synth):
         n = len(rows)
         assert n == int(GEN["seconds"] * FPS)
         for row in rows:
-            for col, width in (("camera.K", 4), ("camera.pos", 3), ("camera.rot", 4), ("npc.list.0.pos", 3),
-                               ("npc.list.0.rot", 4), ("monster.list.0.pos", 3), ("monster.list.0.rot", 4)):  # fmt: skip
+            for col, width in (
+                ("camera.K", 4),
+                ("camera.pos", 3),
+                ("camera.rot", 4),
+                ("npc.list.0.pos", 3),
+                ("npc.list.0.rot", 4),
+                ("monster.list.0.pos", 3),
+                ("monster.list.0.rot", 4),
+            ):
                 _tuple(row[col], width)
         assert {r["npc.list.0.type_id"] for r in rows} == {"0"} and {r["npc.list.0.weapon_id"] for r in rows} == {"3"}
         assert {r["monster.list.0.type_id"] for r in rows} == {"25", "nan"}
@@ -208,8 +215,10 @@ def test_motion_frames_and_speed_signatures(synth):
 def test_feet_on_ground_and_bridge(synth):
     on_bridge = 0
     for d in _samples(synth):
-        for entity, rig, feet, pelvis in (("hunter", "hunter", ("toe_tip_l", "toe_tip_r"), 0.95),
-                                          ("monster", "drake", ("claw_fl", "claw_fr", "claw_hl", "claw_hr"), 1.5)):  # fmt: skip
+        for entity, rig, feet, pelvis in (
+            ("hunter", "hunter", ("toe_tip_l", "toe_tip_r"), 0.95),
+            ("monster", "drake", ("claw_fl", "claw_fr", "claw_hl", "claw_hr"), 1.5),
+        ):
             pos, R, names, mf, X, truth = _entity(synth, d, entity)
             src = load_rig(rig).source_joints
             F = X[:, [src.index(f) for f in feet]]

@@ -141,7 +141,9 @@ def _errors(layers):
     x, z = layers.gx + 0.5, layers.gz + 0.5
     d = layers.h - terrain.surface_height(x, z, layers.h)
     # cells touching a vertical step (the wall's sides, the deck's long edges)
-    step = (terrain.in_wall(x, z, 0.6) & ~terrain.in_wall(x, z, -0.6)) | (terrain.in_deck(x, z, 0.6) & ~terrain.in_deck(x, z, -0.6))
+    step = (terrain.in_wall(x, z, 0.6) & ~terrain.in_wall(x, z, -0.6)) | (
+        terrain.in_deck(x, z, 0.6) & ~terrain.in_deck(x, z, -0.6)
+    )
     return d, step
 
 

@@ -24,14 +24,36 @@ def _parser(cls) -> argparse.ArgumentParser:
 def test_flags_come_from_the_config_fields_with_help_defaults_and_checks(tmp_path, capsys):
     ap = _parser(ObservationTrainConfig)
     text = " ".join(ap.format_help().split())
-    for flag in ("--preset", "--control", "--steps", "--batch-size", "--frames", "--reduce", "--patch", "--lr", "--warmup",
-                 "--seed", "--checkpoint-every", "--reference-swap", "--nproc", "--out", "--progress"):  # fmt: skip
+    for flag in (
+        "--preset",
+        "--control",
+        "--steps",
+        "--batch-size",
+        "--frames",
+        "--reduce",
+        "--patch",
+        "--lr",
+        "--warmup",
+        "--seed",
+        "--checkpoint-every",
+        "--reference-swap",
+        "--nproc",
+        "--out",
+        "--progress",
+    ):
         assert flag in text
     assert "(default: 1000)" in text and "(default: pose)" in text and "default: the preset's" in text
     a = ap.parse_args(["c", "--out", str(tmp_path), "--steps", "7", "--control", "actions"])
     assert training.config_from_args(ObservationTrainConfig, a) == ObservationTrainConfig(steps=7, control="actions")
-    for bad in (["--steps", "0"], ["--batch-size", "-1"], ["--reference-swap", "1.5"], ["--control", "x"], ["--preset", "huge"],
-                ["--lr", "nan"], ["--nproc", "0"]):  # fmt: skip
+    for bad in (
+        ["--steps", "0"],
+        ["--batch-size", "-1"],
+        ["--reference-swap", "1.5"],
+        ["--control", "x"],
+        ["--preset", "huge"],
+        ["--lr", "nan"],
+        ["--nproc", "0"],
+    ):
         with pytest.raises(SystemExit) as exit_:
             ap.parse_args(["c", "--out", str(tmp_path), *bad])
         assert exit_.value.code == 2
@@ -71,8 +93,9 @@ def test_resume_names_the_fields_that_differ(tmp_path):
     sched = training.warmup_cosine(opt, 2, 10, 0.1)
     cfg = ObservationTrainConfig(steps=10, reference_swap=0.2)
     save_checkpoint(tmp_path, 3, model, opt, sched, {"train_config": cfg.to_json(), "losses": [{"step": 1}], "evals": []})
-    run = training.resume(tmp_path, model, opt, sched, {"train_config": ObservationTrainConfig(steps=10, reference_swap=0.2,
-                                                                                               checkpoint_every=5)})  # fmt: skip
+    run = training.resume(
+        tmp_path, model, opt, sched, {"train_config": ObservationTrainConfig(steps=10, reference_swap=0.2, checkpoint_every=5)}
+    )
     assert (run.step, run.started, run.history, run.resumed_from.name) == (3, 3, [{"step": 1}], "step-00000003")
     with pytest.raises(ValueError, match=r"differs in \['steps', 'lr'\].*cannot be extended"):
         training.resume(

@@ -55,7 +55,9 @@ def _raw_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
 
 
 # pose targets are written under corpus/derived/pose: three levels up is the sentinel
-@pytest.mark.parametrize("evil", ["../../../outside/evil.json", "/outside/evil.json", "x__c00000.rgb.mp4/../../../../outside/evil.json"])
+@pytest.mark.parametrize(
+    "evil", ["../../../outside/evil.json", "/outside/evil.json", "x__c00000.rgb.mp4/../../../../outside/evil.json"]
+)
 def test_video_shard_member_outside_the_corpus_is_refused(corpus_copy, tmp_path, evil):
     from marionette.bridge.targets import render_pose_targets
 
@@ -98,13 +100,19 @@ def test_finalize_plan_entries_outside_the_corpus_are_refused(corpus_copy, synth
         "records": [{"key": "../outside/dir"}],
     }
     plan_path = corpus_copy / "meta" / "finalize-plan.json"
-    for bad, entry in ((plan, "moves[0]"), ({**plan, "moves": []}, "deletes[0]"), ({**plan, "moves": [], "deletes": []}, "records[0]")):
+    for bad, entry in (
+        (plan, "moves[0]"),
+        ({**plan, "moves": []}, "deletes[0]"),
+        ({**plan, "moves": [], "deletes": []}, "records[0]"),
+    ):
         plan_path.write_text(json.dumps(bad))
         with pytest.raises(paths.CorpusPathError, match=re.escape(f"finalize-plan.json: {entry}")):
             build_corpus(synth_source, corpus_copy, TEST_OPTIONS, workers=1, progress=False)
         assert _snapshot(outside) == before
         assert _snapshot(corpus_copy / "state") == inside_before
-    plan_path.write_text(json.dumps({"moves": [["staging/k/state.arrow", "../outside/victim", "h"]], "deletes": [], "records": []}))
+    plan_path.write_text(
+        json.dumps({"moves": [["staging/k/state.arrow", "../outside/victim", "h"]], "deletes": [], "records": []})
+    )
     with pytest.raises(paths.CorpusPathError, match="outside/victim"):
         build_corpus(synth_source, corpus_copy, TEST_OPTIONS, workers=1, progress=False)
     assert _snapshot(outside) == before

@@ -23,11 +23,35 @@ from marionette.observation.wan import (
     wan_to_diffusers_name,
 )
 
-TRANSFORMER = dict(patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=12, in_channels=148, out_channels=48, text_dim=32,
-                   freq_dim=256, ffn_dim=32, num_layers=2, cross_attn_norm=True, qk_norm="rms_norm_across_heads", rope_max_seq_len=32)  # fmt: skip
-VAE = dict(base_dim=3, z_dim=48, in_channels=12, out_channels=12, is_residual=True, patch_size=2, latents_mean=[0.0] * 48,
-           latents_std=[1.0] * 48, dim_mult=[1, 1, 1, 1], num_res_blocks=1, scale_factor_spatial=16, scale_factor_temporal=4,
-           temperal_downsample=[False, True, True])  # fmt: skip
+TRANSFORMER = dict(
+    patch_size=(1, 2, 2),
+    num_attention_heads=2,
+    attention_head_dim=12,
+    in_channels=148,
+    out_channels=48,
+    text_dim=32,
+    freq_dim=256,
+    ffn_dim=32,
+    num_layers=2,
+    cross_attn_norm=True,
+    qk_norm="rms_norm_across_heads",
+    rope_max_seq_len=32,
+)
+VAE = dict(
+    base_dim=3,
+    z_dim=48,
+    in_channels=12,
+    out_channels=12,
+    is_residual=True,
+    patch_size=2,
+    latents_mean=[0.0] * 48,
+    latents_std=[1.0] * 48,
+    dim_mult=[1, 1, 1, 1],
+    num_res_blocks=1,
+    scale_factor_spatial=16,
+    scale_factor_temporal=4,
+    temperal_downsample=[False, True, True],
+)
 TEXT_LEN = 16
 
 
@@ -70,15 +94,36 @@ def test_release_layout_has_the_original_names(release):
     root, transformer, _, _ = release
     config = json.loads((root / "config.json").read_text())
     assert {k: config[k] for k in ("dim", "num_heads", "in_dim", "out_dim", "ffn_dim", "num_layers", "text_len")} == {
-        "dim": 24, "num_heads": 2, "in_dim": 148, "out_dim": 48, "ffn_dim": 32, "num_layers": 2, "text_len": TEXT_LEN,
-    }  # fmt: skip
+        "dim": 24,
+        "num_heads": 2,
+        "in_dim": 148,
+        "out_dim": 48,
+        "ffn_dim": 32,
+        "num_layers": 2,
+        "text_len": TEXT_LEN,
+    }
     assert config["qk_norm"] is True and config["cross_attn_norm"] is True and config["patch_size"] == [1, 2, 2]
     names = set(load_file(root / "diffusion_pytorch_model.safetensors"))
-    for name in ("patch_embedding.weight", "text_embedding.0.weight", "text_embedding.2.bias", "time_embedding.0.weight",
-                 "time_embedding.2.weight", "time_projection.1.weight", "blocks.0.self_attn.q.weight", "blocks.0.self_attn.o.bias",
-                 "blocks.1.self_attn.norm_k.weight", "blocks.0.cross_attn.v.weight", "blocks.1.cross_attn.norm_q.weight",
-                 "blocks.0.norm3.weight", "blocks.1.ffn.0.weight", "blocks.1.ffn.2.bias", "blocks.0.modulation",
-                 "head.head.weight", "head.modulation", "ref_conv.weight"):  # fmt: skip
+    for name in (
+        "patch_embedding.weight",
+        "text_embedding.0.weight",
+        "text_embedding.2.bias",
+        "time_embedding.0.weight",
+        "time_embedding.2.weight",
+        "time_projection.1.weight",
+        "blocks.0.self_attn.q.weight",
+        "blocks.0.self_attn.o.bias",
+        "blocks.1.self_attn.norm_k.weight",
+        "blocks.0.cross_attn.v.weight",
+        "blocks.1.cross_attn.norm_q.weight",
+        "blocks.0.norm3.weight",
+        "blocks.1.ffn.0.weight",
+        "blocks.1.ffn.2.bias",
+        "blocks.0.modulation",
+        "head.head.weight",
+        "head.modulation",
+        "ref_conv.weight",
+    ):
         assert name in names, name
     assert not any(n.startswith(("condition_embedder", "proj_out", "scale_shift_table")) or ".attn1." in n for n in names)
     diffusers_names = list(transformer.state_dict())  # the mapping is one-to-one over every parameter

@@ -81,8 +81,9 @@ def intrinsics_for(width: int, height: int, vfov_deg: float = FOLLOW_VFOV_DEG) -
     return np.array([fy, fy, width / 2, height / 2])
 
 
-def recorded_cameras(K: np.ndarray, pos: np.ndarray, rot_xyzw: np.ndarray, valid: np.ndarray, width: int, height: int,
-                     crop=None) -> Cameras:  # fmt: skip
+def recorded_cameras(
+    K: np.ndarray, pos: np.ndarray, rot_xyzw: np.ndarray, valid: np.ndarray, width: int, height: int, crop=None
+) -> Cameras:
     """Cameras from recorded rows: K (N, 4) source pixels, pos (N, 3), rot (N, 4) xyzw camera-to-world.
 
     ``crop`` (a ``marionette.ingest.video.CropResize``) maps the source intrinsics to the output the
@@ -112,8 +113,15 @@ def _hold(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
-def follow_cameras(roots: list[np.ndarray], forward: np.ndarray, valid: list[np.ndarray], fps: float, width: int,
-                   height: int, start: Cameras | None = None) -> Cameras:  # fmt: skip
+def follow_cameras(
+    roots: list[np.ndarray],
+    forward: np.ndarray,
+    valid: list[np.ndarray],
+    fps: float,
+    width: int,
+    height: int,
+    start: Cameras | None = None,
+) -> Cameras:
     """The follow camera of the module docstring: roots [(N, 3)] of the articulated entities (A first),
     A's world forward vectors (N, 3), their validity [(N,)], the frame rate and the output size; ``start``
     (frame 0 of a valid camera of the same output size) seeds the smoothing (module doc, "Seeded start")."""

@@ -49,8 +49,14 @@ def _valid_at(valid: np.ndarray, t_src: np.ndarray, t_dst: np.ndarray) -> np.nda
     return np.where(w <= 1e-9, valid[i0], np.where(w >= 1 - 1e-9, valid[i1], valid[i0] & valid[i1]))
 
 
-def world_skeletons(layout: Layout, state: np.ndarray, anchors_world: dict[str, np.ndarray], valid: dict[str, np.ndarray],
-                    t_src: np.ndarray, t_dst: np.ndarray | None = None) -> Skeletons:  # fmt: skip
+def world_skeletons(
+    layout: Layout,
+    state: np.ndarray,
+    anchors_world: dict[str, np.ndarray],
+    valid: dict[str, np.ndarray],
+    t_src: np.ndarray,
+    t_dst: np.ndarray | None = None,
+) -> Skeletons:
     """World skeletons from state rows (N, D) at times ``t_src`` (N,) (seconds), resampled to ``t_dst``.
 
     ``anchors_world[name]``: (3,) world root of each articulated entity at row 0; ``valid[name]``: (N,)
@@ -62,9 +68,12 @@ def world_skeletons(layout: Layout, state: np.ndarray, anchors_world: dict[str, 
     if n == 0:
         if len(t_dst):
             raise ValueError("cannot resample an empty state sequence")
-        return Skeletons(t_dst, {e.name: np.zeros((0, e.rig.n_keep, 3)) for e in layout.entities},
-                         {e.name: np.zeros((0, 3, 3)) for e in layout.entities},
-                         {e.name: np.zeros(0, bool) for e in layout.entities})  # fmt: skip
+        return Skeletons(
+            t_dst,
+            {e.name: np.zeros((0, e.rig.n_keep, 3)) for e in layout.entities},
+            {e.name: np.zeros((0, 3, 3)) for e in layout.entities},
+            {e.name: np.zeros(0, bool) for e in layout.entities},
+        )
     state = np.asarray(state, np.float64)
     for e in layout.articulated:
         v = np.asarray(valid[e.name], bool)

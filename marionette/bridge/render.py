@@ -115,7 +115,13 @@ def unit_capsule(sides: int = CAPSULE_SIDES, rings: int = CAPSULE_RINGS) -> tupl
     th = 2 * np.pi * np.arange(sides) / sides
     rho, ax = np.cos(lat), np.sin(lat)
     V = np.stack(
-        [np.outer(rho, np.cos(th)), np.outer(rho, np.sin(th)), np.repeat(ax[:, None], sides, 1), np.repeat(end[:, None], sides, 1)], -1
+        [
+            np.outer(rho, np.cos(th)),
+            np.outer(rho, np.sin(th)),
+            np.repeat(ax[:, None], sides, 1),
+            np.repeat(end[:, None], sides, 1),
+        ],
+        -1,
     ).reshape(-1, 4)
     L = len(lat)
     i = np.arange(L - 1)[:, None] * sides + np.arange(sides)[None]
@@ -193,8 +199,9 @@ class Rasterizer:
         self._inst.write(data.tobytes())
         return n
 
-    def _draw(self, cameras: Cameras, i: int, bones, h_min: float, h_max: float, z_near: float, z_far: float,
-              cull_m: float) -> np.ndarray | None:  # fmt: skip
+    def _draw(
+        self, cameras: Cameras, i: int, bones, h_min: float, h_max: float, z_near: float, z_far: float, cull_m: float
+    ) -> np.ndarray | None:
         """Draw frame ``i`` and read back the half-float bits (H, W, 4) uint16, rows bottom-up; None if the camera is invalid."""
         if (cameras.width, cameras.height) != (self.width, self.height):
             raise ValueError(f"cameras are {cameras.height}×{cameras.width}, the rasterizer {self.height}×{self.width}")
@@ -228,8 +235,17 @@ class Rasterizer:
             self._bone_vao.render(instances=n)
         return np.frombuffer(self.fbo.read(components=4, dtype="f2"), np.uint16).reshape(self.height, self.width, 4)
 
-    def render(self, cameras: Cameras, i: int, bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], h_min: float,
-               h_max: float, z_near: float, z_far: float, cull_m: float = TERRAIN_CULL_M) -> np.ndarray:  # fmt: skip
+    def render(
+        self,
+        cameras: Cameras,
+        i: int,
+        bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        h_min: float,
+        h_max: float,
+        z_near: float,
+        z_far: float,
+        cull_m: float = TERRAIN_CULL_M,
+    ) -> np.ndarray:
         """Render frame ``i`` of ``cameras`` with bone capsules (a, b world (B, 3), radii (B,), ids (B,)):
         the (H, W, 3) float32 R, G, B of the G-buffer (row 0 at the top); all zero where the camera is invalid."""
         bits = self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m)
@@ -237,8 +253,17 @@ class Rasterizer:
             return np.zeros((self.height, self.width, 3), np.float32)
         return bits[::-1, :, :3].view(np.float16).astype(np.float32)
 
-    def render_planes(self, cameras: Cameras, i: int, bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                      h_min: float, h_max: float, z_near: float, z_far: float, cull_m: float = TERRAIN_CULL_M) -> np.ndarray:  # fmt: skip
+    def render_planes(
+        self,
+        cameras: Cameras,
+        i: int,
+        bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        h_min: float,
+        h_max: float,
+        z_near: float,
+        z_far: float,
+        cull_m: float = TERRAIN_CULL_M,
+    ) -> np.ndarray:
         """``render`` straight to 10-bit code planes (3, H, W) uint16 in G, B, R order (the encoder's), through
         one table lookup per channel: equal to ``to_codes(render(...))`` re-ordered, without the float copies."""
         bits = self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m)

@@ -76,8 +76,13 @@ def enabled_rules(layout: Layout, field: LayeredField | None) -> tuple[str, ...]
 class Rules:
     """The rules over one scene, stateful per rollout: ``reset`` then ``step`` frame by frame, or ``apply`` a sequence."""
 
-    def __init__(self, layout: Layout, field: LayeredField | None = None, params: RuleParams = RuleParams(),
-                 enabled: Iterable[str] | None = None):  # fmt: skip
+    def __init__(
+        self,
+        layout: Layout,
+        field: LayeredField | None = None,
+        params: RuleParams = RuleParams(),
+        enabled: Iterable[str] | None = None,
+    ):
         asked = set(enabled_rules(layout, field) if enabled is None else enabled)
         if unknown := asked - set(RULES):
             raise ValueError(f"unknown rules {sorted(unknown)}; known: {list(RULES)}")
@@ -168,7 +173,12 @@ class Rules:
             self._offset[b][[0, 2]] -= (k * dx, k * dz)
 
 
-def apply_rules(layout: Layout, seq: Mapping[str, np.ndarray], field: LayeredField | None = None,
-                params: RuleParams = RuleParams(), enabled: Iterable[str] | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+def apply_rules(
+    layout: Layout,
+    seq: Mapping[str, np.ndarray],
+    field: LayeredField | None = None,
+    params: RuleParams = RuleParams(),
+    enabled: Iterable[str] | None = None,
+) -> dict[str, np.ndarray]:
     """Apply the rules to a skeleton sequence: name → (N, K, 3) world joints (m) → corrected copies."""
     return Rules(layout, field, params, enabled).apply(seq)

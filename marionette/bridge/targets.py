@@ -83,10 +83,20 @@ class TerrainScene:
             if not len(cell):
                 continue
             h = ch.cells["h"][cell, slot].astype(np.float64)
-            parts.append(Observations(ch.cx * CELLS + cell % CELLS, ch.cz * CELLS + cell // CELLS, h,
-                                      ch.cells["n"][cell, slot].astype(np.float64), np.ones(len(h), np.int64),
-                                      np.zeros(len(h), np.int64)))  # fmt: skip
-            boxes[name] = (np.array([ch.cx * CELLS, h.min(), ch.cz * CELLS]), np.array([(ch.cx + 1) * CELLS, h.max(), (ch.cz + 1) * CELLS]))
+            parts.append(
+                Observations(
+                    ch.cx * CELLS + cell % CELLS,
+                    ch.cz * CELLS + cell // CELLS,
+                    h,
+                    ch.cells["n"][cell, slot].astype(np.float64),
+                    np.ones(len(h), np.int64),
+                    np.zeros(len(h), np.int64),
+                )
+            )
+            boxes[name] = (
+                np.array([ch.cx * CELLS, h.min(), ch.cz * CELLS]),
+                np.array([(ch.cx + 1) * CELLS, h.max(), (ch.cz + 1) * CELLS]),
+            )
             hashes[name] = digest
         if not parts:
             return TerrainScene.empty()
@@ -109,8 +119,14 @@ class TerrainScene:
             x, y, d = p[..., 0], p[..., 1], -p[..., 2]
             fx, fy, cx, cy = cams.K[i]
             W, H = cams.width, cams.height
-            outside = [d < z_near, d > z_far, fx * x + cx * d < 0, fx * x + (cx - W) * d > 0, cy * d - fy * y < 0,
-                       cy * d - fy * y - H * d > 0]  # fmt: skip
+            outside = [
+                d < z_near,
+                d > z_far,
+                fx * x + cx * d < 0,
+                fx * x + (cx - W) * d > 0,
+                cy * d - fy * y < 0,
+                cy * d - fy * y - H * d > 0,
+            ]
             seen |= ~np.any([o.all(axis=1) for o in outside], axis=0)
             if seen.all():
                 break
@@ -135,14 +151,17 @@ def follow_view(layout: Layout, skel, fps: float, width: int, height: int, start
     """The follow camera (``camera.follow_cameras``) framing a ``Skeletons``' articulated entities, optionally seeded."""
     ents = layout.articulated
     fwd = skel.rot[ents[0].name] @ np.asarray(ents[0].rig.forward_axis, np.float64)
-    return follow_cameras([skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, width, height,
-                          start=start)  # fmt: skip
+    return follow_cameras(
+        [skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, width, height, start=start
+    )
 
 
 def render_frames(rast: Rasterizer, layout: Layout, skel, cams: Cameras, h: tuple[float, float], settings: RenderSettings):
     """Yield the G-buffer code planes (3, H, W) of every frame of ``skel`` seen through ``cams``."""
     for i in range(len(skel)):
-        yield rast.render_planes(cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m)
+        yield rast.render_planes(
+            cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m
+        )
 
 
 @dataclass
@@ -188,14 +207,26 @@ class _Pass:
         if rows.num_rows != b - a:
             raise ValueError(f"{vpath}: chunk {key} spans frames [{a}, {b}) but its segment has {rows.num_rows} of them")
         out_h, out_w = rec["resize"]
-        cams = recorded_cameras(np.asarray(rec["K"], np.float64), fixed_rows(rows["camera.pos"], 3),
-                                fixed_rows(rows["camera.rot"], 4), rows["valid"].to_numpy(zero_copy_only=False),
-                                out_w, out_h)  # fmt: skip
+        cams = recorded_cameras(
+            np.asarray(rec["K"], np.float64),
+            fixed_rows(rows["camera.pos"], 3),
+            fixed_rows(rows["camera.rot"], 4),
+            rows["valid"].to_numpy(zero_copy_only=False),
+            out_w,
+            out_h,
+        )
         roots_y = np.concatenate([fixed_rows(rows[f"{e.name}.root_world"], 3)[:, 1] for e in layout.articulated])
         h = height_range(terrain, roots_y, settings)
         seen = terrain.seen_chunks(cams, settings.z_near, settings.z_far)
-        digest = text_sha256(_rows_hash(layout, rows), json.dumps([[s, terrain.hashes[s]] for s in seen]), json.dumps(h),
-                             json.dumps(rec["K"]), f"{out_h}x{out_w}", BRIDGE_VERSION, settings.key())[:16]  # fmt: skip
+        digest = text_sha256(
+            _rows_hash(layout, rows),
+            json.dumps([[s, terrain.hashes[s]] for s in seen]),
+            json.dumps(h),
+            json.dumps(rec["K"]),
+            f"{out_h}x{out_w}",
+            BRIDGE_VERSION,
+            settings.key(),
+        )[:16]
         path = paths.pose_target(self.corpus.path, key, digest)
         self.keep.add(path.name)
         if not path.exists():
@@ -319,9 +350,17 @@ def source_size(corpus: Corpus, segment: str) -> tuple[int, int]:
     raise ValueError(f"{corpus.path}: cannot tell the source video size of segment {segment!r}")
 
 
-def render_rows(layout: Layout, rows: pa.Table, out: Path, terrain: TerrainScene, camera: str = "recorded",
-                size: tuple[int, int] = (704, 1280), fps: float | None = None, src_size: tuple[int, int] | None = None,
-                settings: RenderSettings | None = None) -> GBufferMeta:  # fmt: skip
+def render_rows(
+    layout: Layout,
+    rows: pa.Table,
+    out: Path,
+    terrain: TerrainScene,
+    camera: str = "recorded",
+    size: tuple[int, int] = (704, 1280),
+    fps: float | None = None,
+    src_size: tuple[int, int] | None = None,
+    settings: RenderSettings | None = None,
+) -> GBufferMeta:
     """Render state rows (one segment or rollout, corpus state schema) to a G-buffer video ``out``.
 
     ``camera``: "recorded" (the rows' camera, its intrinsics mapped by the centred crop + resize from
@@ -363,4 +402,3 @@ def render_rows(layout: Layout, rows: pa.Table, out: Path, terrain: TerrainScene
         rast.set_terrain(terrain.vertices, terrain.faces)
         write_gbuffer(out, render_frames(rast, layout, skel, cams, h, settings), meta)
     return meta
-

@@ -73,9 +73,19 @@ class CorpusInfo:
         missing = [n for n in required if n not in d]
         if missing:
             raise ValueError(f"{where}: missing fields {missing} (not a corpus of this version?)")
-        kinds = {"codebase_version": str, "layout": dict, "dynamics_fps": int, "ingest": dict, "features": dict,
-                 "frames_per_split": dict, "shards": list, "stages": dict, "vocab_hash": str, "state_path": str,
-                 "video_path": str}  # fmt: skip
+        kinds = {
+            "codebase_version": str,
+            "layout": dict,
+            "dynamics_fps": int,
+            "ingest": dict,
+            "features": dict,
+            "frames_per_split": dict,
+            "shards": list,
+            "stages": dict,
+            "vocab_hash": str,
+            "state_path": str,
+            "video_path": str,
+        }
         kinds.update({n: int for n in known if n.startswith("total_")})
         for name, kind in kinds.items():
             if name in d and (not isinstance(d[name], kind) or isinstance(d[name], bool)):

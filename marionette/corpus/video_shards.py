@@ -86,7 +86,9 @@ def chunk_record(data: bytes, key: str, where: str) -> dict:
         raise ValueError(f"{where}: member {key}.json is not JSON ({exc})") from None
     segment, chunk = parse_chunk_key(key, where)
     if not isinstance(rec, dict) or rec.get("segment") != segment or rec.get("chunk") != chunk:
-        raise ValueError(f"{where}: member {key}.json names segment {rec.get('segment')!r} chunk {rec.get('chunk')!r}, its key {key!r}")
+        raise ValueError(
+            f"{where}: member {key}.json names segment {rec.get('segment')!r} chunk {rec.get('chunk')!r}, its key {key!r}"
+        )
     return rec
 
 

@@ -45,8 +45,14 @@ def _json_safe(v: Any) -> Any:
     return v
 
 
-def save_checkpoint(out: Path, step: int, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None,
-                    scheduler: Any = None, meta: dict | None = None) -> Path:  # fmt: skip
+def save_checkpoint(
+    out: Path,
+    step: int,
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer | None = None,
+    scheduler: Any = None,
+    meta: dict | None = None,
+) -> Path:
     """Write ``<out>/step-<step>/`` atomically and point ``<out>/latest`` at it; returns its path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -103,8 +109,13 @@ def read_meta(ckpt: Path) -> dict:
     return d
 
 
-def load_checkpoint(ckpt: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None,
-                    scheduler: Any = None, restore_rng: bool = True) -> dict:  # fmt: skip
+def load_checkpoint(
+    ckpt: Path,
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer | None = None,
+    scheduler: Any = None,
+    restore_rng: bool = True,
+) -> dict:
     """Load weights (and optimizer, scheduler and RNG state) into the given objects; returns meta.json."""
     ckpt = Path(ckpt)
     meta = read_meta(ckpt)

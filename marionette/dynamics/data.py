@@ -255,9 +255,15 @@ class ActionTokens:
             clip.append(np.asarray(l_, np.float64))
             sizes.append(len(k_))
         return cls(
-            tuple(e.name for e in layout.articulated), tuple(sizes), str(vocab.get("hash", "")),
-            tuple(lookup), tuple(keys), tuple(vtok), tuple(comp), tuple(clip),
-        )  # fmt: skip
+            tuple(e.name for e in layout.articulated),
+            tuple(sizes),
+            str(vocab.get("hash", "")),
+            tuple(lookup),
+            tuple(keys),
+            tuple(vtok),
+            tuple(comp),
+            tuple(clip),
+        )
 
     @classmethod
     def from_corpus(cls, corpus: Corpus | Path | str) -> ActionTokens:
@@ -361,8 +367,9 @@ def compute_terrain_features(layout: Layout, table: pa.Table, field: LayeredFiel
     return terrain_features_of(layout, world_of_rows(layout, table), R, field)
 
 
-def terrain_features_of(layout: Layout, joints_world: dict[str, np.ndarray], R: np.ndarray,
-                        field: LayeredField | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def terrain_features_of(
+    layout: Layout, joints_world: dict[str, np.ndarray], R: np.ndarray, field: LayeredField | None
+) -> tuple[np.ndarray, np.ndarray]:
     """``compute_terrain_features`` from world skeletons: ``joints_world[name]`` (n, K, 3), root first, and
     root rotations ``R`` (n, N, 3, 3) of the articulated entities (what a rollout already holds)."""
     n, ents = R.shape[0], layout.articulated

@@ -357,9 +357,13 @@ class SelfAttention(nn.Module):
         self.out = nn.Linear(spec.width, spec.width, bias=False)
 
     def forward(
-        self, x: Tensor, cos: Tensor, sin: Tensor, ring: tuple[Tensor, Tensor, int, int] | None = None,
+        self,
+        x: Tensor,
+        cos: Tensor,
+        sin: Tensor,
+        ring: tuple[Tensor, Tensor, int, int] | None = None,
         mask: Tensor | None = None,
-    ) -> Tensor:  # fmt: skip
+    ) -> Tensor:
         """``ring`` = (key buffer, value buffer, slot, filled): one new frame is written at ``slot`` and
         attends to the ``filled`` frames the buffers then hold (itself included)."""
         B, T, C = x.shape
@@ -398,9 +402,13 @@ class Block(nn.Module):
         self.mlp = MLP(spec, dropout)
 
     def forward(
-        self, x: Tensor, cos: Tensor, sin: Tensor, ring: tuple[Tensor, Tensor, int, int] | None = None,
+        self,
+        x: Tensor,
+        cos: Tensor,
+        sin: Tensor,
+        ring: tuple[Tensor, Tensor, int, int] | None = None,
         mask: Tensor | None = None,
-    ) -> Tensor:  # fmt: skip
+    ) -> Tensor:
         x = x + self.attn(self.norm1(x), cos, sin, ring, mask)
         return x + self.mlp(self.norm2(x))
 

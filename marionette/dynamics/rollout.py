@@ -108,8 +108,12 @@ class ModelStream:
 def _concat(frames: Sequence[Frames]) -> Frames:
     """Frames joined along time."""
     first = frames[0]
-    return Frames(**{k: None if getattr(first, k) is None else torch.cat([getattr(f, k) for f in frames], dim=1)
-                     for k in ("root", "body", "tokens", "progress", "terrain", "relative")})  # fmt: skip
+    return Frames(
+        **{
+            k: None if getattr(first, k) is None else torch.cat([getattr(f, k) for f in frames], dim=1)
+            for k in ("root", "body", "tokens", "progress", "terrain", "relative")
+        }
+    )
 
 
 @dataclass
@@ -139,9 +143,18 @@ class Rollout:
     sampler, ``_stream_seed(seed, b)``, and its own rules; all share the terrain field, so the seeds must
     lie on one stage), which is how the rollout benchmark's batch 16 runs."""
 
-    def __init__(self, ckpt: Path | str, corpus: Corpus | Path | str, *, temperature: float = 0.0, seed: int = 0,
-                 rules: str | Sequence[str] = "auto", terrain_field: Any = None, cached: bool = True,
-                 dtype: torch.dtype = torch.float32) -> None:  # fmt: skip
+    def __init__(
+        self,
+        ckpt: Path | str,
+        corpus: Corpus | Path | str,
+        *,
+        temperature: float = 0.0,
+        seed: int = 0,
+        rules: str | Sequence[str] = "auto",
+        terrain_field: Any = None,
+        cached: bool = True,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
         self.corpus = as_corpus(corpus)
         self.layout = self.corpus.layout
         self.ckpt = checkpoint_dir(ckpt)
@@ -172,8 +185,10 @@ class Rollout:
         self._advance = [ratio / c for c in self.tokens.clip_lengths]
         types = self.corpus.vocab.get("entity_types", {})
         kinds = {(k, a["token"]): a.get("kind") for k in types for a in types[k]["actions"]}
-        self._wraps = [np.array([kinds.get(self.tokens.type_token(i, t)) == "state" for t in range(self.tokens.sizes[i])])
-                       for i in range(len(self.tokens.entities))]  # fmt: skip
+        self._wraps = [
+            np.array([kinds.get(self.tokens.type_token(i, t)) == "state" for t in range(self.tokens.sizes[i])])
+            for i in range(len(self.tokens.entities))
+        ]
         self.scenes: list[_Scene] = []
         self.t = 0
 
@@ -190,9 +205,17 @@ class Rollout:
         """The relative feature (N, 3) at world roots (N, 3) and rotations (N, 3, 3), when the model reads it."""
         return relative_roots(roots, R).astype(np.float32) if self.config.relative_position else None
 
-    def _frames(self, root_n: Sequence, body_n: Sequence, tokens: Sequence, progress: Sequence | None,
-                terrain: Sequence | None, relative: Sequence | None) -> Frames:  # fmt: skip
+    def _frames(
+        self,
+        root_n: Sequence,
+        body_n: Sequence,
+        tokens: Sequence,
+        progress: Sequence | None,
+        terrain: Sequence | None,
+        relative: Sequence | None,
+    ) -> Frames:
         """One frame of B streams (per-stream arrays, or None for an input the model does not read) as Frames (B, 1, ·)."""
+
         def t(parts: Sequence | None) -> torch.Tensor | None:
             if parts is None or parts[0] is None:
                 return None
@@ -248,12 +271,18 @@ class Rollout:
             rules = Rules(L, self.field, RuleParams(fps=self.fps), self.enabled) if self.enabled else None
             if rules is not None:
                 world = rules.step(world)  # frame 0 of the rules: taken as given
-            self.scenes.append(_Scene(
-                state=p[6][-1].astype(np.float64), world=world,
-                quats=np.stack([fixed_rows(last[f"{e.name}.rot_world"], 4)[0] for e in L.articulated]),
-                body_n=p[1][-1], tok=p[2][-1].copy(), progress=p[3][-1].astype(np.float64), rules=rules,
-                generator=torch.Generator().manual_seed(_stream_seed(self.seed, b)),
-            ))  # fmt: skip
+            self.scenes.append(
+                _Scene(
+                    state=p[6][-1].astype(np.float64),
+                    world=world,
+                    quats=np.stack([fixed_rows(last[f"{e.name}.rot_world"], 4)[0] for e in L.articulated]),
+                    body_n=p[1][-1],
+                    tok=p[2][-1].copy(),
+                    progress=p[3][-1].astype(np.float64),
+                    rules=rules,
+                    generator=torch.Generator().manual_seed(_stream_seed(self.seed, b)),
+                )
+            )
         self.t = 0
 
     # batch-1 views of the first stream
@@ -280,8 +309,9 @@ class Rollout:
         p = torch.softmax(lg / self.temperature, dim=-1)
         return int(torch.multinomial(p, 1, generator=generator))
 
-    def step(self, force_tokens: dict[int, int] | None = None, root_override: np.ndarray | None = None,
-             restart: Sequence[int] = ()) -> np.ndarray:  # fmt: skip
+    def step(
+        self, force_tokens: dict[int, int] | None = None, root_override: np.ndarray | None = None, restart: Sequence[int] = ()
+    ) -> np.ndarray:
         """Predict, correct and return the next state row (dim,) float32.
 
         ``force_tokens``: entity index → token for this frame; ``restart``: entity indices whose progress
@@ -290,9 +320,12 @@ class Rollout:
         return self.step_batch([force_tokens], [root_override], [restart])[0]
 
     @torch.inference_mode()
-    def step_batch(self, force_tokens: Sequence[dict[int, int] | None] | None = None,
-                   root_override: Sequence[np.ndarray | None] | None = None,
-                   restart: Sequence[Sequence[int]] | None = None) -> np.ndarray:  # fmt: skip
+    def step_batch(
+        self,
+        force_tokens: Sequence[dict[int, int] | None] | None = None,
+        root_override: Sequence[np.ndarray | None] | None = None,
+        restart: Sequence[Sequence[int]] | None = None,
+    ) -> np.ndarray:
         """``step`` for every stream: per-stream controls (or None), the next state rows (B, dim) float32."""
         L, c, nz = self.layout, self.config, self.normaliser
         B = len(self.scenes)
@@ -300,8 +333,10 @@ class Rollout:
         root_override = [None] * B if root_override is None else list(root_override)
         restart = [()] * B if restart is None else list(restart)
         if not len(force_tokens) == len(root_override) == len(restart) == B:
-            raise ValueError(f"step_batch: {B} streams but {len(force_tokens)} force, {len(root_override)} root and "
-                             f"{len(restart)} restart entries")  # fmt: skip
+            raise ValueError(
+                f"step_batch: {B} streams but {len(force_tokens)} force, {len(root_override)} root and "
+                f"{len(restart)} restart entries"
+            )
         out = self._out
         names = [e.name for e in L.articulated]
         prev_roots = {n: np.stack([sc.world[n][0] for sc in self.scenes]) for n in names}  # (B, 3) each
@@ -350,7 +385,13 @@ class Rollout:
         states = _state_after(L, prev_roots, joints, geo.quat_to_matrix(quats))  # (B, dim) float32
         roots_c, bodies_c = nz.normalise(*split_state(states, L))
         for b, sc in enumerate(self.scenes):
-            sc.state, sc.world, sc.quats, sc.tok, sc.progress = states[b].astype(np.float64), frames[b], quats[b], toks[b], progs[b]
+            sc.state, sc.world, sc.quats, sc.tok, sc.progress = (
+                states[b].astype(np.float64),
+                frames[b],
+                quats[b],
+                toks[b],
+                progs[b],
+            )
             sc.body_n = bodies_c[b]
         roots_w = np.stack([joints[n][:, 0] for n in names], axis=1)  # (B, N, 3)
         terrains = self._terrain(joints, geo.quat_to_matrix(quats))
@@ -446,10 +487,22 @@ def _script_roots(script_root: Any, horizon: int, layout, root_dim: int) -> np.n
     return a
 
 
-def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, seed_frames: int = 64, horizon: int = 100,
-            temperature: float = 0.0, seed: int = 0, force: Sequence[Force] = (), script_root: Any = None,
-            rules: str | Sequence[str] = "auto", terrain_field: Any = None, start: int = 0, cached: bool = True,
-            dtype: torch.dtype = torch.float32) -> pa.Table:  # fmt: skip
+def rollout(
+    ckpt_dir: Path | str,
+    corpus: Corpus | Path | str,
+    segment: str,
+    seed_frames: int = 64,
+    horizon: int = 100,
+    temperature: float = 0.0,
+    seed: int = 0,
+    force: Sequence[Force] = (),
+    script_root: Any = None,
+    rules: str | Sequence[str] = "auto",
+    terrain_field: Any = None,
+    start: int = 0,
+    cached: bool = True,
+    dtype: torch.dtype = torch.float32,
+) -> pa.Table:
     """Seed rows + ``horizon`` predicted rows of ``segment`` (corpus state schema, 20 fps, world roots in m).
 
     The seed is the segment's dynamics frames [start, start + seed_frames). ``force``: (entity, start,
@@ -460,23 +513,29 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
     L = c.layout
     if terrain_field is None:
         terrain_field = open_terrain_field(c, segment)
-    ro = Rollout(ckpt_dir, c, temperature=temperature, seed=seed, rules=rules, terrain_field=terrain_field, cached=cached,
-                 dtype=dtype)  # fmt: skip
+    ro = Rollout(
+        ckpt_dir, c, temperature=temperature, seed=seed, rules=rules, terrain_field=terrain_field, cached=cached, dtype=dtype
+    )
     view = c.dynamics_segment(segment, ro.fps)
     if seed_frames < 1 or start < 0 or view.num_rows < start + seed_frames:
-        raise ValueError(f"{c.path}: segment {segment} has {view.num_rows} dynamics frames; a seed of {seed_frames} frames "
-                         f"from frame {start} does not fit")  # fmt: skip
+        raise ValueError(
+            f"{c.path}: segment {segment} has {view.num_rows} dynamics frames; a seed of {seed_frames} frames "
+            f"from frame {start} does not fit"
+        )
     seed_rows = view.slice(start, seed_frames)
     names = [e.name for e in L.articulated]
     for name, first, end, token in force:
         if name not in names:
             raise ValueError(f"force: unknown entity {name!r}; the scene has {names}")
         if not 1 <= int(token) < ro.tokens.sizes[names.index(name)]:
-            raise ValueError(f"force {name}:{first}:{end}:{token}: token outside 1..{ro.tokens.sizes[names.index(name)] - 1} "
-                             f"({name}'s vocabulary; 0 is 'no valid action')")  # fmt: skip
+            raise ValueError(
+                f"force {name}:{first}:{end}:{token}: token outside 1..{ro.tokens.sizes[names.index(name)] - 1} "
+                f"({name}'s vocabulary; 0 is 'no valid action')"
+            )
         if not 0 <= int(first) < int(end) or int(first) >= horizon:
-            raise ValueError(f"force {name}:{first}:{end}:{token}: frames [{first}, {end}) are empty, negative or "
-                             f"past the horizon {horizon}")  # fmt: skip
+            raise ValueError(
+                f"force {name}:{first}:{end}:{token}: frames [{first}, {end}) are empty, negative or past the horizon {horizon}"
+            )
     scripted = _script_roots(script_root, horizon, L, ro.config.root_dim)
     ro.start(seed_rows)
     states, roots, quats, toks, progs = [], [], [], [], []
@@ -487,12 +546,32 @@ def rollout(ckpt_dir: Path | str, corpus: Corpus | Path | str, segment: str, see
         quats.append(ro.quats.copy())
         toks.append(ro.tok.copy())
         progs.append(ro.progress.copy())
-    return rollout_table(c, ro, seed_rows, segment, seed, np.array(states).reshape(horizon, L.dim), np.array(roots).reshape(horizon, -1, 3),
-                  np.array(quats).reshape(horizon, -1, 4), np.array(toks).reshape(horizon, -1), np.array(progs).reshape(horizon, -1))  # fmt: skip
+    return rollout_table(
+        c,
+        ro,
+        seed_rows,
+        segment,
+        seed,
+        np.array(states).reshape(horizon, L.dim),
+        np.array(roots).reshape(horizon, -1, 3),
+        np.array(quats).reshape(horizon, -1, 4),
+        np.array(toks).reshape(horizon, -1),
+        np.array(progs).reshape(horizon, -1),
+    )
 
 
-def rollout_table(c: Corpus, ro: Rollout, seed_rows: pa.Table, segment: str, seed: int, states: np.ndarray, roots: np.ndarray,
-           quats: np.ndarray, toks: np.ndarray, progs: np.ndarray) -> pa.Table:  # fmt: skip
+def rollout_table(
+    c: Corpus,
+    ro: Rollout,
+    seed_rows: pa.Table,
+    segment: str,
+    seed: int,
+    states: np.ndarray,
+    roots: np.ndarray,
+    quats: np.ndarray,
+    toks: np.ndarray,
+    progs: np.ndarray,
+) -> pa.Table:
     L, h = c.layout, len(states)
     schema = state_schema(L)
     name = f"{segment}-rollout-s{seed}"
@@ -509,7 +588,9 @@ def rollout_table(c: Corpus, ro: Rollout, seed_rows: pa.Table, segment: str, see
     for i, e in enumerate(L.articulated):
         tok = toks[:, i]
         clip = ro.tokens.clip_lengths[i][tok]
-        cols[f"{e.name}.type_id"] = [int(ro.tokens.type_keys[i][k].split(":")[1]) if k else int(last[f"{e.name}.type_id"]) for k in tok]
+        cols[f"{e.name}.type_id"] = [
+            int(ro.tokens.type_keys[i][k].split(":")[1]) if k else int(last[f"{e.name}.type_id"]) for k in tok
+        ]
         cols[f"{e.name}.action"] = ro.tokens.composites[i][tok]
         cols[f"{e.name}.motion_frame"] = np.where(tok == 0, -1, np.rint(progs[:, i] * clip)).astype(np.int32)
         cols[f"{e.name}.hp"] = last[f"{e.name}.hp"]
@@ -601,7 +682,9 @@ def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: floa
         else:
             start, end, velocity = spec
             if not 0 <= start < end or start >= horizon:
-                raise ValueError(f"--script-root {name}: frames [{start}, {end}) are empty, negative or past the horizon {horizon}")
+                raise ValueError(
+                    f"--script-root {name}: frames [{start}, {end}) are empty, negative or past the horizon {horizon}"
+                )
             arr[start : min(end, horizon), 0:3] = np.asarray(velocity) / fps  # metres per model frame
     return out
 
@@ -628,10 +711,23 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--size", type=size_hxw, default=(352, 640), metavar="HxW", help="render size, HxW")
 
 
-def write_rollout(ckpt: Path, corpus: Corpus | Path, segment: str, out: Path, *, horizon: int, seed_frames: int = 64,
-                  temperature: float = 0.0, seed: int = 0, force: Sequence = (), script_root: Sequence = (),
-                  rules: str = "auto", render: Path | None = None, size: tuple[int, int] = (352, 640),
-                  log=print) -> pa.Table:  # fmt: skip
+def write_rollout(
+    ckpt: Path,
+    corpus: Corpus | Path,
+    segment: str,
+    out: Path,
+    *,
+    horizon: int,
+    seed_frames: int = 64,
+    temperature: float = 0.0,
+    seed: int = 0,
+    force: Sequence = (),
+    script_root: Sequence = (),
+    rules: str = "auto",
+    render: Path | None = None,
+    size: tuple[int, int] = (352, 640),
+    log=print,
+) -> pa.Table:
     """The rollout command: roll ``horizon`` frames out from ``segment``, write the table to ``out`` (and render it
     through the follow camera to ``render``); ``force`` and ``script_root`` as ``add_arguments`` parses them, ``rules``
     "auto", "none" or a comma list."""
@@ -652,8 +748,21 @@ def write_rollout(ckpt: Path, corpus: Corpus | Path, segment: str, out: Path, *,
     return table
 
 
-ARGUMENTS = ("ckpt", "corpus", "segment", "out", "horizon", "seed_frames", "temperature", "seed", "force", "script_root",
-             "rules", "render", "size")  # fmt: skip
+ARGUMENTS = (
+    "ckpt",
+    "corpus",
+    "segment",
+    "out",
+    "horizon",
+    "seed_frames",
+    "temperature",
+    "seed",
+    "force",
+    "script_root",
+    "rules",
+    "render",
+    "size",
+)
 
 
 def main(argv: list[str] | None = None) -> pa.Table:

@@ -140,8 +140,10 @@ class I3DExtractor:
         wrong = sorted(k for k in set(want) & set(weights) if tuple(weights[k].shape) != want[k])
         if missing or extra or wrong:
             show = lambda ks: ", ".join(ks[:6]) + (f" (+{len(ks) - 6})" if len(ks) > 6 else "")  # noqa: E731
-            raise ValueError(f"{path}: not an Inception-I3D state dict: missing [{show(missing)}], unexpected [{show(extra)}], "
-                             f"other shapes [{show(wrong)}]")  # fmt: skip
+            raise ValueError(
+                f"{path}: not an Inception-I3D state dict: missing [{show(missing)}], unexpected [{show(extra)}], "
+                f"other shapes [{show(wrong)}]"
+            )
         net.load_state_dict(weights)
         return cls(net, name=f"i3d({path.name})", batch=batch)
 

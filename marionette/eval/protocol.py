@@ -90,8 +90,16 @@ def model_fps(ckpt: Path | str) -> float:
     return float(read_meta(checkpoint_dir(ckpt))["train_config"].get("fps", 20.0))
 
 
-def select_windows(corpus: Corpus | Path | str, n: int, seed_frames: int = 64, horizon: int = 120, seed: int = 0,
-                   split: str = "test", segments: Sequence[str] | None = None, fps: float = 20.0) -> list[Window]:  # fmt: skip
+def select_windows(
+    corpus: Corpus | Path | str,
+    n: int,
+    seed_frames: int = 64,
+    horizon: int = 120,
+    seed: int = 0,
+    split: str = "test",
+    segments: Sequence[str] | None = None,
+    fps: float = 20.0,
+) -> list[Window]:
     """``n`` windows (module doc), deterministic in ``seed``; ``segments`` names them instead of a split."""
     c = as_corpus(corpus)
     if n < 1 or seed_frames < 1 or horizon < 1:
@@ -105,8 +113,10 @@ def select_windows(corpus: Corpus | Path | str, n: int, seed_frames: int = 64, h
         fit = [s for s in segments if frames[s] >= length]
         if not fit:
             longest = max(frames, key=frames.get)
-            raise ValueError(f"{c.path}: a window of {seed_frames} seed + {horizon} predicted frames ({length} at {fps:g} fps) "
-                             f"is longer than every segment; the longest, {longest!r}, has {frames[longest]} frames")  # fmt: skip
+            raise ValueError(
+                f"{c.path}: a window of {seed_frames} seed + {horizon} predicted frames ({length} at {fps:g} fps) "
+                f"is longer than every segment; the longest, {longest!r}, has {frames[longest]} frames"
+            )
     else:
         fit = list(segments)
         frames = {}
@@ -133,10 +143,19 @@ def recorded_rows(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table
 # -- rollouts ---------------------------------------------------------------------------------------------
 
 
-def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *,
-                rules: str | Sequence[str] = "auto", force: Sequence[Sequence[Force]] | None = None,
-                temperature: float = 0.0, seed: int = 0, batch: int = 16, progress: Progress | None = None,
-                phase: str = "rollouts") -> tuple[list[pa.Table], dict[str, tuple[str, ...]]]:  # fmt: skip
+def run_windows(
+    ckpt: Path | str,
+    corpus: Corpus | Path | str,
+    windows: Sequence[Window],
+    *,
+    rules: str | Sequence[str] = "auto",
+    force: Sequence[Sequence[Force]] | None = None,
+    temperature: float = 0.0,
+    seed: int = 0,
+    batch: int = 16,
+    progress: Progress | None = None,
+    phase: str = "rollouts",
+) -> tuple[list[pa.Table], dict[str, tuple[str, ...]]]:
     """Roll every window out (seed rows + horizon predicted rows, ``rollout``'s table) with optional
     per-window ``force``; returns the tables in window order and the rules that ran per stage.
     ``progress(phase, done, total)`` is told the predicted window-frames done after each frame step."""
@@ -176,8 +195,13 @@ def run_windows(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence
                 forced, restart = zip(*(forced_at(force[i], t, names) for i in part))
                 states = ro.step_batch(list(forced), None, list(restart))
                 for b, sc in enumerate(ro.scenes):
-                    for k, v in (("state", states[b]), ("roots", ro.roots_of(sc)), ("quats", sc.quats.copy()), ("tok", sc.tok.copy()),
-                                 ("prog", sc.progress.copy())):  # fmt: skip
+                    for k, v in (
+                        ("state", states[b]),
+                        ("roots", ro.roots_of(sc)),
+                        ("quats", sc.quats.copy()),
+                        ("tok", sc.tok.copy()),
+                        ("prog", sc.progress.copy()),
+                    ):
                         rec[k][b].append(v)
                 done += len(part)
                 if progress is not None:
@@ -201,8 +225,9 @@ def foot_joints(entity_rig) -> list[int]:
     return feet or list(entity_rig.contact_index)
 
 
-def _follow_codes(layout: Layout, rows: pa.Table, times: np.ndarray | None, size: tuple[int, int], terrain: Any = None,
-                  start: Any = None) -> tuple[np.ndarray, Any, Any]:  # fmt: skip
+def _follow_codes(
+    layout: Layout, rows: pa.Table, times: np.ndarray | None, size: tuple[int, int], terrain: Any = None, start: Any = None
+) -> tuple[np.ndarray, Any, Any]:
     """G-buffer codes (T, H, W, 3) uint16 (R, G, B) of ``rows`` at ``times`` (s; None: the rows' own) through the follow
     camera (``start``-seeded when given), with the cameras and the ``GBufferMeta`` to decode them."""
     from marionette.bridge.gbuffer import GBufferMeta
@@ -237,8 +262,9 @@ def body_share_frames(
     return M.body_shares(np.stack([decode_codes(c, meta).id for c in codes]), layout, include_attachments=True)
 
 
-def rollout_pose_codes(layout: Layout, rows: pa.Table, times: np.ndarray, start: Any,
-                       terrain: Any = None) -> tuple[np.ndarray, Any]:  # fmt: skip
+def rollout_pose_codes(
+    layout: Layout, rows: pa.Table, times: np.ndarray, start: Any, terrain: Any = None
+) -> tuple[np.ndarray, Any]:
     """The pose-control video of rollout ``rows`` (a rollout table, or any state rows) at ``times`` (s, inside
     the rows' span; e.g. the recorded video's frame times): skeletons interpolated in time, seen through the
     follow camera seeded at ``start`` (a one-frame ``Cameras``, e.g. the recorded camera of the first time;
@@ -253,8 +279,15 @@ def rollout_pose_codes(layout: Layout, rows: pa.Table, times: np.ndarray, start:
     return codes, cams
 
 
-def window_metrics(layout: Layout, generated: pa.Table, recorded: pa.Table, fps: float, field: Any = None,
-                   terrain: Any = None, render_size: tuple[int, int] | None = (72, 128)) -> dict[str, Any]:  # fmt: skip
+def window_metrics(
+    layout: Layout,
+    generated: pa.Table,
+    recorded: pa.Table,
+    fps: float,
+    field: Any = None,
+    terrain: Any = None,
+    render_size: tuple[int, int] | None = (72, 128),
+) -> dict[str, Any]:
     """The state-layer metrics of one window: ``generated`` and ``recorded`` are the horizon rows (equal
     counts). Returns {"metrics": {"<metric>/<entity>": {"generated", "recorded"}}, "drift": {entity: (H,)}}."""
     M.check_rollout_table(generated, layout, "generated rows")
@@ -309,8 +342,15 @@ def summarise(values: Sequence[float]) -> dict[str, Any]:
     }
 
 
-def state_layer(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], tables: Sequence[pa.Table], *,
-                render_size: tuple[int, int] | None = (72, 128), progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
+def state_layer(
+    ckpt: Path | str,
+    corpus: Corpus | Path | str,
+    windows: Sequence[Window],
+    tables: Sequence[pa.Table],
+    *,
+    render_size: tuple[int, int] | None = (72, 128),
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """The state-layer table over windows: per "<metric>/<entity>" the generated and recorded summaries,
     per-window values, and per entity the root drift (windows, horizon) for curves (``progress`` told per window)."""
     c = as_corpus(corpus)
@@ -377,8 +417,9 @@ def token_classes(corpus: Corpus, entity: str) -> tuple[list[str], list[str]]:
     return cls, kind
 
 
-def _complies(layout: Layout, entity: str, rows: pa.Table, runs: Sequence[Force], kinds: list[str], classes: list[str],
-              fps: float) -> list[tuple[str, bool]]:  # fmt: skip
+def _complies(
+    layout: Layout, entity: str, rows: pa.Table, runs: Sequence[Force], kinds: list[str], classes: list[str], fps: float
+) -> list[tuple[str, bool]]:
     """(class, complies) per run; ``rows`` = last seed row + horizon rows."""
     speed, body = _motion_stats(layout, entity, rows, fps)
     out = []
@@ -388,9 +429,18 @@ def _complies(layout: Layout, entity: str, rows: pa.Table, runs: Sequence[Force]
     return out
 
 
-def controllability_probe(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *, entity: str = "hunter",
-                          temperature: float = 0.0, seed: int = 0, rules: str | Sequence[str] = "auto",
-                          free: Sequence[pa.Table] | None = None, progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
+def controllability_probe(
+    ckpt: Path | str,
+    corpus: Corpus | Path | str,
+    windows: Sequence[Window],
+    *,
+    entity: str = "hunter",
+    temperature: float = 0.0,
+    seed: int = 0,
+    rules: str | Sequence[str] = "auto",
+    free: Sequence[pa.Table] | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Free / Force-GT / Force-Shuf over ``windows`` (module doc); ``free`` reuses Free rollouts already run
     with the same ``rules``. Returns RA-MPJPE summaries and per-window values per condition, the Force-GT <
     Force-Shuf count and per-class compliance. ``progress`` is told each condition's rollouts (``run_windows``)."""
@@ -474,8 +524,15 @@ def _nanmean(v: Sequence[float]) -> float:
     return float(a[np.isfinite(a)].mean()) if np.isfinite(a).any() else float("nan")
 
 
-def rule_ablation(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequence[Window], *, temperature: float = 0.0,
-                  seed: int = 0, progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
+def rule_ablation(
+    ckpt: Path | str,
+    corpus: Corpus | Path | str,
+    windows: Sequence[Window],
+    *,
+    temperature: float = 0.0,
+    seed: int = 0,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Recorded / no rule / + collider / + collider + cap on the same windows: CFR, MMP, skate, separation per
     condition, the rules that actually ran and a note where a rule could not (no terrain scan, one entity).
     ``progress`` is told each condition's rollouts (``run_windows``)."""
@@ -493,12 +550,27 @@ def rule_ablation(ckpt: Path | str, corpus: Corpus | Path | str, windows: Sequen
         }
     ]
     for name, rules in ABLATION:
-        tables, ran = run_windows(ckpt, c, windows, rules=rules or "none", temperature=temperature, seed=seed, progress=progress,
-                                  phase=f"ablation: {name} rollouts")  # fmt: skip
+        tables, ran = run_windows(
+            ckpt,
+            c,
+            windows,
+            rules=rules or "none",
+            temperature=temperature,
+            seed=seed,
+            progress=progress,
+            phase=f"ablation: {name} rollouts",
+        )
         missing = {st: [r for r in rules if r not in got] for st, got in ran.items()}
         why = {"collider": "no terrain scan", "cap": "not two articulated entities"}
         note = "; ".join(f"stage {st}: " + ", ".join(f"{r} inactive ({why[r]})" for r in m) for st, m in missing.items() if m)
         pairs = [(predicted(t, w), fields[w.stage]) for t, w in zip(tables, windows)]
-        rows.append({"condition": name, "rules": list(rules), "ran": {k: list(v) for k, v in ran.items()}, "note": note,
-                     **_ablation_row(c.layout, pairs, fps)})  # fmt: skip
+        rows.append(
+            {
+                "condition": name,
+                "rules": list(rules),
+                "ran": {k: list(v) for k, v in ran.items()},
+                "note": note,
+                **_ablation_row(c.layout, pairs, fps),
+            }
+        )
     return {"conditions": rows, "windows": [asdict(w) for w in windows]}

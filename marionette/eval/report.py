@@ -68,9 +68,17 @@ def _chunk_frames(frames: int, extractor: Any, length: int) -> int:
     return min(1 + k * (frames - 1), length)
 
 
-def _paint_and_score(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor, int]], chunks: int, steps: int, seed: int,
-                     resamples: int, extractor: Any, progress: Progress | None = None,
-                     phase: str = "painting clips") -> dict[str, Any]:  # fmt: skip
+def _paint_and_score(
+    model: Any,
+    clips: Sequence[tuple[torch.Tensor, torch.Tensor, int]],
+    chunks: int,
+    steps: int,
+    seed: int,
+    resamples: int,
+    extractor: Any,
+    progress: Progress | None = None,
+    phase: str = "painting clips",
+) -> dict[str, Any]:
     """Paint each (rgb, pose, seed) clip's first 1 + chunks·(frames − 1) frames from its first RGB frame and score them
     against the recorded RGB: the whole clips and per chunk, with bootstrap intervals (proxy extractor by default;
     ``progress`` told per clip painted)."""
@@ -87,13 +95,23 @@ def _paint_and_score(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tenso
                 progress(phase, len(gen), len(clips))
     real_v, gen_v = torch.stack(real), torch.stack(gen)
     ex = extractor or fvd.ProxyExtractor()
-    return {"frames": T, "whole": fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed),
-            "per_chunk": fvd.fvd_per_chunk(real_v, gen_v, ex, frames=_chunk_frames(f, ex, T), resamples=resamples, seed=seed)}  # fmt: skip
+    return {
+        "frames": T,
+        "whole": fvd.fvd_report(real_v, gen_v, ex, resamples=resamples, seed=seed),
+        "per_chunk": fvd.fvd_per_chunk(real_v, gen_v, ex, frames=_chunk_frames(f, ex, T), resamples=resamples, seed=seed),
+    }
 
 
-def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor]], steps: int = 20, seed: int = 0,
-                    resamples: int = 200, max_frames: int | None = None, extractor: Any = None,
-                    progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
+def observation_fvd(
+    model: Any,
+    clips: Sequence[tuple[torch.Tensor, torch.Tensor]],
+    steps: int = 20,
+    seed: int = 0,
+    resamples: int = 200,
+    max_frames: int | None = None,
+    extractor: Any = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """FVD (I3D ``extractor``) or proxy-FVD (default) of RGB the observation ``model`` paints from recorded pose clips against the recorded RGB.
 
     ``clips``: (rgb (T, 3, H, W) in [−1, 1], pose (T, 3, H, W) in [0, 1]) at the model's size, T ≥ the
@@ -107,10 +125,24 @@ def observation_fvd(model: Any, clips: Sequence[tuple[torch.Tensor, torch.Tensor
         n = min(n, (int(max_frames) - 1) // (f - 1))
     if n < 1:
         raise ValueError(f"clips of {min(len(r) for r, _ in clips)} frames are shorter than the model's {f}")
-    scored = _paint_and_score(model, [(rgb, pose, seed + k) for k, (rgb, pose) in enumerate(clips)], n, steps, seed, resamples,
-                              extractor, progress, "proxy-FVD: painting recorded-pose chunks")  # fmt: skip
-    return {"run": True, "clips": len(clips), "steps": steps, **scored,
-            "what": "observation model on recorded pose-control chunks vs recorded RGB"}  # fmt: skip
+    scored = _paint_and_score(
+        model,
+        [(rgb, pose, seed + k) for k, (rgb, pose) in enumerate(clips)],
+        n,
+        steps,
+        seed,
+        resamples,
+        extractor,
+        progress,
+        "proxy-FVD: painting recorded-pose chunks",
+    )
+    return {
+        "run": True,
+        "clips": len(clips),
+        "steps": steps,
+        **scored,
+        "what": "observation model on recorded pose-control chunks vs recorded RGB",
+    }
 
 
 def _corpus_clips(c: Corpus, segments: set[str], frames: int, size: tuple[int, int], limit: int) -> tuple[list, dict]:
@@ -168,8 +200,16 @@ def _horizon_times(table: pa.Table, seed_frames: int, seg_t: np.ndarray) -> tupl
     return i0, int(np.searchsorted(seg_t, t1 + 1e-6)) - i0
 
 
-def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: tuple[int, int], seg_rows: pa.Table,
-                 chunks: Sequence[dict], terrain: Any = None) -> RolloutClip:  # fmt: skip
+def rollout_clip(
+    c: Corpus,
+    window: Window,
+    table: pa.Table,
+    frames: int,
+    size: tuple[int, int],
+    seg_rows: pa.Table,
+    chunks: Sequence[dict],
+    terrain: Any = None,
+) -> RolloutClip:
     """The window's rollout rendered through the bridge and the recorded RGB of the same ``frames`` video frames.
 
     The clip starts at the first source video frame at or after the last seed row (whose state is the recorded
@@ -218,17 +258,30 @@ def rollout_clip(c: Corpus, window: Window, table: pa.Table, frames: int, size: 
     first = chunks[which[0]]
     K = np.asarray(first["K"], np.float64)[int(src[0] - first["frames"][0])][None]
     row = seg_rows.slice(int(idx[0]), 1)
-    start = recorded_cameras(K, fixed_rows(row["camera.pos"], 3), fixed_rows(row["camera.rot"], 4),
-                             row["valid"].to_numpy(zero_copy_only=False), W, H)  # fmt: skip
+    start = recorded_cameras(
+        K, fixed_rows(row["camera.pos"], 3), fixed_rows(row["camera.rot"], 4), row["valid"].to_numpy(zero_copy_only=False), W, H
+    )
     if not start.valid[0]:
         raise WindowSkipped(f"no valid recorded camera at source frame {src[0]}")
     codes, cams = rollout_pose_codes(c.layout, table, seg_t[idx], start, terrain)
-    return RolloutClip(rgb_frames(rgb, factor), pose_frames(codes, factor), cams, start, (int(src[0]), int(src[-1]) + 1),
-                       [chunks[k]["key"] for k in used])  # fmt: skip
+    return RolloutClip(
+        rgb_frames(rgb, factor),
+        pose_frames(codes, factor),
+        cams,
+        start,
+        (int(src[0]), int(src[-1]) + 1),
+        [chunks[k]["key"] for k in used],
+    )
 
 
-def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], model_frames: int, size: tuple[int, int],
-                  progress: Progress | None = None) -> tuple[list[tuple[int, RolloutClip]], list[dict[str, Any]], int]:  # fmt: skip
+def rollout_clips(
+    c: Corpus,
+    windows: Sequence[Window],
+    tables: Sequence[pa.Table],
+    model_frames: int,
+    size: tuple[int, int],
+    progress: Progress | None = None,
+) -> tuple[list[tuple[int, RolloutClip]], list[dict[str, Any]], int]:
     """(window index, clip) of every window whose clip can be made, the skipped ones with their reasons, and
     the clip length T = 1 + n·(model_frames − 1) (the most model chunks every window's horizon holds; 0: none);
     ``progress`` told per window."""
@@ -238,9 +291,19 @@ def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Tabl
     avail = [_horizon_times(t, w.seed_frames, rows[w.segment]["t"].to_numpy())[1] for w, t in zip(windows, tables)]
     n = (min(avail) - 1) // (model_frames - 1)
     if n < 1:
-        return [], [{"window": k, "segment": w.segment, "start": w.start,
-                     "reason": f"the horizon holds {min(avail)} video frames, fewer than one model chunk's {model_frames}"}
-                    for k, w in enumerate(windows)], 0  # fmt: skip
+        return (
+            [],
+            [
+                {
+                    "window": k,
+                    "segment": w.segment,
+                    "start": w.start,
+                    "reason": f"the horizon holds {min(avail)} video frames, fewer than one model chunk's {model_frames}",
+                }
+                for k, w in enumerate(windows)
+            ],
+            0,
+        )
     T = 1 + n * (model_frames - 1)
     chunks = {s: segment_chunks(c, s) for s in rows}
     scenes: dict[str, Any] = {}
@@ -257,17 +320,29 @@ def rollout_clips(c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Tabl
     return out, skipped, T
 
 
-def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequence[pa.Table], steps: int = 20, seed: int = 0,
-                resamples: int = 200, max_frames: int | None = None, extractor: Any = None,
-                progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
+def rollout_fvd(
+    model: Any,
+    c: Corpus,
+    windows: Sequence[Window],
+    tables: Sequence[pa.Table],
+    steps: int = 20,
+    seed: int = 0,
+    resamples: int = 200,
+    max_frames: int | None = None,
+    extractor: Any = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Proxy-FVD of the observation ``model`` painting each window's *rollout* (``rollout_clip``: bridge camera
     starting from the recorded view) from the recorded first frame, relayed over model chunks, against the
     recorded RGB of the same video frames: whole clips and per model chunk, with bootstrap intervals (the first
     ``max_frames`` frames of each clip, a whole number of model chunks, when given)."""
     f = model.config.frames
     clips, skipped, T = rollout_clips(c, windows, tables, f, model.config.size, progress)
-    base = {"what": "observation model on the rollouts' pose-control video (bridge camera from the recorded view) vs recorded RGB",
-            "skipped": skipped, "steps": steps}  # fmt: skip
+    base = {
+        "what": "observation model on the rollouts' pose-control video (bridge camera from the recorded view) vs recorded RGB",
+        "skipped": skipped,
+        "steps": steps,
+    }
     if len(clips) < 2:
         return {"run": False, "reason": f"{len(clips)} windows with a rollout clip, 2 needed", **base}
     n = (T - 1) // (f - 1) if max_frames is None else min((T - 1) // (f - 1), (int(max_frames) - 1) // (f - 1))
@@ -275,8 +350,13 @@ def rollout_fvd(model: Any, c: Corpus, windows: Sequence[Window], tables: Sequen
         return {"run": False, "reason": f"max_frames {max_frames} is shorter than one model chunk ({f})", **base}
     painted = [(cl.rgb, cl.pose, seed + k) for k, cl in clips]
     scored = _paint_and_score(model, painted, n, steps, seed, resamples, extractor, progress, "proxy-FVD: painting rollouts")
-    return {"run": True, **base, "clips": len(clips), **scored,
-            "windows": [{"window": k, "source_frames": list(cl.source_frames), "chunks": cl.chunks} for k, cl in clips]}  # fmt: skip
+    return {
+        "run": True,
+        **base,
+        "clips": len(clips),
+        **scored,
+        "windows": [{"window": k, "source_frames": list(cl.source_frames), "chunks": cl.chunks} for k, cl in clips],
+    }
 
 
 # -- writing ---------------------------------------------------------------------------------------------------
@@ -314,37 +394,78 @@ def render_markdown(report: dict) -> str:
     """The report's markdown: the state-layer, probe, ablation and observation tables."""
     st, pr, ab, ob = report["state_layer"], report["probe"], report["ablation"], report["observation"]
     ws = report["windows"]
-    out = [f"# Evaluation of `{report['dynamics']}`", "",
-           f"Corpus `{report['corpus']}`; {len(ws)} windows of {report['seed_frames']} seed + {report['horizon']} predicted "
-           f"frames at {report['fps']:g} fps (split {report['split']!r}, window seed {report['seed']}, temperature "
-           f"{report['temperature']:g}).", "",
-           "## State layer (Free rollouts, rules auto)", ""]  # fmt: skip
-    rows = [[k.split("/")[0], k.split("/")[1], _pm(v["generated"]), _pm(v["recorded"]), str(v["generated"]["n"])]
-            for k, v in st["metrics"].items()]  # fmt: skip
+    out = [
+        f"# Evaluation of `{report['dynamics']}`",
+        "",
+        f"Corpus `{report['corpus']}`; {len(ws)} windows of {report['seed_frames']} seed + {report['horizon']} predicted "
+        f"frames at {report['fps']:g} fps (split {report['split']!r}, window seed {report['seed']}, temperature "
+        f"{report['temperature']:g}).",
+        "",
+        "## State layer (Free rollouts, rules auto)",
+        "",
+    ]
+    rows = [
+        [k.split("/")[0], k.split("/")[1], _pm(v["generated"]), _pm(v["recorded"]), str(v["generated"]["n"])]
+        for k, v in st["metrics"].items()
+    ]
     out += [_table(["metric", "entity", "generated", "recorded", "windows"], rows), ""]
-    out += [f"- {n}" for n in st["notes"]] + ["- RA-MPJPE and root drift compare with the recorded rows: 0 on the recorded side by definition.",
-                                             "- body share: follow camera, pose-control frame rendered at "
-                                             f"{report['render_size'][0]}×{report['render_size'][1]}, weapon counted for its owner.", ""]  # fmt: skip
+    out += [f"- {n}" for n in st["notes"]] + [
+        "- RA-MPJPE and root drift compare with the recorded rows: 0 on the recorded side by definition.",
+        "- body share: follow camera, pose-control frame rendered at "
+        f"{report['render_size'][0]}×{report['render_size'][1]}, weapon counted for its owner.",
+        "",
+    ]
     out += [f"## Controllability probe ({pr['entity']})", ""]
     names = {"free": "Free", "force_gt": "Force-GT", "force_shuf": "Force-Shuf"}
-    out += [_table(["condition", f"{pr['entity']} RA-MPJPE (m)", "windows"],
-                   [[names[k], _pm(v), str(v["n"])] for k, v in pr["conditions"].items()]), ""]  # fmt: skip
-    out += [f"Force-GT < Force-Shuf on {pr['force_gt_beats_shuf']} of {pr['compared']} windows.", "",
-            "Per-class compliance: share of the recorded action runs (forced run by run in Force-GT) whose motion the "
-            "corpus's own class rule puts in the forced class.", ""]  # fmt: skip
-    out += [_table(["class", "runs", "Free", "Force-GT", "recorded"],
-                   [[c, str(v["runs"]), _num(v["free"], 2), _num(v["force_gt"], 2), _num(v["recorded"], 2)]
-                    for c, v in pr["compliance"].items()]), ""]  # fmt: skip
+    out += [
+        _table(
+            ["condition", f"{pr['entity']} RA-MPJPE (m)", "windows"],
+            [[names[k], _pm(v), str(v["n"])] for k, v in pr["conditions"].items()],
+        ),
+        "",
+    ]
+    out += [
+        f"Force-GT < Force-Shuf on {pr['force_gt_beats_shuf']} of {pr['compared']} windows.",
+        "",
+        "Per-class compliance: share of the recorded action runs (forced run by run in Force-GT) whose motion the "
+        "corpus's own class rule puts in the forced class.",
+        "",
+    ]
+    out += [
+        _table(
+            ["class", "runs", "Free", "Force-GT", "recorded"],
+            [
+                [c, str(v["runs"]), _num(v["free"], 2), _num(v["force_gt"], 2), _num(v["recorded"], 2)]
+                for c, v in pr["compliance"].items()
+            ],
+        ),
+        "",
+    ]
     out += ["## Rule ablation", ""]
-    out += [_table(["condition", "CFR", "MMP (m)", "Skate (m/s)", "Sep (m)", "note"],
-                   [[r["condition"], _num(r["cfr"], 3), _num(r["mmp_m"]), _num(r["skate_mps"]), _num(r["sep_m"], 2), r["note"]]
-                    for r in ab["conditions"]]), ""]  # fmt: skip
-    out += ["CFR, MMP and skate are means over the articulated entities (per entity in report.json); Sep is the "
-            "horizontal root separation.", "", "## Observation layer", ""]  # fmt: skip
+    out += [
+        _table(
+            ["condition", "CFR", "MMP (m)", "Skate (m/s)", "Sep (m)", "note"],
+            [
+                [r["condition"], _num(r["cfr"], 3), _num(r["mmp_m"]), _num(r["skate_mps"]), _num(r["sep_m"], 2), r["note"]]
+                for r in ab["conditions"]
+            ],
+        ),
+        "",
+    ]
+    out += [
+        "CFR, MMP and skate are means over the articulated entities (per entity in report.json); Sep is the "
+        "horizontal root separation.",
+        "",
+        "## Observation layer",
+        "",
+    ]
     if "rollouts" in ob:
         i3d = ob.get("whole", {}).get("metric") == fvd.FVD_LABEL
-        note = ("FVD: features of the Inception-I3D weights given (--i3d)." if i3d else
-                "Proxy-FVD uses a fixed random feature extractor (not I3D): comparable only with itself; it is not FVD.")  # fmt: skip
+        note = (
+            "FVD: features of the Inception-I3D weights given (--i3d)."
+            if i3d
+            else "Proxy-FVD uses a fixed random feature extractor (not I3D): comparable only with itself; it is not FVD."
+        )
         out += [note, "", "### Recorded pose-control video (the observation model alone)", ""]
     out += _fvd_section(ob)
     if "rollouts" in ob:
@@ -364,11 +485,25 @@ def _fvd_section(ob: dict) -> list[str]:
     if not ob.get("run"):
         return [f"Not run: {ob['reason']}.", ""]
     w = ob["whole"]
-    return [f"{ob['what']}: {ob['clips']} clips of {ob['frames']} frames, {ob['steps']} sampling steps.", "",
-            _table(["clips", "metric", "value", "95 % interval", "extractor"],
-                   [["whole", w["metric"], _num(w["value"], 3), f"[{_num(w['low'], 3)}, {_num(w['high'], 3)}]", w["extractor"]]]
-                   + [[f"chunk {r['chunk']} (frames {r['start_frame']}–{r['end_frame']})", r["metric"], _num(r["value"], 3),
-                       f"[{_num(r['low'], 3)}, {_num(r['high'], 3)}]", r["extractor"]] for r in ob["per_chunk"]]), ""]  # fmt: skip
+    return [
+        f"{ob['what']}: {ob['clips']} clips of {ob['frames']} frames, {ob['steps']} sampling steps.",
+        "",
+        _table(
+            ["clips", "metric", "value", "95 % interval", "extractor"],
+            [["whole", w["metric"], _num(w["value"], 3), f"[{_num(w['low'], 3)}, {_num(w['high'], 3)}]", w["extractor"]]]
+            + [
+                [
+                    f"chunk {r['chunk']} (frames {r['start_frame']}–{r['end_frame']})",
+                    r["metric"],
+                    _num(r["value"], 3),
+                    f"[{_num(r['low'], 3)}, {_num(r['high'], 3)}]",
+                    r["extractor"],
+                ]
+                for r in ob["per_chunk"]
+            ],
+        ),
+        "",
+    ]
 
 
 def _save(fig: Any, path: Path) -> None:
@@ -431,15 +566,24 @@ def plot_all(report: dict, drift: dict[str, np.ndarray], out: Path) -> dict[str,
     files["drift"] = "drift.png"
 
     ob = report["observation"]
-    series = [(label, r["per_chunk"]) for label, r in (("recorded pose", ob), ("rollouts", ob.get("rollouts", {})))
-              if r.get("run") and r["per_chunk"]]  # fmt: skip
+    series = [
+        (label, r["per_chunk"])
+        for label, r in (("recorded pose", ob), ("rollouts", ob.get("rollouts", {})))
+        if r.get("run") and r["per_chunk"]
+    ]
     if series:
         fig = Figure(figsize=(6, 3.2))
         ax = fig.add_subplot(1, 1, 1)
         for j, (label, ch) in enumerate(series):
             x = np.array([r["chunk"] for r in ch]) + 0.08 * (j - (len(series) - 1) / 2)  # side by side, not on top
-            ax.errorbar(x, [r["value"] for r in ch], yerr=[[r["value"] - r["low"] for r in ch], [r["high"] - r["value"] for r in ch]],
-                        marker="o", capsize=3, label=f"{label} ({len(ch)} chunks)")  # fmt: skip
+            ax.errorbar(
+                x,
+                [r["value"] for r in ch],
+                yerr=[[r["value"] - r["low"] for r in ch], [r["high"] - r["value"] for r in ch]],
+                marker="o",
+                capsize=3,
+                label=f"{label} ({len(ch)} chunks)",
+            )
         metric = series[0][1][0]["metric"]
         ax.set_xlabel("chunk (model clip) of the video")
         ax.set_ylabel(metric)
@@ -487,11 +631,25 @@ def headline(report: dict) -> dict[str, float | int | None]:
     return _plain(h)
 
 
-def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, *, observation: Path | str | None = None,
-             segments: int = 8, seed_frames: int = 64, horizon: int = 120, seed: int = 0, log: Callable[[str], Any] = print,
-             temperature: float = 0.0, entity: str = "hunter", render_size: tuple[int, int] = (72, 128),
-             fvd_steps: int = 20, fvd_frames: int | None = None, i3d: Path | str | None = None,
-             progress: Progress | None = None) -> dict[str, Any]:  # fmt: skip
+def evaluate(
+    dynamics_dir: Path | str,
+    corpus: Path | str,
+    out_dir: Path | str,
+    *,
+    observation: Path | str | None = None,
+    segments: int = 8,
+    seed_frames: int = 64,
+    horizon: int = 120,
+    seed: int = 0,
+    log: Callable[[str], Any] = print,
+    temperature: float = 0.0,
+    entity: str = "hunter",
+    render_size: tuple[int, int] = (72, 128),
+    fvd_steps: int = 20,
+    fvd_frames: int | None = None,
+    i3d: Path | str | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
     """Run the protocol (module doc) and write the report directory ``out_dir``.
 
     Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number),
@@ -528,8 +686,11 @@ def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, 
         model = load_model(observation)
         clips, skipped = _corpus_clips(c, {w.segment for w in windows}, model.config.frames, model.config.size, max(segments, 2))
         if len(clips) < 2:
-            obs = {"run": False, "reason": f"{len(clips)} usable video chunks in the windows' segments, 2 needed "
-                                           f"(skipped: {dict(list(skipped.items())[:3])})"}  # fmt: skip
+            obs = {
+                "run": False,
+                "reason": f"{len(clips)} usable video chunks in the windows' segments, 2 needed "
+                f"(skipped: {dict(list(skipped.items())[:3])})",
+            }
         else:
             log(f"evaluate: proxy-FVD over {len(clips)} video chunks")
             obs = observation_fvd(
@@ -541,12 +702,22 @@ def evaluate(dynamics_dir: Path | str, corpus: Path | str, out_dir: Path | str, 
         )
         obs["observation"] = str(observation)
     report = {
-        "dynamics": str(dynamics_dir), "corpus": str(c.path), "split": split, "fps": fps, "seed": seed,
-        "seed_frames": seed_frames, "horizon": horizon, "temperature": temperature, "render_size": list(render_size),
-        "windows": [asdict(w) for w in windows], "rules_free": ran,
+        "dynamics": str(dynamics_dir),
+        "corpus": str(c.path),
+        "split": split,
+        "fps": fps,
+        "seed": seed,
+        "seed_frames": seed_frames,
+        "horizon": horizon,
+        "temperature": temperature,
+        "render_size": list(render_size),
+        "windows": [asdict(w) for w in windows],
+        "rules_free": ran,
         "state_layer": state,
-        "probe": probe, "ablation": ablation, "observation": obs,
-    }  # fmt: skip
+        "probe": probe,
+        "ablation": ablation,
+        "observation": obs,
+    }
     report = _plain(report)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))

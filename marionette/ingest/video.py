@@ -250,7 +250,9 @@ def write_video_shard(
                             mp4 = encode_mp4(np.stack(buffers.pop(key)), fps, settings)
                             key = video_shards.chunk_key(seg, ci)
                             video_shards.add_member(tar, video_shards.member_name(key, "rgb.mp4"), mp4)
-                            video_shards.add_member(tar, video_shards.member_name(key, "json"), json.dumps(rec, sort_keys=True).encode())
+                            video_shards.add_member(
+                                tar, video_shards.member_name(key, "json"), json.dumps(rec, sort_keys=True).encode()
+                            )
                             records.append(rec)
                 if buffers:
                     (seg, ci), got = next(iter(buffers.items()))

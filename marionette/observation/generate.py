@@ -53,7 +53,9 @@ def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tup
     meta = read_meta(pose_path)
     first = read_image(first_path)
     if first.shape[:2] != (meta.height, meta.width):
-        raise ValueError(f"{first_path}: a {first.shape[0]}×{first.shape[1]} first frame for a {meta.height}×{meta.width} pose video")
+        raise ValueError(
+            f"{first_path}: a {first.shape[0]}×{first.shape[1]} first frame for a {meta.height}×{meta.width} pose video"
+        )
     f = check_size((meta.height, meta.width), size, str(pose_path))
     return pose_frames(np.stack(list(iter_codes(pose_path))), f), rgb_frames(first[None], f)[0]
 

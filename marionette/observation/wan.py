@@ -61,26 +61,47 @@ WAN_TO_DIFFUSERS = {
     "time_embedding.0": "condition_embedder.time_embedder.linear_1",
     "time_embedding.2": "condition_embedder.time_embedder.linear_2",
     "time_projection.1": "condition_embedder.time_proj",
-    **{f"blocks.*.{a}.{o}": f"blocks.*.{b}.{d}" for a, b in (("self_attn", "attn1"), ("cross_attn", "attn2"))
-       for o, d in (("q", "to_q"), ("k", "to_k"), ("v", "to_v"), ("o", "to_out.0"), ("norm_q", "norm_q"), ("norm_k", "norm_k"))},
+    **{
+        f"blocks.*.{a}.{o}": f"blocks.*.{b}.{d}"
+        for a, b in (("self_attn", "attn1"), ("cross_attn", "attn2"))
+        for o, d in (("q", "to_q"), ("k", "to_k"), ("v", "to_v"), ("o", "to_out.0"), ("norm_q", "norm_q"), ("norm_k", "norm_k"))
+    },
     "blocks.*.norm3": "blocks.*.norm2",
     "blocks.*.ffn.0": "blocks.*.ffn.net.0.proj",
     "blocks.*.ffn.2": "blocks.*.ffn.net.2",
     "blocks.*.modulation": "blocks.*.scale_shift_table",
     "head.head": "proj_out",
     "head.modulation": "scale_shift_table",
-}  # fmt: skip
+}
 DIFFUSERS_TO_WAN = {d: o for o, d in WAN_TO_DIFFUSERS.items()}
 
 # The original config's keys (VideoX-Fun's WanTransformer3DModel arguments): those that fix the parameter set
 # (required), those the release may leave out (Wan's defaults), and those that change nothing loaded here.
 WAN_REQUIRED = ("dim", "ffn_dim", "num_heads", "num_layers", "in_dim", "out_dim")
 WAN_DEFAULTS = {
-    "patch_size": (1, 2, 2), "freq_dim": 256, "text_dim": 4096, "text_len": 512, "eps": 1e-6, "qk_norm": True,
-    "cross_attn_norm": True, "window_size": (-1, -1), "add_control_adapter": False, "add_ref_conv": False, "in_dim_ref_conv": 16,
-}  # fmt: skip
-WAN_INERT = ("model_type", "cross_attn_type", "in_channels", "hidden_size", "in_dim_control_adapter",
-             "downscale_factor_control_adapter", "_class_name", "_diffusers_version", "_name_or_path")  # fmt: skip
+    "patch_size": (1, 2, 2),
+    "freq_dim": 256,
+    "text_dim": 4096,
+    "text_len": 512,
+    "eps": 1e-6,
+    "qk_norm": True,
+    "cross_attn_norm": True,
+    "window_size": (-1, -1),
+    "add_control_adapter": False,
+    "add_ref_conv": False,
+    "in_dim_ref_conv": 16,
+}
+WAN_INERT = (
+    "model_type",
+    "cross_attn_type",
+    "in_channels",
+    "hidden_size",
+    "in_dim_control_adapter",
+    "downscale_factor_control_adapter",
+    "_class_name",
+    "_diffusers_version",
+    "_name_or_path",
+)
 
 
 def _rename(name: str, table: dict[str, str]) -> str | None:
@@ -271,8 +292,9 @@ def _with_rope(transformer: WanTransformer3DModel) -> WanTransformer3DModel:
     return transformer
 
 
-def save_original(directory: Path, transformer: WanTransformer3DModel, text_len: int = 512,
-                  ref_conv: nn.Conv2d | None = None) -> None:  # fmt: skip
+def save_original(
+    directory: Path, transformer: WanTransformer3DModel, text_len: int = 512, ref_conv: nn.Conv2d | None = None
+) -> None:
     """Write ``transformer`` (and a ``ref_conv``) as the release lays it out: ``config.json`` in the original Wan
     keys and ``diffusion_pytorch_model.safetensors`` in the original parameter names (``load_transformer`` reads it)."""
     config = original_config(transformer, text_len, ref_conv)
@@ -332,8 +354,16 @@ def _cast(model: nn.Module, dtype: torch.dtype) -> nn.Module:
 class WanFunControl:
     """Wan2.2-Fun-5B-Control with the observation model's call shape: ``generate(pose, first, chunks, steps, seed)``."""
 
-    def __init__(self, transformer: WanTransformer3DModel, vae: AutoencoderKLWan, frames: int = 81, shift: float = 5.0,
-                 prompt_embeds: Tensor | None = None, text_len: int = 512, ref_conv: nn.Conv2d | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        transformer: WanTransformer3DModel,
+        vae: AutoencoderKLWan,
+        frames: int = 81,
+        shift: float = 5.0,
+        prompt_embeds: Tensor | None = None,
+        text_len: int = 512,
+        ref_conv: nn.Conv2d | None = None,
+    ) -> None:
         c, v = transformer.config, vae.config
         self.transformer, self.vae, self.ref_conv = transformer.eval(), vae.eval(), ref_conv
         self.frames, self.shift = int(frames), float(shift)
@@ -359,9 +389,16 @@ class WanFunControl:
         self.std = torch.tensor(v.latents_std).view(1, -1, 1, 1, 1).to(self.device)
 
     @classmethod
-    def from_pretrained(cls, root: Path, vae: Path | None = None, frames: int = 81, shift: float = 5.0,
-                        prompt_embeds: Tensor | None = None, dtype: torch.dtype = torch.float32,
-                        device: str | torch.device = "cpu") -> WanFunControl:  # fmt: skip
+    def from_pretrained(
+        cls,
+        root: Path,
+        vae: Path | None = None,
+        frames: int = 81,
+        shift: float = 5.0,
+        prompt_embeds: Tensor | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: str | torch.device = "cpu",
+    ) -> WanFunControl:
         """Load a local checkpoint directory: the transformer from ``root`` (release layout) or ``root/transformer``
         (diffusers layout), the VAE from ``vae`` or ``root/vae``. The transformer runs in ``dtype`` (except the
         modules diffusers keeps in float32), the VAE in float32."""

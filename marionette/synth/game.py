@@ -25,9 +25,33 @@ from .clips import CLIPS, TYPE_IDS, clip_table
 from .render import DEPTH_ENCODING, Renderer, encode_depth, follow_camera, intrinsics
 
 RECORDING_EPOCH = 1767225600  # 2026-01-01T00:00:00Z; recording k starts k days later
-NPC_FIELDS = ("type_id", "member_id", "weapon_id", "pos", "rot", "motion_bank_id", "motion_id", "motion_frame", "hp",
-              "max_hp", "red_hp", "sp", "max_sp", "atk", "wp_atk", "attr", "wp_attr", "crit_rate", "crit_atk_rate", "def",
-              "resist_fire", "resist_water", "resist_ice", "resist_elec", "resist_dragon")  # fmt: skip
+NPC_FIELDS = (
+    "type_id",
+    "member_id",
+    "weapon_id",
+    "pos",
+    "rot",
+    "motion_bank_id",
+    "motion_id",
+    "motion_frame",
+    "hp",
+    "max_hp",
+    "red_hp",
+    "sp",
+    "max_sp",
+    "atk",
+    "wp_atk",
+    "attr",
+    "wp_attr",
+    "crit_rate",
+    "crit_atk_rate",
+    "def",
+    "resist_fire",
+    "resist_water",
+    "resist_ice",
+    "resist_elec",
+    "resist_dragon",
+)
 MONSTER_FIELDS = ("type_id", "pos", "rot", "motion_bank_id", "motion_id", "motion_frame", "hp", "max_hp", "cond")
 COLUMNS = (
     ["camera.K", "camera.pos", "camera.rot", "npc.count", "npc.tracking"]
@@ -101,8 +125,9 @@ def _yuv420p_frame(rgb: np.ndarray) -> av.VideoFrame:
     return frame
 
 
-def _write_video(path: Path, frames, fps: int, codec: str, pix_fmt: str, fmt: str, options: dict,
-                 metadata: dict | None = None) -> None:  # fmt: skip
+def _write_video(
+    path: Path, frames, fps: int, codec: str, pix_fmt: str, fmt: str, options: dict, metadata: dict | None = None
+) -> None:
     def write(tmp: Path) -> None:
         # bitexact: no random container ids or encoder version strings, so reruns are byte-identical.
         with av.open(str(tmp), "w", format=fmt, options={"fflags": "+bitexact"}) as c:
@@ -149,8 +174,18 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
         scale = np.ones(len(edges[e]))
         if e == "monster":  # a thick body and neck, a tapering tail
             child = [r.source_joints[c] for c in edges[e][:, 1]]
-            scale = np.array([3.0 if n.startswith(("spine", "chest")) else 2.0 if n.startswith(("neck", "head"))
-                              else max(0.6, 2.2 - 0.17 * int(n[4:])) if n.startswith("tail") else 1.0 for n in child])  # fmt: skip
+            scale = np.array(
+                [
+                    3.0
+                    if n.startswith(("spine", "chest"))
+                    else 2.0
+                    if n.startswith(("neck", "head"))
+                    else max(0.6, 2.2 - 0.17 * int(n[4:]))
+                    if n.startswith("tail")
+                    else 1.0
+                    for n in child
+                ]
+            )
         radii[e] = r.capsule_radius_m * scale
     renderer = Renderer(width, height, edges, radii)
     rgb, depth = [], []
@@ -168,8 +203,15 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
     # the recording's time in the container (scanners read it; never the wall clock of the run)
     created = datetime.fromtimestamp(RECORDING_EPOCH + 86400 * index, UTC).strftime("%Y-%m-%dT%H:%M:%S.000000Z")
     _write_video(d / "rgb.mp4", rgb, fps, "libx264", "yuv420p", "mp4", x264, {"creation_time": created})
-    _write_video(d / "depth.mkv", depth, fps, "libx265", "gray", "matroska",
-                 {"x265-params": "lossless=1:log-level=error:pools=1:frame-threads=1"})  # fmt: skip
+    _write_video(
+        d / "depth.mkv",
+        depth,
+        fps,
+        "libx265",
+        "gray",
+        "matroska",
+        {"x265-params": "lossless=1:log-level=error:pools=1:frame-threads=1"},
+    )
 
     # state.csv
     hp = _hp(plan, roots)
@@ -183,18 +225,48 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
         hc, mc = CLIPS["hunter"][hnames[i]], CLIPS["monster"][mnames[i]]
         row = [_tuple(K), _tuple(cam_pos[i]), _tuple(cam_q[i], 8)] if cam_valid[i] else ["nan"] * 3
         row += ["1", "0"]
-        npc = {"type_id": 0, "member_id": 0, "weapon_id": TYPE_IDS["weapon"], "pos": _tuple(roots["hunter"][i]),
-               "rot": _tuple(hq[i], 8), "motion_bank_id": hc.bank, "motion_id": hc.motion, "motion_frame": int(hmf[i]),
-               "hp": hp["hunter"][i], "max_hp": 150, "red_hp": min(150.0, hp["hunter"][i] + 10.0), "sp": 100, "max_sp": 100,
-               "atk": 220, "wp_atk": 1150, "attr": 0, "wp_attr": 2, "crit_rate": 0.15, "crit_atk_rate": 1.25, "def": 180,
-               "resist_fire": 3, "resist_water": 0, "resist_ice": -2, "resist_elec": 1, "resist_dragon": 0}  # fmt: skip
+        npc = {
+            "type_id": 0,
+            "member_id": 0,
+            "weapon_id": TYPE_IDS["weapon"],
+            "pos": _tuple(roots["hunter"][i]),
+            "rot": _tuple(hq[i], 8),
+            "motion_bank_id": hc.bank,
+            "motion_id": hc.motion,
+            "motion_frame": int(hmf[i]),
+            "hp": hp["hunter"][i],
+            "max_hp": 150,
+            "red_hp": min(150.0, hp["hunter"][i] + 10.0),
+            "sp": 100,
+            "max_sp": 100,
+            "atk": 220,
+            "wp_atk": 1150,
+            "attr": 0,
+            "wp_attr": 2,
+            "crit_rate": 0.15,
+            "crit_atk_rate": 1.25,
+            "def": 180,
+            "resist_fire": 3,
+            "resist_water": 0,
+            "resist_ice": -2,
+            "resist_elec": 1,
+            "resist_dragon": 0,
+        }
         row += [_num(npc[f]) if not isinstance(npc[f], str) else npc[f] for f in NPC_FIELDS]
         if present[i]:
             frac = hp["monster"][i] / 2400.0
             cond = "angry" if frac < 0.7 else "tired" if mc.name == "idle" and frac < 0.9 else "none"
-            mon = {"type_id": TYPE_IDS["monster"], "pos": _tuple(roots["monster"][i]), "rot": _tuple(mq[i], 8),
-                   "motion_bank_id": mc.bank, "motion_id": mc.motion, "motion_frame": int(mmf[i]), "hp": hp["monster"][i],
-                   "max_hp": 2400, "cond": cond}  # fmt: skip
+            mon = {
+                "type_id": TYPE_IDS["monster"],
+                "pos": _tuple(roots["monster"][i]),
+                "rot": _tuple(mq[i], 8),
+                "motion_bank_id": mc.bank,
+                "motion_id": mc.motion,
+                "motion_frame": int(mmf[i]),
+                "hp": hp["monster"][i],
+                "max_hp": 2400,
+                "cond": cond,
+            }
             row += ["1"] + [_num(mon[f]) if not isinstance(mon[f], str) else mon[f] for f in MONSTER_FIELDS]
         else:
             row += ["0"] + ["nan"] * len(MONSTER_FIELDS)
@@ -217,21 +289,36 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
     tdir = Path(out_dir) / "truth" / part
     tdir.mkdir(parents=True, exist_ok=True)
     truth = {
-        "heading_monster": yaws["monster"], "heading_hunter": yaws["hunter"],
-        "root_world_monster": roots["monster"], "root_world_hunter": roots["hunter"],
-        "monster_present": present, "camera_valid": cam_valid,
-        "camera_pos_world": cam_pos, "camera_rot_cw": cam_rot,
-    }  # fmt: skip
+        "heading_monster": yaws["monster"],
+        "heading_hunter": yaws["hunter"],
+        "root_world_monster": roots["monster"],
+        "root_world_hunter": roots["hunter"],
+        "monster_present": present,
+        "camera_valid": cam_valid,
+        "camera_pos_world": cam_pos,
+        "camera_rot_cw": cam_rot,
+    }
     _atomic(tdir / f"{sample_id}.npz", lambda tmp: _savez(tmp, truth))
     meta = {
-        "sample_id": sample_id, "part": part, "seed": seed, "index": index, "n_frames": N, "fps": fps,
-        "width": width, "height": height, "recording_time": RECORDING_EPOCH + 86400 * index,
-        "depth_encoding": DEPTH_ENCODING, "camera_K": list(K),
-        "monster_absent_frames": list(plan.absent), "camera_invalid_frames": list(plan.camera_invalid),
+        "sample_id": sample_id,
+        "part": part,
+        "seed": seed,
+        "index": index,
+        "n_frames": N,
+        "fps": fps,
+        "width": width,
+        "height": height,
+        "recording_time": RECORDING_EPOCH + 86400 * index,
+        "depth_encoding": DEPTH_ENCODING,
+        "camera_K": list(K),
+        "monster_absent_frames": list(plan.absent),
+        "camera_invalid_frames": list(plan.camera_invalid),
         "clips": {e: {str(k): v for k, v in clip_table(e).items()} for e in ("monster", "hunter")},
-        "segments": {e: [{"start": s.start, "clip": s.clip, "length": s.length} for s in plan.tracks[e].segments]
-                     for e in ("monster", "hunter")},
-    }  # fmt: skip
+        "segments": {
+            e: [{"start": s.start, "clip": s.clip, "length": s.length} for s in plan.tracks[e].segments]
+            for e in ("monster", "hunter")
+        },
+    }
     _atomic(tdir / f"{sample_id}.json", lambda tmp: tmp.write_text(json.dumps(meta, indent=1)))
     return d
 
@@ -250,8 +337,17 @@ def write_edges(out_dir: Path, part: str) -> Path:
     return path
 
 
-def generate(out_dir, recordings: int = 2, seconds: float = 20.0, seed: int = 0, width: int = 320, height: int = 180,
-             fps: int = 30, part: str = "data_part1", workers: int = 1) -> list[Path]:  # fmt: skip
+def generate(
+    out_dir,
+    recordings: int = 2,
+    seconds: float = 20.0,
+    seed: int = 0,
+    width: int = 320,
+    height: int = 180,
+    fps: int = 30,
+    part: str = "data_part1",
+    workers: int = 1,
+) -> list[Path]:
     """Write ``recordings`` synthetic recordings of ``seconds`` s each (in ``workers`` processes);
     returns the sample directories. Each recording depends only on (seed, index), never on ``workers``."""
     out_dir = Path(out_dir)

@@ -49,11 +49,21 @@ def gait(phase: np.ndarray, clip: Clip, offsets: tuple[float, ...], lift_m: floa
 # ----------------------------------------------------------------------------------------------- hunter
 
 HUNTER_NEUTRAL = {
-    "foot_l_dz": 0.05, "foot_l_lift": 0.0, "foot_r_dz": -0.05, "foot_r_lift": 0.0,
-    "lean": 0.05, "twist": 0.0,
-    "hand_r_x": -0.28, "hand_r_y": 0.0, "hand_r_z": 0.3, "blade_az": 0.0, "blade_el": 0.35,
-    "hand_l_x": 0.25, "hand_l_y": -0.05, "hand_l_z": 0.05,
-}  # fmt: skip
+    "foot_l_dz": 0.05,
+    "foot_l_lift": 0.0,
+    "foot_r_dz": -0.05,
+    "foot_r_lift": 0.0,
+    "lean": 0.05,
+    "twist": 0.0,
+    "hand_r_x": -0.28,
+    "hand_r_y": 0.0,
+    "hand_r_z": 0.3,
+    "blade_az": 0.0,
+    "blade_el": 0.35,
+    "hand_l_x": 0.25,
+    "hand_l_y": -0.05,
+    "hand_l_z": 0.05,
+}
 
 
 def hunter_controls(clip: Clip, phase: np.ndarray) -> dict[str, np.ndarray]:
@@ -73,8 +83,14 @@ def hunter_controls(clip: Clip, phase: np.ndarray) -> dict[str, np.ndarray]:
         heavy = clip.name == "heavy_attack"
         up = _ramp(u, 0.0, 0.45) - _ramp(u, 0.45, 0.62)  # raised weight
         hit = _ramp(u, 0.45, 0.62) - _ramp(u, 0.75, 1.0)  # struck weight
-        raised = {"hand_r_x": -0.15, "hand_r_y": 0.55, "hand_r_z": -0.05, "blade_el": 2.6 if heavy else 2.2,
-                  "twist": 0.6 if heavy else 0.3, "lean": -0.1}  # fmt: skip
+        raised = {
+            "hand_r_x": -0.15,
+            "hand_r_y": 0.55,
+            "hand_r_z": -0.05,
+            "blade_el": 2.6 if heavy else 2.2,
+            "twist": 0.6 if heavy else 0.3,
+            "lean": -0.1,
+        }
         struck = {"hand_r_x": -0.1, "hand_r_y": 0.0, "hand_r_z": 0.55, "blade_el": -0.45, "twist": -0.25, "lean": 0.35}
         for k in raised:
             c[k] = c[k] + up * (raised[k] - c[k]) + hit * (struck[k] - c[k])
@@ -141,11 +157,19 @@ def _dir(az: np.ndarray, el: np.ndarray) -> np.ndarray:
 
 
 _HUNTER_TORSO = {  # torso-frame offsets from the pelvis, before lean and twist
-    "spine1": (0, 0.12, 0), "spine2": (0, 0.25, 0), "chest": (0, 0.40, 0), "neck": (0, 0.55, 0),
-    "head": (0, 0.65, 0.02), "head_top": (0, 0.85, 0.0), "jaw": (0, 0.58, 0.10), "back_mount": (0, 0.45, -0.15),
-    "clavicle_l": (0.08, 0.50, 0), "upperarm_l": (0.20, 0.48, 0), "clavicle_r": (-0.08, 0.50, 0),
+    "spine1": (0, 0.12, 0),
+    "spine2": (0, 0.25, 0),
+    "chest": (0, 0.40, 0),
+    "neck": (0, 0.55, 0),
+    "head": (0, 0.65, 0.02),
+    "head_top": (0, 0.85, 0.0),
+    "jaw": (0, 0.58, 0.10),
+    "back_mount": (0, 0.45, -0.15),
+    "clavicle_l": (0.08, 0.50, 0),
+    "upperarm_l": (0.20, 0.48, 0),
+    "clavicle_r": (-0.08, 0.50, 0),
     "upperarm_r": (-0.20, 0.48, 0),
-}  # fmt: skip
+}
 
 
 def hunter_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> tuple[np.ndarray, np.ndarray]:
@@ -200,8 +224,13 @@ def hunter_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> tuple[np.nd
 
 MONSTER_NEUTRAL = {
     **{f"foot_{f}_{k}": 0.0 for f in ("fl", "fr", "hl", "hr") for k in ("dz", "lift")},
-    "neck": 0.0, "head": 0.0, "jaw": 0.05, "tail_yaw": 0.0, "tail_pitch": 0.0, "wings": 0.0,
-}  # fmt: skip
+    "neck": 0.0,
+    "head": 0.0,
+    "jaw": 0.05,
+    "tail_yaw": 0.0,
+    "tail_pitch": 0.0,
+    "wings": 0.0,
+}
 
 
 def monster_controls(clip: Clip, phase: np.ndarray) -> dict[str, np.ndarray]:

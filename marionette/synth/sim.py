@@ -210,7 +210,9 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
     x0 = ter.DECK[1] - rng.uniform(8.0, 12.0)
     z0 = DECK_Z + rng.uniform(-0.8, 0.8)
     if index % 2:  # under the bridge: up the valley floor from the south
-        hunter = _Actor("hunter", ter.VALLEY_X + (x0 - ter.DECK[1] + 10.0), ter.DECK[2] - 12.0 - (z0 - DECK_Z), 0.0, on_deck=False)
+        hunter = _Actor(
+            "hunter", ter.VALLEY_X + (x0 - ter.DECK[1] + 10.0), ter.DECK[2] - 12.0 - (z0 - DECK_Z), 0.0, on_deck=False
+        )
         hunter.crossing = hunter.under = True
     else:
         hunter = _Actor("hunter", x0, z0, np.pi / 2, on_deck=True)
