@@ -1,4 +1,4 @@
-"""Fréchet distance, bootstrap intervals and the proxy video extractor (issue 7, FVD) on synthetic moving blobs."""
+"""Fréchet distance, bootstrap intervals and the proxy video extractor (FVD) on synthetic moving blobs."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Fréchet distance of video features, with clip-level bootstrap intervals (issue 7, observation layer).
+"""Fréchet distance of video features, with clip-level bootstrap intervals (the observation layer).
 
 Videos are float tensors (N, T, 3, H, W) in [-1, 1]: N clips of T RGB frames. An extractor maps them to
 (N, D) float64 features; the Fréchet distance between the Gaussians fitted to two feature sets is the score.

@@ -1,4 +1,4 @@
-"""The evaluation protocol on the state layer (issue 7): held-out windows, generated-vs-recorded metrics,
+"""The evaluation protocol on the state layer: held-out windows, generated-vs-recorded metrics,
 the controllability probe and the rule ablation. Definitions are DESIGN's "Evaluation definitions"
 (``metrics.py``); what this module adds, exactly:
 

@@ -1,4 +1,4 @@
-"""The evaluation report (issue 7): run the protocol on a checkpoint and write a directory of tables and plots.
+"""The evaluation report: run the protocol on a checkpoint and write a directory of tables and plots.
 
 ``evaluate`` runs, on the same held-out windows (``protocol.select_windows``), the state-layer metrics of
 the Free rollouts (rules "auto") beside the recorded rows, the controllability probe, the rule ablation
