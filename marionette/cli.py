@@ -465,7 +465,7 @@ def cmd_demo(a: argparse.Namespace) -> int:
 
 def _demo_dynamics(c, out: Path, steps: int) -> None:
     """The demo's dynamics stages: train the tiny preset, then roll it out with an attack forced and render it."""
-    from marionette.dynamics.data import ActionTokens
+    from marionette.corpus.vocab import ActionTokens
     from marionette.dynamics.rollout import write_rollout
     from marionette.dynamics.train import TrainConfig, train
 

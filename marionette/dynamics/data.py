@@ -78,7 +78,7 @@ import json
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -88,9 +88,10 @@ from torch import Tensor
 
 from marionette import geometry as geo
 from marionette.corpus import RESAMPLE_VERSION, Corpus, fixed_rows, world_of_rows
+from marionette.corpus.vocab import ActionTokens, entity_type_key  # noqa: F401 — the models' token tables
 from marionette.dynamics.model import N_CLEARANCES, PATCH_SIZE, TERRAIN_FEATURES, Frames, body_index, root_index
 from marionette.io import read_ipc, text_sha256, write_ipc
-from marionette.schema import Entity, Layout, SchemaError
+from marionette.schema import Layout, SchemaError
 from terrain_scan.field import LayeredField, egocentric_patch, joint_clearances, open_stage
 
 DEFAULT_FPS = 20.0
@@ -209,111 +210,6 @@ class Normaliser:
 
 
 # -- action tokens and progress ----------------------------------------------------------------------
-
-
-def entity_type_key(entity: Entity, type_id: int) -> str:
-    """The vocab.json key of an entity's type: ``<rig>:<type_id>``."""
-    return f"{entity.rig.name}:{int(type_id)}"
-
-
-@dataclass(frozen=True, eq=False)
-class ActionTokens:
-    """Per articulated entity (layout order): composite action ids → entity tokens, and each token's
-    type, vocab token, composite id and clip length (module doc: the numbering)."""
-
-    entities: tuple[str, ...]
-    sizes: tuple[int, ...]
-    vocab_hash: str
-    lookup: tuple[dict[tuple[int, int], int], ...]  # per entity: (type_id, composite) → entity token
-    type_keys: tuple[tuple[str, ...], ...]  # per entity, per token: "<rig>:<type_id>" ("" for token 0)
-    vocab_tokens: tuple[np.ndarray, ...]  # per entity, per token: the token within its type's vocab
-    composites: tuple[np.ndarray, ...]  # per entity, per token: composite id
-    clip_lengths: tuple[np.ndarray, ...]  # per entity, per token: clip length, source frames (1 for token 0)
-
-    @classmethod
-    def from_vocab(cls, vocab: dict, layout: Layout) -> ActionTokens:
-        """Entity token tables from a corpus's vocab.json contents."""
-        types = vocab.get("entity_types", {})
-        lookup, keys, vtok, comp, clip, sizes = [], [], [], [], [], []
-        for e in layout.articulated:
-            mine = sorted((int(k.split(":", 1)[1]), k) for k in types if k.split(":", 1)[0] == e.rig.name)
-            table: dict[tuple[int, int], int] = {}
-            k_, v_, c_, l_ = [""], [0], [0], [1.0]
-            for type_id, key in mine:
-                for a in sorted(types[key]["actions"], key=lambda a: a["token"]):
-                    if a["token"] == 0:
-                        continue
-                    table[(type_id, int(a["composite"]))] = len(k_)
-                    k_.append(key)
-                    v_.append(int(a["token"]))
-                    c_.append(int(a["composite"]))
-                    l_.append(float(max(int(a["clip_length"]), 1)))
-            lookup.append(table)
-            keys.append(tuple(k_))
-            vtok.append(np.asarray(v_, np.int64))
-            comp.append(np.asarray(c_, np.int64))
-            clip.append(np.asarray(l_, np.float64))
-            sizes.append(len(k_))
-        return cls(
-            tuple(e.name for e in layout.articulated),
-            tuple(sizes),
-            str(vocab.get("hash", "")),
-            tuple(lookup),
-            tuple(keys),
-            tuple(vtok),
-            tuple(comp),
-            tuple(clip),
-        )
-
-    @classmethod
-    def from_corpus(cls, corpus: Corpus | Path | str) -> ActionTokens:
-        """Entity token tables of a corpus (its vocab.json and layout)."""
-        c = as_corpus(corpus)
-        return cls.from_vocab(c.vocab, c.layout)
-
-    def encode(self, layout: Layout, table: pa.Table, where: str = "") -> tuple[np.ndarray, np.ndarray]:
-        """State rows → tokens (n, N) int64 and progress (n, N) float32 in [0, 1]; an id the vocab lacks
-        is a ValueError naming the segment, the row within it and the source frame."""
-        n = table.num_rows
-        tokens = np.zeros((n, len(self.entities)), np.int64)
-        progress = np.zeros((n, len(self.entities)), np.float32)
-        for i, e in enumerate(layout.articulated):
-            types = table[f"{e.name}.type_id"].to_numpy().astype(np.int64)
-            acts = table[f"{e.name}.action"].to_numpy().astype(np.int64)
-            mf = table[f"{e.name}.motion_frame"].to_numpy().astype(np.float64)
-            nz = np.flatnonzero(acts != 0)
-            if len(nz):
-                keys, inverse = np.unique(types[nz] * (1 << 32) + acts[nz], return_inverse=True)
-                lut = np.empty(len(keys), np.int64)
-                for k, key in enumerate(keys):
-                    type_id, cid = int(key >> 32), int(key & 0xFFFFFFFF)
-                    tok = self.lookup[i].get((type_id, cid))
-                    if tok is None:
-                        self._unknown(table, where, e, type_id, cid, int(nz[np.flatnonzero(inverse == k)[0]]))
-                    lut[k] = tok
-                tokens[nz, i] = lut[inverse.reshape(-1)]
-            clip = self.clip_lengths[i][tokens[:, i]]
-            p = np.clip(np.maximum(mf, 0.0) / clip, 0.0, 1.0)
-            progress[:, i] = np.where(tokens[:, i] == 0, 0.0, p)
-        return tokens, progress
-
-    def _unknown(self, table: pa.Table, where: str, e: Entity, type_id: int, cid: int, row: int) -> NoReturn:
-        segs = table["segment"].to_numpy(zero_copy_only=False)
-        seg = segs[row]
-        first = int(np.flatnonzero(segs == seg)[0])
-        frame = int(table["frame"][row].as_py())
-        key = entity_type_key(e, type_id)
-        typed = key in self.type_keys[self.entities.index(e.name)]
-        missing = f"no action {cid} of type {key}" if typed else f"no entity type {key}"
-        raise ValueError(
-            f"{where + ': ' if where else ''}segment {seg}, row {row - first} (source frame {frame}): {e.name} ({key}) "
-            f"has composite action id {cid}, but vocab.json (hash {self.vocab_hash}) holds {missing}; "
-            f"re-run finalize if recordings were added"
-        )
-
-    def type_token(self, entity: int, token: int) -> tuple[str, int]:
-        """The (vocab.json type key, token within that type's vocab) of an entity token; ("", 0) for token 0."""
-        return self.type_keys[entity][token], int(self.vocab_tokens[entity][token])
 
 
 def vocab_sizes(corpus: Corpus | Path | str) -> tuple[int, ...]:

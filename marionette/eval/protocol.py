@@ -44,8 +44,9 @@ import pyarrow as pa
 
 from marionette.bridge.rules import enabled_rules
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
+from marionette.corpus.vocab import ActionTokens, classify
 from marionette.dynamics.checkpoint import read_meta
-from marionette.dynamics.data import ActionTokens, as_corpus
+from marionette.dynamics.data import as_corpus
 from marionette.dynamics.rollout import (
     Force,
     Rollout,
@@ -56,7 +57,6 @@ from marionette.dynamics.rollout import (
     rollout_table,
 )
 from marionette.eval import metrics as M
-from marionette.ingest.finalize import classify
 from marionette.schema import Layout
 
 FOOT_NAMES = ("foot", "toe", "claw", "ankle", "heel", "paw", "hoof")  # a contact joint whose name holds one is a foot

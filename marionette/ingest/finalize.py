@@ -18,29 +18,10 @@ import pyarrow as pa
 
 from marionette.corpus import paths
 from marionette.corpus.info import CorpusInfo
+from marionette.corpus.vocab import classify
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
 from marionette.io import text_sha256, write_json, write_parquet
 from marionette.schema import load_scene
-
-# Action classes from motion statistics (per played instance, medians over instances):
-# attack      — the peak root-frame speed of any joint or owned attachment point ≥ ATTACK_PEAK_MPS;
-# locomotion  — a looping (state) action whose mean horizontal root speed ≥ LOCOMOTION_MPS;
-# stationary  — a looping action below that speed;
-# other       — an event that is not an attack (dodge, roar, ...).
-ATTACK_PEAK_MPS = 7.0
-LOCOMOTION_MPS = 0.5
-
-
-def classify(kind: str, instances: list[list[float]]) -> str:
-    """Action class from per-instance [mean root speed, peak body speed, frames]."""
-    if not instances:
-        return "other"
-    arr = np.asarray(instances, np.float64)
-    if np.median(arr[:, 1]) >= ATTACK_PEAK_MPS:
-        return "attack"
-    if kind == "state":
-        return "locomotion" if np.median(arr[:, 0]) >= LOCOMOTION_MPS else "stationary"
-    return "other"
 
 
 def build_vocab(records: list[dict]) -> dict:

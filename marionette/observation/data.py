@@ -94,7 +94,9 @@ def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) ->
     if start + frames > len(rgb):
         raise ValueError(f"{key}: a clip of {frames} frames from {start} exceeds the chunk's {len(rgb)}")
     f = check_size(rgb.shape[1:3], size, key)
-    return Clip(rgb=rgb_frames(rgb[start : start + frames], f), pose=pose_frames(codes[start : start + frames], f), key=key, start=start)
+    return Clip(
+        rgb=rgb_frames(rgb[start : start + frames], f), pose=pose_frames(codes[start : start + frames], f), key=key, start=start
+    )
 
 
 def _frame_count(sample: dict) -> int:
@@ -121,7 +123,7 @@ class ClipSource:
 
     def _actions(self, sample: dict, clip: Clip) -> Clip:
         """The clip with the entity tokens of its frames: the chunk json's source frames [a, b) in the segment's rows."""
-        from marionette.dynamics.data import ActionTokens
+        from marionette.corpus.vocab import ActionTokens
 
         seg = parse_chunk_key(clip.key)[0]
         if seg not in self._tokens:

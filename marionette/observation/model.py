@@ -79,7 +79,9 @@ class ObservationConfig:
         if self.frames < 2 or (self.frames - 1) % 4:
             raise ValueError(f"observation config: frames {self.frames} must be 4k + 1 with k ≥ 1")
         if self.height % self.patch or self.width_px % self.patch:
-            raise ValueError(f"observation config: {self.height}×{self.width_px} is not a whole number of {self.patch}-pixel patches")
+            raise ValueError(
+                f"observation config: {self.height}×{self.width_px} is not a whole number of {self.patch}-pixel patches"
+            )
         if self.width % self.heads:
             raise ValueError(f"observation config: width {self.width} does not split into {self.heads} heads")
 
@@ -176,7 +178,9 @@ class VideoDiT(nn.Module):
         hp, wp = c.height // p, c.width_px // p
         t, r, q = torch.meshgrid(torch.arange(c.frames), torch.arange(hp), torch.arange(wp), indexing="ij")
         third = (c.width // 3) // 2 * 2
-        pos = torch.cat([sincos(t.reshape(-1), third), sincos(r.reshape(-1), third), sincos(q.reshape(-1), c.width - 2 * third)], -1)
+        pos = torch.cat(
+            [sincos(t.reshape(-1), third), sincos(r.reshape(-1), third), sincos(q.reshape(-1), c.width - 2 * third)], -1
+        )
         self.register_buffer("pos", pos, persistent=False)  # (tokens, width)
 
     def patchify(self, x: Tensor) -> Tensor:
@@ -219,7 +223,9 @@ def check_inputs(config: ObservationConfig, control: Tensor, first: Tensor) -> N
     h, w = config.size
     if config.control == "pose":
         if control.ndim != 4 or control.shape[1] != POSE or tuple(control.shape[2:]) != (h, w):
-            raise ValueError(f"pose video {tuple(control.shape)}: the model takes (T, {POSE}, {h}, {w}) pose frames (height, id, inverse depth)")
+            raise ValueError(
+                f"pose video {tuple(control.shape)}: the model takes (T, {POSE}, {h}, {w}) pose frames (height, id, inverse depth)"
+            )
     else:
         n = len(config.vocab_sizes)
         if control.ndim != 2 or control.shape[1] != n or control.dtype != torch.int64:

@@ -101,7 +101,7 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
     base = OBS_PRESETS[config.preset]
     vocab: tuple[int, ...] = ()
     if config.control == "actions":
-        from marionette.dynamics.data import ActionTokens
+        from marionette.corpus.vocab import ActionTokens
 
         vocab = ActionTokens.from_corpus(corpus).sizes
     return replace(
