@@ -477,7 +477,8 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
         if m.startswith(("window", "baselines", "eval")):
             print("   ", m)
 
-    s = train(c, runs, TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50), log=log)
+    config = TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50)
+    s = train(c, runs, config, log=log, progress=True)
     print(f"    {s['steps']} steps in {time.time() - t:.1f} s; checkpoint {s['checkpoint']}")
     held = c.segment_ids("test") or c.segment_ids()
     seg = max(held, key=lambda x: c.dynamics_segment(x).num_rows)
@@ -515,7 +516,13 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     reduce = 8 if video["height"] % 8 == 0 and video["width"] % 8 == 0 else 4
     print(f"[8/9] training the observation model (tiny video DiT, {steps} steps, 1/{reduce} of the chunk size) into {runs}")
     tiny = dict(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3, warmup=20)
-    s = train(c, runs, ObservationTrainConfig(**tiny), log=lambda m: print("   ", m))
+    s = train(
+        c,
+        runs,
+        ObservationTrainConfig(**tiny),
+        log=lambda m: print("   ", m) if not m.startswith("step ") else None,
+        progress=True,
+    )
     print(f"    {s['steps']} steps in {time.time() - t:.1f} s")
     split = "test" if c.segment_ids("test") else None
     for seg in (r["segment"] for r in c.segments.to_pylist() if r["chunks"] and split in (None, r["split"])):

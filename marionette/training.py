@@ -302,7 +302,7 @@ def run_steps(
     """Optimise from ``run.step`` to ``end``: per step, the terms ``loss_at(step)`` (``objective`` among
     them, the one minimised), backward, gradient clipping, optimizer and scheduler steps, then the record
     ``{"step", *terms, "grad_norm", "lr"}`` (terms averaged over ranks) appended to ``run.history``, logged
-    (or shown on the progress bar, rank 0, with ``progress``) and given to ``on_record``; ``evaluate`` and
+    every ``end // 50`` steps (or shown on the progress bar, rank 0, with ``progress``) and given to ``on_record``; ``evaluate`` and
     ``checkpoint`` every ``eval_every`` / ``checkpoint_every`` steps before ``end`` (0: never here).
 
     What draws from torch's global RNG during a step (dropout) draws from ``noise_seed(seed, step, rank, 1)``,
@@ -336,7 +336,7 @@ def run_steps(
         run.history.append(record)
         if on_record is not None:
             on_record(record)
-        if bar.disable:
+        if bar.disable and (run.step % max(1, end // 50) == 0 or run.step == end):  # ~50 lines a run
             log(" ".join(f"{k} {v:.5g}" if isinstance(v, float) else f"{k} {v}" for k, v in record.items()))
         else:
             bar.set_postfix_str(f"{objective} {record[objective]:.4g} lr {lr:.3g}", refresh=False)
