@@ -43,8 +43,13 @@ def make_corpus(root: Path) -> Path:
     from terrain_scan.scan import scan_stages
 
     synth(root / "recordings", recordings=3, seconds=10.0, seed=7, width=160, height=90, workers=2)
-    build_corpus(root / "recordings", root / "corpus", IngestOptions(video=VideoSettings(height=72, width=128, crf=23)),
-                 workers=2, progress=False)  # fmt: skip
+    build_corpus(
+        root / "recordings",
+        root / "corpus",
+        IngestOptions(video=VideoSettings(height=72, width=128, crf=23)),
+        workers=2,
+        progress=False,
+    )
     scan_stages(root / "corpus", incremental=True, log=lambda *_: None)
     render_pose_targets(root / "corpus")
     path = root / "corpus" / "meta" / "segments.parquet"
@@ -86,7 +91,15 @@ def main() -> None:
                 t0 = time.perf_counter()
                 s = train(corpus, out, replace(CONFIG, steps=n, control=control), log=lambda *_: None)
                 took = time.perf_counter() - t0
-                train_rows.append([control, n, f"{n / took:.2f}", f"{n * CONFIG.batch_size / took:.1f}", f"{s['evals'][-1]['held_out_loss']:.4f}"])
+                train_rows.append(
+                    [
+                        control,
+                        n,
+                        f"{n / took:.2f}",
+                        f"{n * CONFIG.batch_size / took:.1f}",
+                        f"{s['evals'][-1]['held_out_loss']:.4f}",
+                    ]
+                )
                 model = load_model(out)
                 held = list(ClipSource(corpus, "test", model.config.frames, model.config.size, actions=True).chunks())
                 for k in (int(x) for x in a.sampling_steps.split(",")):
@@ -96,7 +109,9 @@ def main() -> None:
         copy = float(np.mean([float((h.rgb[0][None] - h.rgb[1:T]).abs().mean()) for h in held]))
         print(f"\n### Training (tiny, 18×32, 5-frame clips, batch {CONFIG.batch_size}; includes decoding the chunks once)\n")
         print(table(["control", "steps", "steps/s", "clips/s", "held-out flow loss"], train_rows))
-        print(f"\n### Sampling steps against quality and speed ({len(held)} held-out chunks; copying the first frame: {copy:.4f})\n")
+        print(
+            f"\n### Sampling steps against quality and speed ({len(held)} held-out chunks; copying the first frame: {copy:.4f})\n"
+        )
         print(table(["control", "training steps", "sampling steps", "mean |generated − recorded|", "generated frames/s"], rows))
 
 

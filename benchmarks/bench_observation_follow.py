@@ -43,16 +43,29 @@ def make_corpus(root: Path) -> Path:
     from terrain_scan.scan import scan_stages
 
     synth(root / "recordings", recordings=10, seconds=45.0, seed=11, width=96, height=54, workers=2)
-    build_corpus(root / "recordings", root / "corpus", IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28)),
-                 workers=2, progress=False)  # fmt: skip
+    build_corpus(
+        root / "recordings",
+        root / "corpus",
+        IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28)),
+        workers=2,
+        progress=False,
+    )
     scan_stages(root / "corpus", incremental=True, log=lambda *_: None)
     render_pose_targets(root / "corpus")
     return root / "corpus"
 
 
 def first_clips(chunks: list[Clip], frames: int) -> list[Clip]:
-    return [Clip(rgb=c.rgb[:frames], pose=c.pose[:frames], key=c.key, start=0, actions=None if c.actions is None else c.actions[:frames])
-            for c in chunks]  # fmt: skip
+    return [
+        Clip(
+            rgb=c.rgb[:frames],
+            pose=c.pose[:frames],
+            key=c.key,
+            start=0,
+            actions=None if c.actions is None else c.actions[:frames],
+        )
+        for c in chunks
+    ]
 
 
 def main() -> None:
@@ -74,9 +87,11 @@ def main() -> None:
         pairs = swap_pairs(held, T, a.pairs)
         if not pairs:
             raise SystemExit("no two held-out chunks both show bodies: nothing to swap")
-        print(f"{len(train_chunks)} train / {len(held)} held-out chunks; segmenter fitted in {time.perf_counter() - t0:.0f} s, IoU on "
-              f"held-out recorded frames {seg.iou_on(held):.3f}; {len(pairs)} swap pairs, id-mask overlap "
-              f"{min(p.overlap for p in pairs):.3f}–{max(p.overlap for p in pairs):.3f}")  # fmt: skip
+        print(
+            f"{len(train_chunks)} train / {len(held)} held-out chunks; segmenter fitted in {time.perf_counter() - t0:.0f} s, IoU on "
+            f"held-out recorded frames {seg.iou_on(held):.3f}; {len(pairs)} swap pairs, id-mask overlap "
+            f"{min(p.overlap for p in pairs):.3f}–{max(p.overlap for p in pairs):.3f}"
+        )
         print(f"copying the first frame: short {copy_error(first_clips(held, T), T):.4f}, relayed {copy_error(held, T):.4f}\n")
         rows = []
         for steps in (int(x) for x in a.steps.split(",")):
@@ -89,12 +104,37 @@ def main() -> None:
                 model = load_model(out)
                 short, relayed = relay_error(model, first_clips(held, T)), relay_error(model, held)
                 f = follow_scores(model, held, pairs, seg) if control == "pose" else None
-                rows.append([control, swap, steps, f"{took:.0f}", f"{s['evals'][-1]['held_out_loss']:.4f}", f"{short:.4f}", f"{relayed:.4f}",
-                             f"{f['iou_pose']:.3f}" if f else "–", f"{f['iou_first_frame']:.3f}" if f else "–"])  # fmt: skip
+                rows.append(
+                    [
+                        control,
+                        swap,
+                        steps,
+                        f"{took:.0f}",
+                        f"{s['evals'][-1]['held_out_loss']:.4f}",
+                        f"{short:.4f}",
+                        f"{relayed:.4f}",
+                        f"{f['iou_pose']:.3f}" if f else "–",
+                        f"{f['iou_first_frame']:.3f}" if f else "–",
+                    ]
+                )
                 print(f"  {rows[-1]}", flush=True)
     print()
-    print(table(["control", "reference swap", "steps", "train s", "held-out flow loss", "short |Δ|", "relayed |Δ| (81 frames)",
-                 "IoU vs B (pose given)", "IoU vs A (first frame)"], rows))  # fmt: skip
+    print(
+        table(
+            [
+                "control",
+                "reference swap",
+                "steps",
+                "train s",
+                "held-out flow loss",
+                "short |Δ|",
+                "relayed |Δ| (81 frames)",
+                "IoU vs B (pose given)",
+                "IoU vs A (first frame)",
+            ],
+            rows,
+        )
+    )
 
 
 if __name__ == "__main__":

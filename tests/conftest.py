@@ -8,10 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from marionette.ingest import IngestOptions, VideoSettings, build_corpus
-
+# Before torch loads its OpenMP runtime (read once, at load; subprocesses inherit it): a thread that waits at a
+# barrier sleeps instead of spinning. On a 2-core machine shared with other jobs, spinning threads made torch's
+# training steps 3-9x slower than one thread; sleeping ones are as fast as spinning ones on an idle machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("DO_NOT_TRACK", "1")
+
+from marionette.ingest import IngestOptions, VideoSettings, build_corpus  # noqa: E402
 
 SYNTH = {"recordings": 3, "seconds": 10.0, "seed": 7, "width": 160, "height": 90}
 TEST_OPTIONS = IngestOptions(video=VideoSettings(height=72, width=128, chunk_frames=81, crf=23))

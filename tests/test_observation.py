@@ -76,8 +76,10 @@ def test_pose_reduction_keeps_one_pixel_bones():
 def test_training_beats_its_initialisation_on_held_out_chunks(trained):
     _, s = trained
     first, last = s["evals"][0]["held_out_loss"], s["evals"][-1]["held_out_loss"]
-    print(f"\n{s['chunks']} train / {s['held_out']} held-out chunks ({s['held_out_split']}), {s['parameters']:,} parameters: "
-          f"held-out flow loss {first:.4f} at initialisation → {last:.4f} after {s['steps']} steps")  # fmt: skip
+    print(
+        f"\n{s['chunks']} train / {s['held_out']} held-out chunks ({s['held_out_split']}), {s['parameters']:,} parameters: "
+        f"held-out flow loss {first:.4f} at initialisation → {last:.4f} after {s['steps']} steps"
+    )
     assert s["held_out_split"] == "test"
     assert last < 0.7 * first
 
@@ -128,8 +130,10 @@ def test_generation_is_seeded_and_relays_chunks(obs_corpus, trained):
     seams = [float((a[1 + k * (T - 1)] - a[k * (T - 1)]).abs().mean()) for k in (1, 2)]
     within = [float((a[j + 1] - a[j]).abs().mean()) for j in range(1, len(a) - 1) if j % (T - 1)]
     other = [float((a[k * (T - 1)] - h.rgb[0]).abs().mean()) for k in (1, 2) for h in held[1:]]
-    print(f"\nrelay seams (mean |Δ|, [-1, 1] units): {[round(x, 4) for x in seams]}; consecutive generated frames inside a "
-          f"chunk {np.mean(within):.4f}; seed frames against other held-out chunks {np.mean(other):.4f}")  # fmt: skip
+    print(
+        f"\nrelay seams (mean |Δ|, [-1, 1] units): {[round(x, 4) for x in seams]}; consecutive generated frames inside a "
+        f"chunk {np.mean(within):.4f}; seed frames against other held-out chunks {np.mean(other):.4f}"
+    )
     assert max(seams) <= 1.5 * np.mean(within)  # a seam is no rougher than a step inside a chunk (± half)
     assert max(seams) < 0.5 * np.mean(other)
 
@@ -154,8 +158,28 @@ def test_train_and_generate_commands(obs_corpus, tmp_path):
     from marionette.ingest.video import decode_frames
 
     runs = tmp_path / "obs"
-    assert cli(["train", "observation", str(obs_corpus), "--out", str(runs), "--steps", "3", "--frames", "5", "--reduce", "4",
-                "--patch", "2", "--batch-size", "2"]) == 0  # fmt: skip
+    assert (
+        cli(
+            [
+                "train",
+                "observation",
+                str(obs_corpus),
+                "--out",
+                str(runs),
+                "--steps",
+                "3",
+                "--frames",
+                "5",
+                "--reduce",
+                "4",
+                "--patch",
+                "2",
+                "--batch-size",
+                "2",
+            ]
+        )
+        == 0
+    )
     with tarfile.open(sorted((obs_corpus / "video").glob("*.tar"))[0]) as tar:
         names = tar.getnames()
         key = next(n for n in names if n.endswith(".pose.mkv"))[: -len(".pose.mkv")]
@@ -163,8 +187,20 @@ def test_train_and_generate_commands(obs_corpus, tmp_path):
         rgb = decode_frames(tar.extractfile(f"{key}.rgb.mp4").read())
     write_image(tmp_path / "first.png", rgb[0])
     out = tmp_path / "gen.mp4"
-    args = ["generate", str(runs), "--pose", str(tmp_path / "pose.mkv"), "--first-frame", str(tmp_path / "first.png"),
-            "--out", str(out), "--chunks", "2", "--steps", "2"]  # fmt: skip
+    args = [
+        "generate",
+        str(runs),
+        "--pose",
+        str(tmp_path / "pose.mkv"),
+        "--first-frame",
+        str(tmp_path / "first.png"),
+        "--out",
+        str(out),
+        "--chunks",
+        "2",
+        "--steps",
+        "2",
+    ]
     assert cli(args) == 0
     frames = decode_frames(out.read_bytes())
     assert len(frames) == 9 and frames[0].shape == (18, 32, 3)
@@ -183,8 +219,26 @@ def test_ddp_two_processes_gloo(obs_corpus, tmp_path):
 
     out = tmp_path / "ddp"
     marionette = str(Path(sys.executable).with_name("marionette"))
-    cmd = [marionette, "train", "observation", str(obs_corpus), "--out", str(out), "--steps", "3", "--frames", "5",
-           "--reduce", "4", "--patch", "2", "--batch-size", "2", "--nproc", "2"]  # fmt: skip
+    cmd = [
+        marionette,
+        "train",
+        "observation",
+        str(obs_corpus),
+        "--out",
+        str(out),
+        "--steps",
+        "3",
+        "--frames",
+        "5",
+        "--reduce",
+        "4",
+        "--patch",
+        "2",
+        "--batch-size",
+        "2",
+        "--nproc",
+        "2",
+    ]
     r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())

@@ -1,7 +1,11 @@
 """The observation model's quality must-shows, on the dynamics corpus (ten 45 s recordings, one held out), terrain scanned,
 pose targets rendered: trained for a fixed budget it paints held-out chunks closer to the recording than the
 pixel-AR baseline and than its initialisation, and under a swapped pose video it draws the bodies where the
-pose says, not where the first frame had them."""
+pose says, not where the first frame had them.
+
+Budgets: each fixture and each test stays under a quarter of the per-test timeout on a slow 2-core machine
+(docs/tradeoffs.md, "Test budgets"). The pose-following test comes first, so its setup holds the corpus and the
+pose model and the next test's the baseline alone."""
 
 from __future__ import annotations
 
@@ -19,18 +23,21 @@ from marionette.observation.train import ObservationTrainConfig, _batch, load_mo
 
 # 18×32 (the 36×64 chunks halved), 5-frame clips; by default a fifth of the pose model's clips are given another
 # chunk's first frame, none of the baseline's
-CONFIG = ObservationTrainConfig(preset="tiny", steps=1000, batch_size=8, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
+CONFIG = ObservationTrainConfig(preset="tiny", steps=300, batch_size=4, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
 SIZE = (18, 32)
+SCAN_STRIDE = 4  # every 4th depth frame: the stage's terrain from 3,400 frames instead of 13,500, in a quarter of the time
+SEGMENTER_STEPS = 750
 
 
 @pytest.fixture(scope="module")
 def follow_corpus(dynamics_corpus, tmp_path_factory):
     from marionette.bridge.targets import render_pose_targets
-    from terrain_scan.scan import scan_stages
+    from terrain_scan.scan import ScanOptions, scan_stages
 
     out = tmp_path_factory.mktemp("follow") / "corpus"
     shutil.copytree(dynamics_corpus, out)
-    scan_stages(out, incremental=True, log=lambda *_: None)  # pose frames with terrain: the background behind moved bodies
+    # pose frames with terrain: the background behind moved bodies
+    scan_stages(out, incremental=True, options=ScanOptions(frame_stride=SCAN_STRIDE), log=lambda *_: None)
     render_pose_targets(out)
     return out
 
@@ -43,11 +50,17 @@ def held(follow_corpus) -> list[Clip]:
 
 
 @pytest.fixture(scope="module")
-def models(follow_corpus, tmp_path_factory) -> dict[str, VideoDiT]:
-    runs = tmp_path_factory.mktemp("follow-runs")
-    train(follow_corpus, runs / "pose", CONFIG, log=lambda *_: None)
-    train(follow_corpus, runs / "baseline", replace(CONFIG, control="actions"), log=lambda *_: None)
-    return {"pose": load_model(runs / "pose"), "baseline": load_model(runs / "baseline")}
+def pose_model(follow_corpus, tmp_path_factory) -> VideoDiT:
+    out = tmp_path_factory.mktemp("follow-pose")
+    train(follow_corpus, out, CONFIG, log=lambda *_: None)
+    return load_model(out)
+
+
+@pytest.fixture(scope="module")
+def baseline_model(follow_corpus, tmp_path_factory) -> VideoDiT:
+    out = tmp_path_factory.mktemp("follow-baseline")
+    train(follow_corpus, out, replace(CONFIG, control="actions"), log=lambda *_: None)
+    return load_model(out)
 
 
 def test_reference_swap_draws_first_frames_from_other_chunks():
@@ -62,7 +75,9 @@ def test_reference_swap_draws_first_frames_from_other_chunks():
     assert torch.equal(_batch(chunks, 5, 64, seed=3, step=7, control="pose")[0], rgb)  # swapping never changes the clips drawn
     other_rank = _batch(chunks, 5, 64, seed=3, step=7, control="pose", rank=1, swap=0.5)
     assert not torch.equal(other_rank[0], rgb) and not torch.equal(other_rank[2], first)
-    assert torch.equal(_batch(chunks, 5, 8, seed=3, step=7, control="pose")[2], _batch(chunks, 5, 8, seed=3, step=7, control="pose")[0][:, 0])
+    assert torch.equal(
+        _batch(chunks, 5, 8, seed=3, step=7, control="pose")[2], _batch(chunks, 5, 8, seed=3, step=7, control="pose")[0][:, 0]
+    )
     with pytest.raises(ValueError, match="pose control"):
         ObservationTrainConfig(control="actions", reference_swap=0.1)
     with pytest.raises(ValueError, match="probability"):
@@ -71,31 +86,35 @@ def test_reference_swap_draws_first_frames_from_other_chunks():
     assert ObservationTrainConfig(reference_swap=0.0).swap == 0.0
 
 
-def test_pose_model_beats_the_baseline_and_its_initialisation(models, held):
-    """Metric: mean |generated − recorded| (RGB in [−1, 1]) over whole held-out chunks (81 frames), each relayed
-    over 20 five-frame chunks from its recorded first frame under its own control, 16 Euler steps."""
-    chunks = held[:6]
-    pose, base = relay_error(models["pose"], chunks), relay_error(models["baseline"], chunks)
-    init = relay_error(VideoDiT(models["pose"].config, seed=CONFIG.seed), chunks)
-    print(f"\nrelayed held-out error: pose model {pose:.4f}, pixel-AR baseline {base:.4f}, initialisation {init:.4f}, "
-          f"copying the first frame {copy_error(chunks, CONFIG.frames):.4f}")  # fmt: skip
-    assert pose < 0.9 * base
-    assert pose < 0.5 * init
-
-
-def test_pose_follows_under_a_swapped_pose_video(follow_corpus, models, held):
+def test_pose_follows_under_a_swapped_pose_video(follow_corpus, pose_model, held):
     """First frame of held-out chunk A, pose frames of chunk B: the silhouettes of the generated frames overlap
     B's id masks far more than A's (pairs whose masks overlap least, so the two can be told apart)."""
-    seg = Segmenter(list(ClipSource(follow_corpus, "train", CONFIG.frames, SIZE).chunks()))
+    seg = Segmenter(list(ClipSource(follow_corpus, "train", CONFIG.frames, SIZE).chunks()), steps=SEGMENTER_STEPS)
     ceiling = seg.iou_on(held)
     pairs = swap_pairs(held, CONFIG.frames, 24)
     overlap = float(np.mean([p.overlap for p in pairs]))
-    scores = follow_scores(models["pose"], held, pairs, seg)
-    print(f"\nsegmenter IoU on recorded held-out frames {ceiling:.3f}; {len(pairs)} pairs, A's and B's masks overlap "
-          f"{overlap:.3f}; generated silhouettes against B (pose given) {scores['iou_pose']:.3f}, against A (first frame) "
-          f"{scores['iou_first_frame']:.3f}")  # fmt: skip
+    scores = follow_scores(pose_model, held, pairs, seg)
+    print(
+        f"\nsegmenter IoU on recorded held-out frames {ceiling:.3f}; {len(pairs)} pairs, A's and B's masks overlap "
+        f"{overlap:.3f}; generated silhouettes against B (pose given) {scores['iou_pose']:.3f}, against A (first frame) "
+        f"{scores['iou_first_frame']:.3f}"
+    )
     assert ceiling > 0.6  # the instrument reads bodies
     assert scores["iou_pose"] > 1.5 * scores["iou_first_frame"] and scores["iou_pose"] - scores["iou_first_frame"] > 0.2
+
+
+def test_pose_model_beats_the_baseline_and_its_initialisation(pose_model, baseline_model, held):
+    """Metric: mean |generated − recorded| (RGB in [−1, 1]) over whole held-out chunks (81 frames), each relayed
+    over 20 five-frame chunks from its recorded first frame under its own control, 16 Euler steps."""
+    chunks = held[:6]
+    pose, base = relay_error(pose_model, chunks), relay_error(baseline_model, chunks)
+    init = relay_error(VideoDiT(pose_model.config, seed=CONFIG.seed), chunks)
+    print(
+        f"\nrelayed held-out error: pose model {pose:.4f}, pixel-AR baseline {base:.4f}, initialisation {init:.4f}, "
+        f"copying the first frame {copy_error(chunks, CONFIG.frames):.4f}"
+    )
+    assert pose < 0.9 * base
+    assert pose < 0.5 * init
 
 
 def test_quality_measures_on_hand_built_frames():
@@ -109,7 +128,9 @@ def test_quality_measures_on_hand_built_frames():
     assert bodies(pose).sum() == 2 and bodies(pose).shape == (2, 1, 4, 4)
     still = Clip(rgb=torch.ones(9, 3, 4, 4) * 0.5, pose=pose.repeat(5, 1, 1, 1)[:9], key="k", start=0)
     assert copy_error([still], 5) == 0.0
-    ramp = Clip(rgb=torch.arange(11.0)[:, None, None, None].expand(11, 3, 4, 4) / 10, pose=pose.repeat(6, 1, 1, 1)[:11], key="r", start=0)
+    ramp = Clip(
+        rgb=torch.arange(11.0)[:, None, None, None].expand(11, 3, 4, 4) / 10, pose=pose.repeat(6, 1, 1, 1)[:11], key="r", start=0
+    )
     assert copy_error([ramp], 5) == pytest.approx(0.45)  # frames 1–8 (two whole 5-frame chunks), |k/10 − 0| on average
     moved = Clip(rgb=still.rgb, pose=still.pose.roll(2, dims=-1), key="m", start=0)
     empty = Clip(rgb=still.rgb, pose=torch.zeros_like(still.pose), key="e", start=0)

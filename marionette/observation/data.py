@@ -109,8 +109,9 @@ def _frame_count(sample: dict) -> int:
 class ClipSource:
     """The clips of one split of a corpus's video shards (module doc: which clips)."""
 
-    def __init__(self, corpus: Corpus | Path | str, split: str, frames: int, size: tuple[int, int],
-                 actions: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self, corpus: Corpus | Path | str, split: str, frames: int, size: tuple[int, int], actions: bool = False
+    ) -> None:
         self.corpus = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
         if frames < 1 or (frames - 1) % 4:
             raise ValueError(f"a clip has 4k + 1 frames (Wan's VAE), not {frames}")

@@ -108,8 +108,10 @@ class ObservationConfig:
     def from_json(cls, d: dict) -> ObservationConfig:
         check_json_fields(cls, d, "observation config")
         if "format" not in d:
-            raise ValueError("observation config JSON has no format: a model from before format 2 (first frame on every frame's "
-                             "tokens), which this version would run wrongly; retrain it")  # fmt: skip
+            raise ValueError(
+                "observation config JSON has no format: a model from before format 2 (first frame on every frame's "
+                "tokens), which this version would run wrongly; retrain it"
+            )
         return cls(**{**d, "vocab_sizes": tuple(d.get("vocab_sizes", ()))})
 
 
@@ -268,8 +270,9 @@ def sample_chunk(model: VideoDiT, control: Tensor, first: Tensor, steps: int, ge
     return x.clamp(-1.0, 1.0)
 
 
-def generate(model: VideoDiT, control: Tensor, first: Tensor, chunks: int | None = None, steps: int = 20,
-             seed: int = 0) -> Tensor:  # fmt: skip
+def generate(
+    model: VideoDiT, control: Tensor, first: Tensor, chunks: int | None = None, steps: int = 20, seed: int = 0
+) -> Tensor:
     """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a control (a pose video, or the baseline's action
     schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds)."""
     c = model.config

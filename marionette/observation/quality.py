@@ -68,10 +68,16 @@ class Segmenter:
         with torch.random.fork_rng():
             torch.manual_seed(int(seed))
             self.net = nn.Sequential(
-                nn.Conv2d(3, 32, 3, padding=1), nn.GELU(), nn.Conv2d(32, 32, 3, padding=2, dilation=2), nn.GELU(),
-                nn.Conv2d(32, 32, 3, padding=4, dilation=4), nn.GELU(), nn.Conv2d(32, 32, 3, padding=1), nn.GELU(),
+                nn.Conv2d(3, 32, 3, padding=1),
+                nn.GELU(),
+                nn.Conv2d(32, 32, 3, padding=2, dilation=2),
+                nn.GELU(),
+                nn.Conv2d(32, 32, 3, padding=4, dilation=4),
+                nn.GELU(),
+                nn.Conv2d(32, 32, 3, padding=1),
+                nn.GELU(),
                 nn.Conv2d(32, 1, 1),
-            )  # fmt: skip
+            )
         opt = torch.optim.Adam(self.net.parameters(), 3e-3)
         share = float(mask.mean())
         weight = torch.tensor(((1 - share) / share) ** 0.5)  # bones are a few % of pixels: weigh them up, not all the way
@@ -111,8 +117,9 @@ def swap_pairs(chunks: list[Clip], frames: int, count: int, start: int = 0) -> l
     return sorted(pairs, key=lambda p: (p.overlap, p.a, p.b))[:count]
 
 
-def follow_scores(model: VideoDiT, chunks: list[Clip], pairs: list[SwapPair], segmenter: Segmenter, steps: int = 16,
-                  seed: int = 0) -> dict[str, float]:  # fmt: skip
+def follow_scores(
+    model: VideoDiT, chunks: list[Clip], pairs: list[SwapPair], segmenter: Segmenter, steps: int = 16, seed: int = 0
+) -> dict[str, float]:
     """Mean silhouette IoU of the generated frames against B's id masks (followed) and A's (first frame's)."""
     if model.config.control != "pose":
         raise ValueError("follow_scores: the model takes no pose video")
