@@ -228,7 +228,9 @@ def _reencode_first_frames(src: Path, dst: Path, n: int) -> None:
             c.mux(p)
 
 
-def test_scan_reports_a_broken_depth_and_scans_the_rest(corpus, synth_source, tmp_path):
+def test_scan_reports_a_broken_depth_and_scans_and_renders_the_rest(corpus, synth_source, tmp_path):
+    from marionette.pipeline import refresh
+
     src = tmp_path / "src"
     shutil.copytree(synth_source, src)
     c = tmp_path / "corpus"
@@ -240,13 +242,15 @@ def test_scan_reports_a_broken_depth_and_scans_the_rest(corpus, synth_source, tm
     )
     broken = Path(moved[1]) / "depth.mkv"
     broken.write_bytes(b"\x1aE\xdf\xa3 not a matroska file " * 100)  # broken after ingest
-    report = scan_stages(c, options=ScanOptions(frame_stride=10), log=lambda *_: None)
-    (stage,) = report.values()
+    done = refresh(c, scan_options=ScanOptions(frame_stride=10))  # what ingest and `terrain scan` run
+    (stage,) = done.terrain.values()
     name = samples["sample"][1].as_py()
     assert list(stage["failed"]) == [name]
     assert str(broken) in stage["failed"][name], stage["failed"]
     assert sorted(r["sample"] for r in stage["scanned"]) == sorted(set(samples["sample"].to_pylist()) - {name})
     assert stage["chunks_written"]  # the other recordings' terrain was written
+    assert done.pose["failed"] == {} and len(done.pose["rendered"]) == done.pose["chunks"] > 0  # every chunk rendered
+    assert any(str(broken) in line for line in done.lines())  # the summary names the broken file
     again = scan_stages(c, options=ScanOptions(frame_stride=10), log=lambda *_: None)
     assert list(next(iter(again.values()))["failed"]) == [name]  # still reported on every rerun, never fatal
 
