@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import os
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
@@ -91,7 +92,8 @@ def check_knobs(config: Any) -> None:
     for f in fields(config):
         problem = knob_problem(f, getattr(config, f.name))
         if problem:
-            raise ValueError(f"{type(config).__name__}.{f.name}: {problem}")
+            what = re.split(r" \(|;", f.metadata.get("help", ""), maxsplit=1)[0]  # the help's first clause says what it is
+            raise ValueError(f"{type(config).__name__}.{f.name}{f' ({what})' if what else ''}: {problem}")
 
 
 def _flag_type(kind: type, problem: Callable[[Any], str | None]) -> Callable[[str], Any]:
