@@ -125,7 +125,7 @@ def test_probe_conditions_differ_and_classes_are_broken_down(ckpt, corpus, windo
         + ", ".join(f"{c} {p['conditions'][c]['mean']:.4f} ± {p['conditions'][c]['std']:.4f} m" for c in PROBE_CONDITIONS)
         + f"; GT < Shuf on {p['force_gt_beats_shuf']}"
     )
-    assert all(np.isfinite(means)) and len(set(means)) == 3
+    assert all(np.isfinite(means)) and len(set(means)) == len(PROBE_CONDITIONS)
     assert 0 <= p["force_gt_beats_shuf"] <= p["compared"] == N
     assert p["compliance"] and set(p["compliance"]) <= {"stationary", "locomotion", "attack", "other"}
     for v in p["compliance"].values():
@@ -136,11 +136,13 @@ def test_ablation_numbers_for_every_condition(ckpt, corpus, windows):
     a = rule_ablation(ckpt, corpus, windows)
     rows = {r["condition"]: r for r in a["conditions"]}
     assert list(rows) == ["recorded", "no rule", "+ collider", "+ collider + cap"]
+    assert a["at"] == "final frame"
     for r in rows.values():
-        assert np.isfinite(r["skate_mps"]) and np.isfinite(r["sep_m"])
+        assert np.isfinite(r["sep_m"]) and (np.isnan(r["skate_mps"]) or r["skate_mps"] >= 0)
     # without a terrain scan the collider cannot run: "+ collider" is "no rule", and the table says why
     assert "collider inactive (no terrain scan)" in rows["+ collider"]["note"]
-    assert rows["+ collider"]["skate_mps"] == rows["no rule"]["skate_mps"]
+    np.testing.assert_equal(rows["+ collider"]["per_entity"], rows["no rule"]["per_entity"])
+    assert np.isnan(rows["no rule"]["on_ground"])  # no scan: not measured
     assert np.isnan(rows["no rule"]["cfr"]) and np.isnan(rows["no rule"]["mmp_m"])
     assert rows["+ collider + cap"]["ran"] and all(v == ["cap"] for v in rows["+ collider + cap"]["ran"].values())
 
@@ -148,26 +150,33 @@ def test_ablation_numbers_for_every_condition(ckpt, corpus, windows):
 def test_report_directory_end_to_end(ckpt, dynamics_corpus, tmp_path):
     out = tmp_path / "report"
     lines = []
-    s = evaluate(ckpt, dynamics_corpus, out, segments=N, seed_frames=SEED, horizon=HORIZON, log=lines.append)
+    run = dict(protocol="quick", probe_windows=N, seed_frames=SEED, horizon=HORIZON)
+    s = evaluate(ckpt, dynamics_corpus, out, **run, log=lines.append)
     assert s["out_dir"] == str(out) and s["windows"] == N and lines
     md = (out / "report.md").read_text()
-    for heading in ("State layer", "Controllability probe", "Rule ablation", "Observation layer", "Not run"):
+    assert md.splitlines()[2].startswith(
+        "**Protocol `quick (changed: horizon, probe_windows, seed_frames)` is smaller than the paper's**"
+    )
+    for heading in ("Table 1", "Table 2 — Controllability probe", "Table 3", "Long horizon", "State layer", "Not run"):
         assert heading in md
     rep = json.loads((out / "report.json").read_text())
     assert set(rep["probe"]["conditions"]) == set(PROBE_CONDITIONS)
     assert [r["condition"] for r in rep["ablation"]["conditions"]] == ["recorded", "no rule", "+ collider", "+ collider + cap"]
-    assert set(s["plots"]) == {"ablation", "compliance", "drift"}
+    assert len(rep["ablation"]["windows"]) == rep["protocol"]["rollouts"] == 2
+    assert set(s["plots"]) == {"ablation", "class_ratios", "compliance", "drift"}
     for path in s["plots"].values():
         assert Path(path).read_bytes()[:8] == PNG
     assert s["headline"]["hunter_ra_mpjpe_force_gt_m"] > 0 and s["headline"]["windows"] == N
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp directory left behind
     (out / "report.md").write_text("stale")
-    evaluate(ckpt, dynamics_corpus, out, segments=N, seed_frames=SEED, horizon=HORIZON, log=lambda *_: None)
+    evaluate(ckpt, dynamics_corpus, out, **run, log=lambda *_: None)
     assert (out / "report.md").read_text() == md  # a rerun replaces the previous report, same bytes
     with pytest.raises(FileExistsError, match="not a previous report"):
         (tmp_path / "other").mkdir()
         (tmp_path / "other" / "keep.txt").write_text("mine")
-        evaluate(ckpt, dynamics_corpus, tmp_path / "other", segments=N, seed_frames=SEED, horizon=HORIZON, log=lambda *_: None)
+        evaluate(ckpt, dynamics_corpus, tmp_path / "other", **run, log=lambda *_: None)
+    with pytest.raises(ValueError, match="not fields of EvalProtocol"):
+        evaluate(ckpt, dynamics_corpus, tmp_path / "bad", segments=3, log=lambda *_: None)
 
 
 def test_rollout_table_of_another_layout_is_a_clear_error(corpus, windows, free):
@@ -255,22 +264,29 @@ def test_rollout_fvd_rows_are_finite_and_seeded(corpus, windows, free, obs_model
     assert again["whole"] == w and again["per_chunk"] == r["per_chunk"]  # same seed, same numbers
 
 
-def test_report_with_an_observation_model(ckpt, dynamics_corpus, windows, free, obs_model, tmp_path):
-    import tarfile
-
-    from marionette.bridge.gbuffer import CODE_MAX, iter_codes
+@pytest.fixture(scope="module")
+def posed(dynamics_corpus, tmp_path_factory):
+    """A copy of the dynamics corpus whose held-out video shards and one train shard carry pose targets (the other
+    shards' video dropped: the tiny observation models here train on one shard)."""
     from marionette.bridge.targets import render_pose_targets
-    from marionette.dynamics.checkpoint import save_checkpoint
 
-    # a copy whose held-out video shards carry pose targets (the other shards dropped: nothing here reads them)
-    copy = tmp_path / "corpus"
+    copy = tmp_path_factory.mktemp("posed") / "corpus"
     shutil.copytree(dynamics_corpus, copy)
     c = Corpus(copy)
-    keep = {c.segment_row(s)["shard"] for s in c.segment_ids("test")}
+    keep = {c.segment_row(s)["shard"] for s in c.segment_ids("test")} | {c.segment_row(c.segment_ids("train")[0])["shard"]}
     for shard in c.shard_ids():
         if shard not in keep:
             c.video_path(shard).unlink(missing_ok=True)
     render_pose_targets(copy)
+    return copy
+
+
+def test_rollout_clips_match_the_recorded_pose_targets(posed, windows, free):
+    import tarfile
+
+    from marionette.bridge.gbuffer import CODE_MAX, iter_codes
+
+    c = Corpus(posed)
     # a rollout clip's first pose frame (recorded state, recorded camera) is the recorded pose target of that frame
     clips, _, _ = rollout_clips(c, windows, free[0], 5, (36, 64))
     for k, clip in clips:
@@ -281,18 +297,37 @@ def test_report_with_an_observation_model(ckpt, dynamics_corpus, windows, free, 
         ours, theirs = clip.pose[0, 1].numpy() > 0, target[..., 1] > 0
         assert (ours & theirs).sum() >= 0.6 * (ours | theirs).sum() > 0, k  # bone pixels' IoU (the time may differ by < 1/30 s)
         assert clip.pose[0].numpy().max() <= 1 and np.abs(clip.pose[0, 1].numpy() * CODE_MAX - target[..., 1]).mean() < 5
-    obs = tmp_path / "observation"
-    save_checkpoint(obs, 0, obs_model, meta={"kind": "observation", "observation_config": obs_model.config.to_json()})
+
+
+def test_report_scores_the_baseline_in_the_same_table(ckpt, posed, tmp_path):
+    from marionette.observation.train import ObservationTrainConfig, train
+
+    tiny = dict(preset="tiny", steps=3, batch_size=2, frames=5, reduce=1, patch=4, lr=1e-3, warmup=1)
+    obs, base = tmp_path / "observation", tmp_path / "baseline"
+    train(posed, obs, ObservationTrainConfig(**tiny), log=lambda *_: None)
+    train(posed, base, ObservationTrainConfig(**tiny, control="actions"), log=lambda *_: None)
     out = tmp_path / "report"
-    run = dict(segments=N, seed_frames=SEED, horizon=HORIZON, fvd_steps=1, log=lambda *_: None)
-    s = evaluate(ckpt, copy, out, observation=obs, **run)
+    s = evaluate(ckpt, posed, out, protocol="quick", probe_windows=2, observation=obs, baseline=base, log=lambda *_: None)
     rep = json.loads((out / "report.json").read_text())
-    ob, ro = rep["observation"], rep["observation"]["rollouts"]
-    assert ob["run"] and ro["run"] and ro["clips"] == N and ro["skipped"] == []
-    for r in (ob, ro):
-        assert r["whole"]["metric"] == "proxy-FVD (not FVD)" and r["whole"]["value"] > 0 and r["per_chunk"]
+    v, proto = rep["video"], rep["protocol"]
+    assert v["run"] and v["skipped"] == [] and len(v["windows"]) == proto["rollouts"]
+    T = round(proto["rollout_seconds"] * 30)
+    t1 = v["table1"]
+    for col in ("marionette", "baseline"):
+        r = t1[col]
+        assert r["metric"] == "proxy-FVD (not FVD)" and r["frames"] == T
+        assert r["fvd16"]["clips"] == proto["rollouts"] * proto["clips_per_rollout"] and r["fvd16"]["value"] > 0
+        assert r["final_chunk"]["frames"] == [T - proto["final_frames"], T] and r["final_chunk"]["value"] > 0
+        assert [c["chunk"] for c in r["per_chunk"]] == list(range((T - 1) // (proto["final_frames"] - 1)))
+    assert t1["baseline"]["fvd16"]["value"] != t1["marionette"]["fvd16"]["value"]  # its own model painted it
+    assert t1["marionette"] == v["table3"]["+ collider"]  # Table 1's Marionette column is Table 3's collider state
+    assert set(v["table3"]) == {"recorded", "no rule", "+ collider", "+ collider + cap"}
     md = (out / "report.md").read_text()
-    assert "### Recorded pose-control video" in md and "### Rollouts" in md and md.count("proxy-FVD (not FVD)") >= 4
-    assert set(s["plots"]) == {"ablation", "compliance", "drift", "fvd_per_chunk"}
-    assert Path(s["plots"]["fvd_per_chunk"]).read_bytes()[:8] == PNG
-    assert s["headline"]["proxy_fvd_rollouts"] == ro["whole"]["value"] and s["headline"]["proxy_fvd"] == ob["whole"]["value"]
+    row = next(line for line in md.splitlines() if line.startswith("| pixel-AR baseline"))
+    assert f"{t1['baseline']['fvd16']['value']:.3f}" in row and "n/a" not in row
+    assert "![contact sheet](contact_sheet.png)" in md
+    assert set(s["plots"]) == {"contact_sheet", "ablation", "class_ratios", "compliance", "drift", "fvd_per_chunk"}
+    assert all(Path(p).read_bytes()[:8] == PNG for p in s["plots"].values())
+    assert s["headline"]["proxy_fvd16_baseline"] == t1["baseline"]["fvd16"]["value"]
+    with pytest.raises(ValueError, match="control 'actions'"):
+        evaluate(ckpt, posed, tmp_path / "r2", protocol="quick", baseline=obs, log=lambda *_: None)

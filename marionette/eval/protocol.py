@@ -35,7 +35,7 @@ the controllability probe and the rule ablation. Definitions are DESIGN's "Evalu
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -65,9 +65,118 @@ ABLATION: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("+ collider", ("collider",)),
     ("+ collider + cap", ("collider", "cap")),
 )
-PROBE_CONDITIONS = ("free", "force_gt", "force_shuf")
+PROBE_CONDITIONS = ("free", "force_gt", "force_shuf", "force_shuf_runs")
 CLASSES = ("stationary", "locomotion", "attack", "other")
 Progress = Callable[[str, int, int], Any]  # progress(phase, done, total): told after each unit of a long loop
+
+
+@dataclass(frozen=True)
+class EvalProtocol:
+    """The counts and lengths of one evaluation (DESIGN "Evaluation definitions"); ``PROTOCOLS`` names the paper's and
+    the demo's. Frames are dynamics frames (the model's rate) unless named video frames."""
+
+    name: str
+    probe_windows: int = 48  # Table 2: held-out windows of the controllability probe (and the Free state layer)
+    seed_frames: int = 64  # recorded frames that seed every rollout
+    horizon: int = 120  # Table 2: predicted frames per probe window
+    rollouts: int = 32  # Tables 1 and 3: held-out long rollouts per model and driving state
+    rollout_seconds: float = 16.0  # Tables 1 and 3: length of each long rollout (s of video)
+    clip_frames: int = 16  # Table 1: video frames per FVD clip (FVD16)
+    clips_per_rollout: int = 8  # Table 1: FVD clips per long rollout, evenly spaced
+    final_frames: int = (
+        81  # Table 1: the final chunk, the last this many video frames of a rollout; also the chunk of the per-chunk curve
+    )
+    fvd_steps: int = 20  # sampling steps of the observation model
+    resamples: int = 200  # clip-bootstrap resamples of every interval
+    temperature: float = 0.0  # sampling temperature of every rollout
+
+    def __post_init__(self) -> None:
+        for f in ("probe_windows", "seed_frames", "horizon", "rollouts", "clip_frames", "clips_per_rollout", "fvd_steps"):
+            if not isinstance(getattr(self, f), int) or getattr(self, f) < 1:
+                raise ValueError(f"protocol {self.name!r}: {f} is an integer ≥ 1, not {getattr(self, f)!r}")
+        if self.rollouts < 2 or self.resamples < 1:
+            raise ValueError(
+                f"protocol {self.name!r}: FVD needs rollouts ≥ 2 and resamples ≥ 1, not {self.rollouts}, {self.resamples}"
+            )
+        if self.clip_frames < 3 or self.final_frames < 3:
+            raise ValueError(
+                f"protocol {self.name!r}: FVD clips hold ≥ 3 frames, not clip_frames={self.clip_frames}, final_frames={self.final_frames}"
+            )
+        if not self.rollout_seconds > 0 or self.temperature < 0:
+            raise ValueError(
+                f"protocol {self.name!r}: rollout_seconds > 0 and temperature ≥ 0, not {self.rollout_seconds}, {self.temperature}"
+            )
+
+    def video_frames(self, video_fps: float) -> int:
+        """Video frames T of one long rollout at ``video_fps``, checked to hold every FVD clip and the final chunk."""
+        T = int(round(self.rollout_seconds * video_fps))
+        if self.final_frames > T or (self.clips_per_rollout - 1) * (T // self.clips_per_rollout) + self.clip_frames > T:
+            raise ValueError(
+                f"protocol {self.name!r}: a rollout of {self.rollout_seconds:g} s ({T} frames at {video_fps:g} fps) cannot hold "
+                f"{self.clips_per_rollout} clips of {self.clip_frames} frames and a final chunk of {self.final_frames}"
+            )
+        return T
+
+    def clip_starts(self, video_fps: float) -> list[int]:
+        """Video frames where Table 1's FVD clips start in a rollout: every T // clips_per_rollout frames from 0."""
+        T = self.video_frames(video_fps)
+        return [k * (T // self.clips_per_rollout) for k in range(self.clips_per_rollout)]
+
+    def reduced(self) -> list[str]:
+        """The counts and lengths where this protocol is smaller than the paper's, as "field value (paper value)"."""
+        paper = PROTOCOLS["paper"]
+        return [
+            f"{f} {getattr(self, f):g} (paper {getattr(paper, f):g})"
+            for f in (
+                "probe_windows",
+                "seed_frames",
+                "horizon",
+                "rollouts",
+                "rollout_seconds",
+                "clip_frames",
+                "clips_per_rollout",
+                "final_frames",
+                "fvd_steps",
+                "resamples",
+            )
+            if getattr(self, f) < getattr(paper, f)
+        ]
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+PROTOCOLS = {
+    "paper": EvalProtocol("paper"),
+    # the demo's: inside ~2 minutes of a 10-minute demo on 2 cores
+    "quick": EvalProtocol(
+        "quick",
+        probe_windows=4,
+        seed_frames=32,
+        horizon=80,
+        rollouts=2,
+        rollout_seconds=3.0,
+        clips_per_rollout=2,
+        final_frames=41,
+        fvd_steps=4,
+        resamples=100,
+    ),
+}
+
+
+def parse_protocol(protocol: EvalProtocol | str, **overrides: Any) -> EvalProtocol:
+    """A protocol by name (``PROTOCOLS``) or as given, with ``overrides`` of its fields (validated; an unknown field or
+    name is a ValueError listing the known ones)."""
+    if isinstance(protocol, str):
+        if protocol not in PROTOCOLS:
+            raise ValueError(f"unknown protocol {protocol!r}; known: {', '.join(PROTOCOLS)}")
+        protocol = PROTOCOLS[protocol]
+    fields = set(asdict(protocol)) - {"name"}
+    if unknown := sorted(set(overrides) - fields):
+        raise ValueError(f"protocol options {unknown} are not fields of EvalProtocol ({', '.join(sorted(fields))})")
+    if not overrides:
+        return protocol
+    return replace(protocol, name=f"{protocol.name} (changed: {', '.join(sorted(overrides))})", **overrides)
 
 
 @dataclass(frozen=True)
@@ -429,6 +538,53 @@ def _complies(
     return out
 
 
+def token_runs(tokens: Sequence[int]) -> list[tuple[int, int]]:
+    """The runs [start, end) of equal consecutive tokens of a stream (one token per frame), in order."""
+    t = np.asarray(tokens)
+    cuts = np.flatnonzero(np.diff(t) != 0) + 1
+    edges = np.concatenate([[0], cuts, [len(t)]]).astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def shuffle_frames(entity: str, tokens: np.ndarray, rng: np.random.Generator) -> list[Force]:
+    """Force-Shuf: the stream permuted over frames, as force windows (one per run of the permuted stream)."""
+    return force_windows(entity, np.asarray(tokens)[rng.permutation(len(tokens))])
+
+
+def shuffle_runs(entity: str, tokens: np.ndarray, rng: np.random.Generator) -> list[Force]:
+    """The run-level shuffle: the stream's runs of one token permuted as wholes, one force window per run (so
+    progress runs on within each run and restarts at its first frame; token 0 runs left to the model)."""
+    runs = token_runs(tokens)
+    out, at = [], 0
+    for k in rng.permutation(len(runs)):
+        a, b = runs[k]
+        if tokens[a] != 0:
+            out.append((entity, at, at + b - a, int(tokens[a])))
+        at += b - a
+    return out
+
+
+def class_ratios(
+    errors: dict[str, Sequence[np.ndarray]], classes: Sequence[np.ndarray], base: str = "force_gt"
+) -> dict[str, dict[str, Any]]:
+    """Per class of the recorded token at each frame: frames, mean per-frame RA-MPJPE (m) of every condition over those
+    frames (all windows pooled) and each condition's ratio to ``base``'s. ``errors``: condition → per window (H,);
+    ``classes``: per window (H,) class names."""
+    cls = np.concatenate([np.asarray(c) for c in classes])
+    out: dict[str, dict[str, Any]] = {}
+    for c in [c for c in CLASSES if c in set(cls)] + sorted(set(cls) - set(CLASSES)):
+        on = cls == c
+        row: dict[str, Any] = {"frames": int(on.sum())}
+        for cond, per in errors.items():
+            v = np.concatenate([np.asarray(e, np.float64) for e in per])[on]
+            row[cond] = _nanmean(v)
+        for cond in errors:
+            if cond != base:
+                row[f"{cond}/{base}"] = row[cond] / row[base] if row[base] and np.isfinite(row[base]) else float("nan")
+        out[c] = row
+    return out
+
+
 def controllability_probe(
     ckpt: Path | str,
     corpus: Corpus | Path | str,
@@ -441,9 +597,10 @@ def controllability_probe(
     free: Sequence[pa.Table] | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
-    """Free / Force-GT / Force-Shuf over ``windows`` (module doc); ``free`` reuses Free rollouts already run
-    with the same ``rules``. Returns RA-MPJPE summaries and per-window values per condition, the Force-GT <
-    Force-Shuf count and per-class compliance. ``progress`` is told each condition's rollouts (``run_windows``)."""
+    """Free / Force-GT / Force-Shuf / run-level shuffle over ``windows`` (module doc); ``free`` reuses Free rollouts
+    already run with the same ``rules``. Returns RA-MPJPE (m) summaries and per-window values per condition, the
+    Force-GT < Force-Shuf count (and < run-shuffle), the per-class Shuf/GT ratios of per-frame RA-MPJPE and per-class
+    compliance. ``progress`` is told each condition's rollouts (``run_windows``)."""
     c = as_corpus(corpus)
     L = c.layout
     names = [e.name for e in L.articulated]
@@ -455,23 +612,29 @@ def controllability_probe(
     rec = [recorded_rows(c, w, fps) for w in windows]
     gt_streams = [tokens.encode(L, r, where=str(c.path))[0][:, i] for r in rec]
     gt = [force_windows(entity, s) for s in gt_streams]
-    shuf = [force_windows(entity, s[np.random.default_rng([seed, k]).permutation(len(s))]) for k, s in enumerate(gt_streams)]
+    shuf = [shuffle_frames(entity, s, np.random.default_rng([seed, k])) for k, s in enumerate(gt_streams)]
+    runs = [shuffle_runs(entity, s, np.random.default_rng([seed, k, 1])) for k, s in enumerate(gt_streams)]
     run = dict(temperature=temperature, seed=seed, rules=rules, progress=progress)
     phase = "probe: {} rollouts".format
     tables = {
         "free": list(free) if free is not None else run_windows(ckpt, c, windows, phase=phase("Free"), **run)[0],
         "force_gt": run_windows(ckpt, c, windows, force=gt, phase=phase("Force-GT"), **run)[0],
         "force_shuf": run_windows(ckpt, c, windows, force=shuf, phase=phase("Force-Shuf"), **run)[0],
+        "force_shuf_runs": run_windows(ckpt, c, windows, force=runs, phase=phase("run-shuffle"), **run)[0],
     }
-    conditions = {}
+    conditions, frames = {}, {}
     for cond, tabs in tables.items():
-        vals = [
-            M.ra_mpjpe(world_of_rows(L, predicted(t, w))[entity], world_of_rows(L, r)[entity])
+        frames[cond] = [
+            M.ra_mpjpe_frames(world_of_rows(L, predicted(t, w))[entity], world_of_rows(L, r)[entity])
             for t, w, r in zip(tabs, windows, rec)
         ]
+        vals = [_nanmean(f) for f in frames[cond]]
         conditions[cond] = {**summarise(vals), "per_window": vals}
-    g, s = np.array(conditions["force_gt"]["per_window"]), np.array(conditions["force_shuf"]["per_window"])
+    g = np.array(conditions["force_gt"]["per_window"])
+    s, sr = (np.array(conditions[k]["per_window"]) for k in ("force_shuf", "force_shuf_runs"))
     classes, kinds = token_classes(c, entity)
+    frame_classes = [np.array([classes[t] for t in st]) for st in gt_streams]
+    ratios = class_ratios(frames, frame_classes)
     counts: dict[str, dict[str, list[bool]]] = {}
     for k, w in enumerate(windows):
         last_seed = tables["free"][k].slice(w.seed_frames - 1, 1)
@@ -489,7 +652,9 @@ def controllability_probe(
         "windows": [asdict(w) for w in windows],
         "conditions": conditions,
         "force_gt_beats_shuf": int((g < s).sum()),
+        "force_gt_beats_shuf_runs": int((g < sr).sum()),
         "compared": int(len(g)),
+        "class_ratios": ratios,
         "compliance": per_class,
         "temperature": temperature,
         "seed": seed,
@@ -499,24 +664,48 @@ def controllability_probe(
 # -- the rule ablation -------------------------------------------------------------------------------------------
 
 
+def final_frame_skate(feet_world: np.ndarray, fps: float) -> float:
+    """Foot-skate (m/s) at the last frame: mean horizontal speed of the feet in contact there (contacts as
+    ``metrics.foot_contacts`` over the whole sequence (N, F, 3)); NaN when no foot is in contact."""
+    f = np.asarray(feet_world, np.float64)
+    contact = M.foot_contacts(f, fps)[-1]
+    d = f[-1] - f[-2]
+    speed = np.hypot(d[:, 0], d[:, 2]) * fps
+    return float(speed[contact].mean()) if contact.any() else float("nan")
+
+
+def on_ground_share(roots_world: np.ndarray, field: Any) -> float:
+    """Share of frames whose root (N, 3) stands over scanned ground (the field answers a height at its x, z); NaN without a field."""
+    if field is None:
+        return float("nan")
+    r = np.asarray(roots_world, np.float64)
+    return float(np.isfinite(field.query(r[:, 0], r[:, 2], r[:, 1])).mean())
+
+
 def _ablation_row(layout: Layout, pairs: Sequence[tuple[pa.Table, Any]], fps: float) -> dict[str, Any]:
-    """CFR, MMP, skate per articulated entity (window means) and the horizontal separation of (rows, field) pairs."""
-    per: dict[str, dict[str, list[float]]] = {e.name: {"cfr": [], "mmp_m": [], "skate_mps": []} for e in layout.articulated}
-    sep = []
+    """At the final frame of each (rows, field) pair, window means: CFR (share of windows with a key joint below
+    H − 0.15 m), MMP (m), skate (m/s) per articulated entity and their means over entities, and the horizontal
+    (and 3-D) root separation (m); beside them the share of frames whose root is on scanned ground."""
+    keys = ("cfr", "mmp_m", "skate_mps", "on_ground")
+    per: dict[str, dict[str, list[float]]] = {e.name: {k: [] for k in keys} for e in layout.articulated}
+    sep, sep3 = [], []
     for rows, field in pairs:
         w = world_of_rows(layout, rows)
         for e in layout.articulated:
             j = w[e.name]
-            clear = M.key_joint_clearances(j, e.rig, field) if field is not None else np.full((len(j), 1), np.nan)
+            clear = M.key_joint_clearances(j[-1:], e.rig, field) if field is not None else np.full((1, 1), np.nan)
             per[e.name]["cfr"].append(M.contact_failure_rate(clear))
             per[e.name]["mmp_m"].append(M.mean_max_penetration(clear))
-            per[e.name]["skate_mps"].append(M.foot_skate(j[:, foot_joints(e.rig)], fps))
+            per[e.name]["skate_mps"].append(final_frame_skate(j[:, foot_joints(e.rig)], fps))
+            per[e.name]["on_ground"].append(on_ground_share(j[:, 0], field))
         if len(layout.articulated) == 2:
             a, b = (e.name for e in layout.articulated)
-            sep.append(float(M.separation(w[a][:, 0], w[b][:, 0])[1].mean()))
+            d3, dh = M.separation(w[a][-1, 0], w[b][-1, 0])
+            sep.append(float(dh))
+            sep3.append(float(d3))
     entity = {n: {k: summarise(v)["mean"] for k, v in d.items()} for n, d in per.items()}
-    row = {k: _nanmean([entity[n][k] for n in entity]) for k in ("cfr", "mmp_m", "skate_mps")}
-    return {**row, "sep_m": summarise(sep)["mean"], "per_entity": entity}
+    row = {k: _nanmean([entity[n][k] for n in entity]) for k in keys}
+    return {**row, "sep_m": summarise(sep)["mean"], "sep_3d_m": summarise(sep3)["mean"], "per_entity": entity}
 
 
 def _nanmean(v: Sequence[float]) -> float:
@@ -524,7 +713,14 @@ def _nanmean(v: Sequence[float]) -> float:
     return float(a[np.isfinite(a)].mean()) if np.isfinite(a).any() else float("nan")
 
 
-def rule_ablation(
+def recorded_window(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table:
+    """The recorded dynamics rows of a whole window (seed + horizon): the "recorded" driving state, shaped like a rollout table."""
+    view = corpus.dynamics_segment(window.segment, fps)
+    M.check_window(view, window.start, window.length, where=f"{corpus.path}: window {window}")
+    return view.slice(window.start, window.length)
+
+
+def ablation_rollouts(
     ckpt: Path | str,
     corpus: Corpus | Path | str,
     windows: Sequence[Window],
@@ -532,23 +728,13 @@ def rule_ablation(
     temperature: float = 0.0,
     seed: int = 0,
     progress: Progress | None = None,
-) -> dict[str, Any]:
-    """Recorded / no rule / + collider / + collider + cap on the same windows: CFR, MMP, skate, separation per
-    condition, the rules that actually ran and a note where a rule could not (no terrain scan, one entity).
-    ``progress`` is told each condition's rollouts (``run_windows``)."""
+) -> dict[str, dict[str, Any]]:
+    """The four driving states on the same windows: condition → {"tables" (seed + horizon rows per window), "rules",
+    "ran" (per stage), "note" (rules that could not run and why)}; "recorded" holds the recorded rows."""
     c = as_corpus(corpus)
     fps = model_fps(ckpt)
-    fields = {w.stage: open_terrain_field(c, w.segment) for w in windows}
-    rec = [recorded_rows(c, w, fps) for w in windows]
-    rows = [
-        {
-            "condition": "recorded",
-            "rules": None,
-            "ran": {},
-            "note": "",
-            **_ablation_row(c.layout, [(r, fields[w.stage]) for r, w in zip(rec, windows)], fps),
-        }
-    ]
+    out = {"recorded": {"tables": [recorded_window(c, w, fps) for w in windows], "rules": None, "ran": {}, "note": ""}}
+    why = {"collider": "no terrain scan", "cap": "not two articulated entities"}
     for name, rules in ABLATION:
         tables, ran = run_windows(
             ckpt,
@@ -561,16 +747,31 @@ def rule_ablation(
             phase=f"ablation: {name} rollouts",
         )
         missing = {st: [r for r in rules if r not in got] for st, got in ran.items()}
-        why = {"collider": "no terrain scan", "cap": "not two articulated entities"}
         note = "; ".join(f"stage {st}: " + ", ".join(f"{r} inactive ({why[r]})" for r in m) for st, m in missing.items() if m)
-        pairs = [(predicted(t, w), fields[w.stage]) for t, w in zip(tables, windows)]
-        rows.append(
-            {
-                "condition": name,
-                "rules": list(rules),
-                "ran": {k: list(v) for k, v in ran.items()},
-                "note": note,
-                **_ablation_row(c.layout, pairs, fps),
-            }
-        )
-    return {"conditions": rows, "windows": [asdict(w) for w in windows]}
+        out[name] = {"tables": tables, "rules": list(rules), "ran": {k: list(v) for k, v in ran.items()}, "note": note}
+    return out
+
+
+def rule_ablation(
+    ckpt: Path | str,
+    corpus: Corpus | Path | str,
+    windows: Sequence[Window],
+    *,
+    temperature: float = 0.0,
+    seed: int = 0,
+    progress: Progress | None = None,
+    rollouts: dict[str, dict[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """Table 3's state columns: recorded / no rule / + collider / + collider + cap on the same windows, CFR, MMP, skate
+    and Sep at the final frame (``_ablation_row``), the rules that actually ran and a note where a rule could not.
+    ``rollouts``: ``ablation_rollouts`` already run on these windows (else they are run, ``progress`` told)."""
+    c = as_corpus(corpus)
+    fps = model_fps(ckpt)
+    if rollouts is None:
+        rollouts = ablation_rollouts(ckpt, c, windows, temperature=temperature, seed=seed, progress=progress)
+    fields = {w.stage: open_terrain_field(c, w.segment) for w in windows}
+    rows = []
+    for name, r in rollouts.items():
+        pairs = [(predicted(t, w), fields[w.stage]) for t, w in zip(r["tables"], windows)]
+        rows.append({"condition": name, **{k: r[k] for k in ("rules", "ran", "note")}, **_ablation_row(c.layout, pairs, fps)})
+    return {"conditions": rows, "windows": [asdict(w) for w in windows], "at": "final frame"}

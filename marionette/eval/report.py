@@ -1,25 +1,24 @@
-"""The evaluation report: run the protocol on a checkpoint and write a directory of tables and plots.
+"""The evaluation report: run a protocol on a checkpoint and write a directory of the paper's tables and plots.
 
-``evaluate`` runs, on the same held-out windows (``protocol.select_windows``), the state-layer metrics of
-the Free rollouts (rules "auto") beside the recorded rows, the controllability probe, the rule ablation
-and, with an observation model, proxy-FVD; then writes ``<out>/report.md``, ``report.json`` and PNG
-plots. The directory is built beside ``out`` and renamed into place, so a reader never sees half a
-report; an existing ``out`` is replaced only if it holds a previous report (or nothing).
+``evaluate`` takes a protocol (``protocol.EvalProtocol``: "paper" or "quick", fields overridable) and runs:
 
-Observation layer, two rows of proxy-FVD (``fvd.ProxyExtractor``, never called FVD), each over the whole
-clips and per model chunk with clip-level bootstrap intervals:
+- on ``probe_windows`` held-out windows (``seed_frames`` + ``horizon``): the Free rollouts (rules "auto") and their
+  state-layer metrics beside the recorded rows, and **Table 2**, the controllability probe (Free / Force-GT /
+  Force-Shuf / run-level shuffle, GT < Shuf counts, per-class Shuf/GT ratios, compliance);
+- on ``rollouts`` long held-out windows (``rollout_seconds`` of video): the four driving states (``ablation_rollouts``)
+  and **Table 3** at their final frame, the long-horizon curves (``video.long_horizon_curves``) and, with an
+  observation model (and a pixel-AR baseline), **Table 1** and Table 3's FVD column (``video.video_tables``);
+  a corpus with no segment long enough gets those tables "not run" with the reason, the rest of the report still;
+- then writes ``<out>/report.md`` (its first lines say which counts are smaller than the paper's), ``report.json``,
+  the PNG plots and the contact sheet. The directory is built beside ``out`` and renamed into place, so a reader
+  never sees half a report; an existing ``out`` is replaced only if it holds a previous report (or nothing).
 
-- recorded pose (``observation_fvd``): the observation model paints each held-out video chunk of the
-  windows' segments from its *recorded* pose-control video and first frame (relayed over the chunk) — the
-  observation layer alone;
-- rollouts (``rollout_fvd``): per window, the Free rollout is rendered through the bridge at the video's
-  rate and the chunk's size, with a camera that starts at the recorded camera of the clip's first frame
-  (the first video frame at or after the last seed row, whose state is recorded) and then follows the
-  generated characters (``follow_cameras`` seeded at it); the model paints it from the recorded RGB of that
-  frame and it is compared with the recorded RGB of the same frames, found in the segment's video chunks by
-  their json "frames" [a, b) (consecutive chunks may share a clip). A window whose frames are not all in
-  the chunks (or lack RGB or a recorded camera) is skipped and listed with its reason. Every window's clip
-  has the same length: as many model chunks as every horizon holds.
+Also here: ``rollout_clip`` (a rollout rendered through the bridge with a camera that starts at the recorded camera
+of the clip's first frame — the first video frame at or after the last seed row — and then follows the generated
+characters, beside the recorded RGB of the same frames, found in the segment's video chunks by their json "frames"
+[a, b); ``WindowSkipped`` when they are not all there), and the earlier whole-clip proxy-FVD rows used by the
+benchmark: ``observation_fvd`` (recorded pose-control chunks painted by the model) and ``rollout_fvd`` (Free
+rollouts painted), each over whole clips and per model chunk with clip-level bootstrap intervals.
 """
 
 from __future__ import annotations
@@ -41,18 +40,22 @@ import torch
 from marionette.corpus import Corpus
 from marionette.eval import fvd
 from marionette.eval.protocol import (
+    EvalProtocol,
     Progress,
     Window,
+    ablation_rollouts,
     controllability_probe,
     model_fps,
+    parse_protocol,
     rule_ablation,
     run_windows,
     select_windows,
     state_layer,
 )
+from marionette.eval.video import long_horizon, long_horizon_curves, video_tables
 from marionette.io import write_bytes, write_json
 
-PLOTS = ("ablation", "compliance", "drift", "fvd_per_chunk")
+PLOTS = ("contact_sheet", "ablation", "class_ratios", "compliance", "drift", "fvd_per_chunk")
 
 
 # -- the observation layer ------------------------------------------------------------------------------
@@ -390,20 +393,212 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
 
 
-def render_markdown(report: dict) -> str:
-    """The report's markdown: the state-layer, probe, ablation and observation tables."""
-    st, pr, ab, ob = report["state_layer"], report["probe"], report["ablation"], report["observation"]
-    ws = report["windows"]
-    out = [
-        f"# Evaluation of `{report['dynamics']}`",
+STATE_NAMES = {"free": "Free", "force_gt": "Force-GT", "force_shuf": "Force-Shuf", "force_shuf_runs": "run-level shuffle"}
+
+
+def _fvd_cells(r: dict | None) -> list[str]:
+    """value, bias-corrected interval, percentile interval of one Fréchet result (n/a cells when absent)."""
+    if not r:
+        return ["n/a"] * 3
+    return [
+        _num(r["value"], 3),
+        f"[{_num(r['low'], 3)}, {_num(r['high'], 3)}]",
+        f"[{_num(r['raw_low'], 3)}, {_num(r['raw_high'], 3)}]",
+    ]
+
+
+def _protocol_lines(report: dict) -> list[str]:
+    """The report's first lines about its protocol: which counts and lengths are smaller than the paper's."""
+    pr = report["protocol"]
+    if pr["reduced"]:
+        return [
+            f"**Protocol `{pr['name']}` is smaller than the paper's**: " + "; ".join(pr["reduced"]) + ". "
+            "Its numbers carry wider intervals than the paper's tables (docs/tradeoffs.md, evaluation protocol).",
+            "",
+        ]
+    return [f"Protocol `{pr['name']}`: the paper's counts and lengths.", ""]
+
+
+def _table1_lines(report: dict) -> list[str]:
+    """Table 1: FVD16 and final-chunk FVD of the Marionette column beside the pixel-AR baseline."""
+    v, p = report["video"], report["protocol"]
+    out = ["## Table 1 — observation layer", ""]
+    if not v.get("run"):
+        return out + [f"Not run: {v['reason']}.", ""]
+    t1 = v["table1"]
+    metric = next((r["metric"] for r in t1.values() if r.get("run", True) and "metric" in r), fvd.PROXY_LABEL)
+    rows = []
+    for key, label in (
+        ("marionette", "Marionette (dynamics → bridge → observation, collider on)"),
+        ("baseline", "pixel-AR baseline"),
+    ):
+        r = t1[key]
+        if "fvd16" not in r:
+            rows.append([label, "n/a", "n/a", "n/a", "n/a", "n/a", "n/a", r.get("reason", "")])
+            continue
+        rows.append(
+            [
+                label,
+                *_fvd_cells(r["fvd16"]),
+                *_fvd_cells(r["final_chunk"]),
+                f"{r['rollouts']} rollouts, {r['fvd16']['clips']} clips",
+            ]
+        )
+    out += [
+        f"{metric} over {len(v['windows'])} held-out rollouts of {p['rollout_seconds']:g} s ({v['frames']} video frames), "
+        f"{p['clips_per_rollout']} clips of {p['clip_frames']} frames per rollout; final chunk = the last {p['final_frames']} "
+        f"frames; {p['fvd_steps']} sampling steps; {p['resamples']} clip-bootstrap resamples (95 %).",
         "",
-        f"Corpus `{report['corpus']}`; {len(ws)} windows of {report['seed_frames']} seed + {report['horizon']} predicted "
-        f"frames at {report['fps']:g} fps (split {report['split']!r}, window seed {report['seed']}, temperature "
-        f"{report['temperature']:g}).",
-        "",
-        "## State layer (Free rollouts, rules auto)",
+        _table(
+            [
+                "column",
+                f"FVD{p['clip_frames']}",
+                "bias-corrected",
+                "percentile",
+                "final chunk",
+                "bias-corrected",
+                "percentile",
+                "over",
+            ],
+            rows,
+        ),
         "",
     ]
+    if metric == fvd.PROXY_LABEL:
+        out += [
+            "Proxy-FVD uses a fixed random feature extractor (not I3D): comparable only with itself; it is not FVD (--i3d gives FVD).",
+            "",
+        ]
+    out += [f"- window {r['window']} ({r['segment']}, dynamics frame {r['start']}) skipped: {r['reason']}" for r in v["skipped"]]
+    return out + [""]
+
+
+def _table2_lines(report: dict) -> list[str]:
+    """Table 2: Free / Force-GT / Force-Shuf / run-level shuffle, the win counts and the per-class Shuf/GT ratios."""
+    pr = report["probe"]
+    e = pr["entity"]
+    out = [f"## Table 2 — Controllability probe ({e})", ""]
+    out += [
+        _table(
+            ["condition", f"{e} RA-MPJPE (m)", "windows"],
+            [[STATE_NAMES[k], _pm(v), str(v["n"])] for k, v in pr["conditions"].items()],
+        ),
+        "",
+        f"Force-GT < Force-Shuf on **{pr['force_gt_beats_shuf']} of {pr['compared']}** windows "
+        f"(< run-level shuffle on {pr['force_gt_beats_shuf_runs']}). The run-level shuffle permutes whole action runs, "
+        "so progress within a run is intact: its gap to Force-GT is the token's effect alone.",
+        "",
+        f"Per class of the recorded token at each frame: mean per-frame {e} RA-MPJPE (m) over those frames, all windows pooled.",
+        "",
+    ]
+    rows = [
+        [
+            c,
+            str(v["frames"]),
+            _num(v["force_gt"]),
+            _num(v["force_shuf"]),
+            _num(v["force_shuf/force_gt"], 2),
+            _num(v["force_shuf_runs/force_gt"], 2),
+        ]
+        for c, v in pr["class_ratios"].items()
+    ]
+    out += [_table(["class", "frames", "Force-GT", "Force-Shuf", "Shuf/GT", "run-shuffle/GT"], rows), ""]
+    out += [
+        "Compliance (secondary): share of the recorded action runs whose motion the corpus's own class rule puts in the forced class.",
+        "",
+        _table(
+            ["class", "runs", "Free", "Force-GT", "recorded"],
+            [
+                [c, str(v["runs"]), _num(v["free"], 2), _num(v["force_gt"], 2), _num(v["recorded"], 2)]
+                for c, v in pr["compliance"].items()
+            ],
+        ),
+        "",
+    ]
+    return out
+
+
+def _table3_lines(report: dict) -> list[str]:
+    """Table 3: the four driving states at the final frame, with the FVD of each painted by the same observation model."""
+    ab, v = report["ablation"], report["video"]
+    if not ab.get("run", True):
+        return ["## Table 3 — driving states", "", f"Not run: {ab['reason']}.", ""]
+    t3 = v.get("table3", {}) if v.get("run") else {}
+    rows = []
+    for r in ab["conditions"]:
+        f = t3.get(r["condition"], {}).get("fvd16")
+        rows.append(
+            [
+                r["condition"],
+                _num(r["cfr"], 3),
+                _num(r["mmp_m"]),
+                _num(r["skate_mps"]),
+                _num(r["sep_m"], 2),
+                "n/a" if not f else f"{_num(f['value'], 3)} [{_num(f['low'], 3)}, {_num(f['high'], 3)}]",
+                _num(r["on_ground"], 3),
+                r["note"],
+            ]
+        )
+    p = report["protocol"]
+    return [
+        "## Table 3 — driving states",
+        "",
+        f"{len(ab['windows'])} long rollouts ({p['rollout_seconds']:g} s); CFR, MMP, skate and Sep at the **final frame** "
+        "(CFR: share of rollouts with a key joint below H − 0.15 m there; means over the articulated entities, per entity in "
+        f"report.json; Sep horizontal). FVD{p['clip_frames']}: each state painted by the same observation model "
+        "(bias-corrected 95 % interval); root on ground: share of frames whose root stands over scanned ground.",
+        "",
+        _table(["state", "CFR", "MMP (m)", "Skate (m/s)", "Sep (m)", f"FVD{p['clip_frames']}", "root on ground", "note"], rows),
+        "",
+    ]
+
+
+def _long_lines(report: dict) -> list[str]:
+    """The long-horizon figures as tables: root divergence at whole seconds, FVD per chunk index, body share first/last chunk."""
+    lh = report["long_horizon"]
+    out = ["## Long horizon", ""]
+    if not lh.get("run", True):
+        return out + [f"Not run: {lh['reason']}.", ""]
+    fps = lh["fps"]
+    for name, d in lh["drift_m"].items():
+        at = [k for k in range(len(d)) if (k + 1) % int(round(fps)) == 0]
+        out += [f"Root divergence of the {name} (m, Marionette state against the recorded rows, mean of the rollouts):", ""]
+        out += [
+            _table(["horizon (s)"] + [f"{(k + 1) / fps:g}" for k in at], [["divergence (m)"] + [_num(d[k], 3) for k in at]]),
+            "",
+        ]
+    v = report["video"]
+    if v.get("run"):
+        series = [(k, r) for k, r in v["table1"].items() if "per_chunk" in r]
+        if series:
+            spans = series[0][1]["per_chunk"]
+            out += [f"{series[0][1]['metric']} per chunk index ({report['protocol']['final_frames']} frames each):", ""]
+            out += [
+                _table(
+                    ["column"] + [f"chunk {c['chunk']} ({c['frames'][0]}–{c['frames'][1]})" for c in spans],
+                    [[k] + [_num(c["value"], 3) for c in r["per_chunk"]] for k, r in series],
+                ),
+                "",
+            ]
+    bs = lh["body_share"]
+    rows = [[s, n, _num(x["first"], 4), _num(x["last"], 4)] for s, per in bs.items() for n, x in per.items()]
+    out += ["Body share of the pose-control frame (follow camera) in the first and the last chunk:", ""]
+    return out + [_table(["state", "entity", "first chunk", "last chunk"], rows), ""]
+
+
+def render_markdown(report: dict) -> str:
+    """The report's markdown: the protocol, Tables 1–3, the long-horizon figures, the state layer, the contact sheet."""
+    st = report["state_layer"]
+    ws = report["windows"]
+    out = [f"# Evaluation of `{report['dynamics']}`", ""] + _protocol_lines(report)
+    out += [
+        f"Corpus `{report['corpus']}`; probe windows: {len(ws)} of {report['seed_frames']} seed + {report['horizon']} "
+        f"predicted frames at {report['fps']:g} fps (split {report['split']!r}, window seed {report['seed']}, temperature "
+        f"{report['temperature']:g}).",
+        "",
+    ]
+    out += _table1_lines(report) + _table2_lines(report) + _table3_lines(report) + _long_lines(report)
+    out += ["## State layer (Free rollouts of the probe windows, rules auto)", ""]
     rows = [
         [k.split("/")[0], k.split("/")[1], _pm(v["generated"]), _pm(v["recorded"]), str(v["generated"]["n"])]
         for k, v in st["metrics"].items()
@@ -415,95 +610,19 @@ def render_markdown(report: dict) -> str:
         f"{report['render_size'][0]}×{report['render_size'][1]}, weapon counted for its owner.",
         "",
     ]
-    out += [f"## Controllability probe ({pr['entity']})", ""]
-    names = {"free": "Free", "force_gt": "Force-GT", "force_shuf": "Force-Shuf"}
-    out += [
-        _table(
-            ["condition", f"{pr['entity']} RA-MPJPE (m)", "windows"],
-            [[names[k], _pm(v), str(v["n"])] for k, v in pr["conditions"].items()],
-        ),
-        "",
-    ]
-    out += [
-        f"Force-GT < Force-Shuf on {pr['force_gt_beats_shuf']} of {pr['compared']} windows.",
-        "",
-        "Per-class compliance: share of the recorded action runs (forced run by run in Force-GT) whose motion the "
-        "corpus's own class rule puts in the forced class.",
-        "",
-    ]
-    out += [
-        _table(
-            ["class", "runs", "Free", "Force-GT", "recorded"],
-            [
-                [c, str(v["runs"]), _num(v["free"], 2), _num(v["force_gt"], 2), _num(v["recorded"], 2)]
-                for c, v in pr["compliance"].items()
-            ],
-        ),
-        "",
-    ]
-    out += ["## Rule ablation", ""]
-    out += [
-        _table(
-            ["condition", "CFR", "MMP (m)", "Skate (m/s)", "Sep (m)", "note"],
-            [
-                [r["condition"], _num(r["cfr"], 3), _num(r["mmp_m"]), _num(r["skate_mps"]), _num(r["sep_m"], 2), r["note"]]
-                for r in ab["conditions"]
-            ],
-        ),
-        "",
-    ]
-    out += [
-        "CFR, MMP and skate are means over the articulated entities (per entity in report.json); Sep is the "
-        "horizontal root separation.",
-        "",
-        "## Observation layer",
-        "",
-    ]
-    if "rollouts" in ob:
-        i3d = ob.get("whole", {}).get("metric") == fvd.FVD_LABEL
-        note = (
-            "FVD: features of the Inception-I3D weights given (--i3d)."
-            if i3d
-            else "Proxy-FVD uses a fixed random feature extractor (not I3D): comparable only with itself; it is not FVD."
-        )
-        out += [note, "", "### Recorded pose-control video (the observation model alone)", ""]
-    out += _fvd_section(ob)
-    if "rollouts" in ob:
-        ro = ob["rollouts"]
-        out += ["### Rollouts (dynamics → bridge → observation model)", ""]
-        out += _fvd_section(ro)
-        if ro.get("skipped"):
-            out += ["Windows without a rollout clip:", ""]
-            out += [f"- window {r['window']} ({r['segment']}, dynamics frame {r['start']}): {r['reason']}" for r in ro["skipped"]]
-            out += [""]
-    out += ["## Plots", ""] + [f"![{k}]({v})" for k, v in report["plots"].items()] + [""]
+    if "contact_sheet" in report["plots"]:
+        sheet = report["video"]["sheet"]
+        out += [
+            "## Contact sheet",
+            "",
+            f"The first long rollout at video frames {sheet['frames']} (source frames from {sheet['source_frames'][0]}): "
+            "pose-control frames, painted frames and the recorded RGB, top to bottom.",
+            "",
+            f"![contact sheet]({report['plots']['contact_sheet']})",
+            "",
+        ]
+    out += ["## Plots", ""] + [f"![{k}]({v})" for k, v in report["plots"].items() if k != "contact_sheet"] + [""]
     return "\n".join(out)
-
-
-def _fvd_section(ob: dict) -> list[str]:
-    """The lines of one proxy-FVD result: what it measures, the whole-clip row and one row per chunk."""
-    if not ob.get("run"):
-        return [f"Not run: {ob['reason']}.", ""]
-    w = ob["whole"]
-    return [
-        f"{ob['what']}: {ob['clips']} clips of {ob['frames']} frames, {ob['steps']} sampling steps.",
-        "",
-        _table(
-            ["clips", "metric", "value", "95 % interval", "extractor"],
-            [["whole", w["metric"], _num(w["value"], 3), f"[{_num(w['low'], 3)}, {_num(w['high'], 3)}]", w["extractor"]]]
-            + [
-                [
-                    f"chunk {r['chunk']} (frames {r['start_frame']}–{r['end_frame']})",
-                    r["metric"],
-                    _num(r["value"], 3),
-                    f"[{_num(r['low'], 3)}, {_num(r['high'], 3)}]",
-                    r["extractor"],
-                ]
-                for r in ob["per_chunk"]
-            ],
-        ),
-        "",
-    ]
 
 
 def _save(fig: Any, path: Path) -> None:
@@ -514,12 +633,49 @@ def _save(fig: Any, path: Path) -> None:
     write_bytes(path, buf.getvalue())
 
 
-def plot_all(report: dict, drift: dict[str, np.ndarray], out: Path) -> dict[str, str]:
+def plot_all(report: dict, sheet: dict | None, out: Path) -> dict[str, str]:
     """The report's PNG plots in ``out`` (matplotlib's Agg canvas, no global backend): name → file name."""
     from matplotlib.figure import Figure
 
     files = {}
+    if sheet is not None:
+        rows = sheet["rows"]
+        fig = Figure(figsize=(2.4 * len(sheet["frames"]), 1.6 * len(rows)))
+        for i, (label, frames) in enumerate(rows.items()):
+            for j, t in enumerate(sheet["frames"]):
+                ax = fig.add_subplot(len(rows), len(sheet["frames"]), i * len(sheet["frames"]) + j + 1)
+                ax.imshow(frames[j], interpolation="nearest")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if j == 0:
+                    ax.set_ylabel(label, fontsize=7)
+                if i == 0:
+                    ax.set_title(f"frame {t}", fontsize=7)
+        _save(fig, out / "contact_sheet.png")
+        files["contact_sheet"] = "contact_sheet.png"
+
     ab = report["ablation"]["conditions"]
+    if ab:
+        files["ablation"] = _plot_ablation(ab, out)
+    files["class_ratios"] = _plot_ratios(report["probe"], out)
+    files["compliance"] = _plot_compliance(report["probe"], out)
+    lh = report["long_horizon"]
+    if lh["drift_m"]:
+        files["drift"] = _plot_drift(lh["drift_m"], lh["fps"], f"mean of {len(report['ablation']['windows'])} long rollouts", out)
+    else:  # no long rollouts: the probe windows' Free rollouts
+        free = {k: np.mean(np.asarray(v, np.float64), axis=0) for k, v in report["state_layer"]["drift"].items()}
+        files["drift"] = _plot_drift(free, report["fps"], f"Free, mean of {len(report['windows'])} probe windows", out)
+    v = report["video"]
+    series = [(k, r["per_chunk"]) for k, r in v.get("table1", {}).items() if r.get("per_chunk")] if v.get("run") else []
+    if series:
+        files["fvd_per_chunk"] = _plot_per_chunk(series, v["table1"][series[0][0]]["metric"], out)
+    return files
+
+
+def _plot_ablation(ab: list[dict], out: Path) -> str:
+    """Table 3's state columns as bars, the recorded state as a dashed line."""
+    from matplotlib.figure import Figure
+
     rec, conds = ab[0], ab[1:]
     fig = Figure(figsize=(12, 3.2))
     for k, (key, label) in enumerate((("cfr", "CFR"), ("mmp_m", "MMP (m)"), ("skate_mps", "Skate (m/s)"), ("sep_m", "Sep (m)"))):
@@ -533,11 +689,35 @@ def plot_all(report: dict, drift: dict[str, np.ndarray], out: Path) -> dict[str,
             ax.axhline(rec[key], color="k", ls="--", label="recorded")
             ax.legend(fontsize=7)
         ax.set_xticks(range(len(conds)), [c["condition"] for c in conds], rotation=20, fontsize=7)
-        ax.set_title(label)
+        ax.set_title(label + " at the final frame")
     _save(fig, out / "ablation.png")
-    files["ablation"] = "ablation.png"
+    return "ablation.png"
 
-    comp = report["probe"]["compliance"]
+
+def _plot_ratios(probe: dict, out: Path) -> str:
+    """Per-class Shuf/GT and run-shuffle/GT ratios of per-frame RA-MPJPE."""
+    from matplotlib.figure import Figure
+
+    ratios = probe["class_ratios"]
+    fig = Figure(figsize=(6, 3.2))
+    ax = fig.add_subplot(1, 1, 1)
+    x = np.arange(len(ratios))
+    for j, (key, label) in enumerate((("force_shuf/force_gt", "Shuf/GT"), ("force_shuf_runs/force_gt", "run-shuffle/GT"))):
+        ax.bar(x + (j - 0.5) * 0.35, [np.nan_to_num(ratios[c][key] or 0.0) for c in ratios], width=0.35, label=label)
+    ax.axhline(1.0, color="k", ls="--", lw=0.8)
+    ax.set_xticks(x, [f"{c} ({ratios[c]['frames']})" for c in ratios])
+    ax.set_ylabel("RA-MPJPE ratio")
+    ax.set_title(f"per-class Shuf/GT ({probe['entity']})")
+    ax.legend(fontsize=7)
+    _save(fig, out / "class_ratios.png")
+    return "class_ratios.png"
+
+
+def _plot_compliance(probe: dict, out: Path) -> str:
+    """Per-class compliance of Free, Force-GT and the recorded motion."""
+    from matplotlib.figure import Figure
+
+    comp = probe["compliance"]
     fig = Figure(figsize=(6, 3.2))
     ax = fig.add_subplot(1, 1, 1)
     x = np.arange(len(comp))
@@ -546,31 +726,32 @@ def plot_all(report: dict, drift: dict[str, np.ndarray], out: Path) -> dict[str,
     ax.set_xticks(x, [f"{c} ({comp[c]['runs']})" for c in comp])
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("compliant share of runs")
-    ax.set_title(f"per-class compliance ({report['probe']['entity']})")
+    ax.set_title(f"per-class compliance ({probe['entity']})")
     ax.legend(fontsize=7)
     _save(fig, out / "compliance.png")
-    files["compliance"] = "compliance.png"
+    return "compliance.png"
 
-    fig = Figure(figsize=(5 * len(drift), 3.2))
-    for k, (name, d) in enumerate(drift.items()):
-        ax = fig.add_subplot(1, len(drift), k + 1)
-        t = (np.arange(d.shape[1]) + 1) / report["fps"]
-        for row in d:
-            ax.plot(t, row, color="tab:blue", alpha=0.25, lw=0.8)
-        ax.plot(t, d.mean(axis=0), color="tab:blue", lw=2.5, label=f"mean of {len(d)}")
-        ax.set_xlabel("horizon (s)")
-        ax.set_ylabel("root drift (m)")
-        ax.set_title(name)
-        ax.legend(fontsize=7)
+
+def _plot_drift(drift: dict, fps: float, what: str, out: Path) -> str:
+    """Root divergence against horizon, per entity."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 3.2))
+    ax = fig.add_subplot(1, 1, 1)
+    for name, d in drift.items():
+        ax.plot((np.arange(len(d)) + 1) / fps, d, lw=2, label=name)
+    ax.set_xlabel("horizon (s)")
+    ax.set_ylabel("root divergence (m)")
+    ax.set_title(f"root divergence, {what}")
+    ax.legend(fontsize=7)
     _save(fig, out / "drift.png")
-    files["drift"] = "drift.png"
+    return "drift.png"
 
-    ob = report["observation"]
-    series = [
-        (label, r["per_chunk"])
-        for label, r in (("recorded pose", ob), ("rollouts", ob.get("rollouts", {})))
-        if r.get("run") and r["per_chunk"]
-    ]
+
+def _plot_per_chunk(series: list, metric: str, out: Path) -> str:
+    """FVD per chunk index of Table 1's columns, with their intervals."""
+    from matplotlib.figure import Figure
+
     if series:
         fig = Figure(figsize=(6, 3.2))
         ax = fig.add_subplot(1, 1, 1)
@@ -582,16 +763,14 @@ def plot_all(report: dict, drift: dict[str, np.ndarray], out: Path) -> dict[str,
                 yerr=[[r["value"] - r["low"] for r in ch], [r["high"] - r["value"] for r in ch]],
                 marker="o",
                 capsize=3,
-                label=f"{label} ({len(ch)} chunks)",
+                label=label,
             )
-        metric = series[0][1][0]["metric"]
-        ax.set_xlabel("chunk (model clip) of the video")
+        ax.set_xlabel("chunk index of the rollout")
         ax.set_ylabel(metric)
         ax.set_title("per-chunk " + metric + ", 95 % bootstrap intervals")
         ax.legend(fontsize=7)
         _save(fig, out / "fvd_per_chunk.png")
-        files["fvd_per_chunk"] = "fvd_per_chunk.png"
-    return files
+    return "fvd_per_chunk.png"
 
 
 def _check_replaceable(out: Path) -> None:
@@ -613,21 +792,24 @@ def _swap_in(tmp: Path, out: Path) -> None:
 
 
 def headline(report: dict) -> dict[str, float | int | None]:
-    """The few numbers a dashboard shows: probe means, the Force-GT win count, ablation CFR/MMP, proxy-FVD."""
+    """The few numbers a dashboard shows: probe means, the GT < Shuf counts, per-class Shuf/GT, Table 1 and Table 3."""
     pr = report["probe"]
-    h: dict[str, Any] = {"windows": len(report["windows"])}
+    h: dict[str, Any] = {"windows": len(report["windows"]), "protocol": report["protocol"]["name"]}
     for k, v in pr["conditions"].items():
         h[f"{pr['entity']}_ra_mpjpe_{k}_m"] = v["mean"]
     h["force_gt_beats_shuf"] = pr["force_gt_beats_shuf"]
-    for k, v in report["state_layer"]["metrics"].items():
-        if k.startswith("root_drift_final_m/"):
-            h[f"{k.split('/')[1]}_root_drift_final_m"] = v["generated"]["mean"]
+    h["force_gt_beats_shuf_runs"] = pr["force_gt_beats_shuf_runs"]
+    for c, v in pr["class_ratios"].items():
+        h[f"shuf_over_gt_{c}"] = v["force_shuf/force_gt"]
     for r in report["ablation"]["conditions"]:
         slug = r["condition"].replace("+ ", "").replace(" ", "_")
-        h[f"cfr_{slug}"], h[f"mmp_{slug}_m"] = r["cfr"], r["mmp_m"]
-    for part, suffix in ((report["observation"], ""), (report["observation"].get("rollouts", {}), "_rollouts")):
-        if part.get("run"):  # "fvd" only from the I3D extractor, else "proxy_fvd"
-            h[("fvd" if part["whole"]["metric"] == fvd.FVD_LABEL else "proxy_fvd") + suffix] = part["whole"]["value"]
+        h[f"cfr_{slug}"], h[f"mmp_{slug}_m"], h[f"sep_{slug}_m"] = r["cfr"], r["mmp_m"], r["sep_m"]
+    v = report["video"]
+    if v.get("run"):
+        for col, r in v["table1"].items():
+            if "fvd16" in r:  # "fvd" only from the I3D extractor, else "proxy_fvd"
+                name = "fvd" if r["metric"] == fvd.FVD_LABEL else "proxy_fvd"
+                h[f"{name}16_{col}"], h[f"{name}_final_{col}"] = r["fvd16"]["value"], r["final_chunk"]["value"]
     return _plain(h)
 
 
@@ -636,94 +818,105 @@ def evaluate(
     corpus: Path | str,
     out_dir: Path | str,
     *,
+    protocol: EvalProtocol | str = "paper",
     observation: Path | str | None = None,
-    segments: int = 8,
-    seed_frames: int = 64,
-    horizon: int = 120,
+    baseline: Path | str | None = None,
     seed: int = 0,
     log: Callable[[str], Any] = print,
-    temperature: float = 0.0,
     entity: str = "hunter",
     render_size: tuple[int, int] = (72, 128),
-    fvd_steps: int = 20,
-    fvd_frames: int | None = None,
     i3d: Path | str | None = None,
     progress: Progress | None = None,
+    **overrides: Any,
 ) -> dict[str, Any]:
-    """Run the protocol (module doc) and write the report directory ``out_dir``.
+    """Run the protocol (``protocol.PROTOCOLS`` name or an ``EvalProtocol``; ``overrides`` change its fields) and write the
+    report directory ``out_dir`` (module doc).
 
-    Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number),
-    "windows" (count)}. ``fvd_steps``: sampling steps of the observation model; ``fvd_frames``: at most this many
-    video frames of each proxy-FVD clip (None: whole chunks and whole rollouts); ``i3d``: an Inception-I3D safetensors
-    file, for FVD proper instead of the proxy; ``progress(phase, done, total)`` is told the progress of every long loop
-    (rollouts, per-window metrics, painting)."""
+    Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number), "windows"
+    (probe windows)}. ``observation``: the observation model (Tables 1 and 3's FVD); ``baseline``: a pixel-AR baseline
+    checkpoint (control "actions") for Table 1's second column; ``i3d``: an Inception-I3D safetensors file, for FVD
+    proper instead of the proxy; ``progress(phase, done, total)`` is told the progress of every long loop."""
+    proto = parse_protocol(protocol, **overrides)
     c = Corpus(Path(corpus))
     out = Path(out_dir)
     _check_replaceable(out)  # before any compute
     extractor = fvd.extractor_for(Path(i3d)) if i3d is not None else None  # a bad I3D file fails here too
+    models = _load_models(observation, baseline)
     fps = model_fps(dynamics_dir)
+    proto.video_frames(float(c.fps))  # a protocol whose rollouts cannot hold its clips fails before any compute
     split = "test" if c.segment_ids("test") else "train"
-    windows = select_windows(c, segments, seed_frames, horizon, seed, split=split, fps=fps)
+    T = proto.temperature
+    windows = select_windows(c, proto.probe_windows, proto.seed_frames, proto.horizon, seed, split=split, fps=fps)
+    horizon_long = long_horizon(proto, float(c.fps), fps, [m.config.frames for m in models.values()])
+    try:
+        long = select_windows(c, proto.rollouts, proto.seed_frames, horizon_long, seed + 1, split=split, fps=fps)
+    except ValueError as err:  # a corpus of short segments: Tables 1 and 3 say why they were not run
+        long, why_not = [], str(err)
     names = [e.name for e in c.layout.articulated]
     entity = entity if entity in names else names[-1]
-    log(f"evaluate: {len(windows)} windows of {seed_frames} + {horizon} frames from split {split!r}")
+    log(
+        f"evaluate: protocol {proto.name!r}; {len(windows)} probe windows of {proto.seed_frames} + {proto.horizon} frames, "
+        f"{len(long)} long rollouts of {horizon_long} frames, split {split!r}"
+    )
     free, ran = run_windows(
-        dynamics_dir, c, windows, rules="auto", temperature=temperature, seed=seed, progress=progress, phase="Free rollouts"
+        dynamics_dir, c, windows, rules="auto", temperature=T, seed=seed, progress=progress, phase="Free rollouts"
     )
     log(f"evaluate: Free rollouts done (rules per stage {ran}); state-layer metrics")
     state = state_layer(dynamics_dir, c, windows, free, render_size=render_size, progress=progress)
-    log("evaluate: controllability probe")
-    probe = controllability_probe(
-        dynamics_dir, c, windows, entity=entity, temperature=temperature, seed=seed, free=free, progress=progress
-    )
-    log("evaluate: rule ablation")
-    ablation = rule_ablation(dynamics_dir, c, windows, temperature=temperature, seed=seed, progress=progress)
-    if observation is None:
-        obs: dict[str, Any] = {"run": False, "reason": "no observation model given (--observation)"}
-    else:
-        from marionette.observation.train import load_model
-
-        model = load_model(observation)
-        clips, skipped = _corpus_clips(c, {w.segment for w in windows}, model.config.frames, model.config.size, max(segments, 2))
-        if len(clips) < 2:
-            obs = {
-                "run": False,
-                "reason": f"{len(clips)} usable video chunks in the windows' segments, 2 needed "
-                f"(skipped: {dict(list(skipped.items())[:3])})",
-            }
-        else:
-            log(f"evaluate: proxy-FVD over {len(clips)} video chunks")
-            obs = observation_fvd(
-                model, clips, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor, progress=progress
-            )
-        log("evaluate: proxy-FVD of the Free rollouts through the bridge")
-        obs["rollouts"] = rollout_fvd(
-            model, c, windows, free, steps=fvd_steps, seed=seed, max_frames=fvd_frames, extractor=extractor, progress=progress
+    log("evaluate: controllability probe (Table 2)")
+    probe = controllability_probe(dynamics_dir, c, windows, entity=entity, temperature=T, seed=seed, free=free, progress=progress)
+    if long:
+        log("evaluate: the driving states on the long rollouts (Table 3)")
+        states = ablation_rollouts(dynamics_dir, c, long, temperature=T, seed=seed, progress=progress)
+        ablation = rule_ablation(dynamics_dir, c, long, rollouts=states)
+        tables = {k: v["tables"] for k, v in states.items()}
+        curves = long_horizon_curves(c, long, tables, proto, fps)
+        log("evaluate: the observation layer (Tables 1 and 3)" if models else "evaluate: no observation model: no FVD")
+        video = video_tables(
+            c,
+            long,
+            tables,
+            proto,
+            models.get("observation"),
+            models.get("baseline"),
+            extractor=extractor,
+            seed=seed,
+            progress=progress,
         )
-        obs["observation"] = str(observation)
+    else:
+        log(f"evaluate: Tables 1 and 3 not run: {why_not}")
+        ablation = {"run": False, "reason": why_not, "conditions": [], "windows": []}
+        curves = {"run": False, "reason": why_not, "fps": fps, "drift_m": {}, "body_share": {}}
+        video = {"run": False, "reason": why_not}
+    sheet = video.pop("sheet", None)
+    video.update({k: str(v) for k, v in (("observation", observation), ("baseline", baseline)) if v is not None})
     report = {
         "dynamics": str(dynamics_dir),
         "corpus": str(c.path),
+        "protocol": {**proto.to_json(), "reduced": proto.reduced()},
         "split": split,
         "fps": fps,
         "seed": seed,
-        "seed_frames": seed_frames,
-        "horizon": horizon,
-        "temperature": temperature,
+        "seed_frames": proto.seed_frames,
+        "horizon": proto.horizon,
+        "temperature": T,
         "render_size": list(render_size),
         "windows": [asdict(w) for w in windows],
         "rules_free": ran,
         "state_layer": state,
         "probe": probe,
         "ablation": ablation,
-        "observation": obs,
+        "long_horizon": curves,
+        "video": video,
     }
     report = _plain(report)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     os.chmod(tmp, 0o755)  # mkdtemp makes 0700; reports are read by other users and services
     try:
-        report["plots"] = plot_all(report, state["drift"], tmp)
+        report["plots"] = plot_all(report, sheet, tmp)
+        if sheet is not None:
+            report["video"]["sheet"] = {k: v for k, v in sheet.items() if k != "rows"} | {"rows": list(sheet["rows"])}
         report["headline"] = headline(report)
         write_json(tmp / "report.json", report)
         write_bytes(tmp / "report.md", render_markdown(report).encode())
@@ -739,6 +932,20 @@ def evaluate(
         "headline": report["headline"],
         "windows": len(windows),
     }
+
+
+def _load_models(observation: Path | str | None, baseline: Path | str | None) -> dict[str, Any]:
+    """The observation model (control "pose") and the baseline (control "actions") given, each checked for its control."""
+    from marionette.observation.train import load_model
+
+    out = {}
+    for key, path, want in (("observation", observation, "pose"), ("baseline", baseline, "actions")):
+        if path is not None:
+            m = load_model(path)
+            if m.config.control != want:
+                raise ValueError(f"{path}: a {key} model is trained with control {want!r}, this one with {m.config.control!r}")
+            out[key] = m
+    return out
 
 
 def load_report(out_dir: Path | str) -> dict[str, Any]:
