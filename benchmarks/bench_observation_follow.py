@@ -4,8 +4,8 @@ baseline over short and long horizons; silhouettes under a swapped pose video.
     .venv/bin/python benchmarks/bench_observation_follow.py [--corpus DIR] [--steps 1000] [--swap 0,0.1,0.2] [--pairs 24]
 
 Data (made in a temp dir unless ``--corpus`` names one with pose targets): the tests' dynamics corpus —
-ten 45 s synthetic recordings (seed 11) ingested at 36×64, terrain scanned, pose targets rendered (as
-``tests/test_observation_follow.py``), one recording held out. Models (``marionette train observation``'s trainer): the tiny video DiT at 18×32
+ten 45 s synthetic recordings (seed 11) ingested at 36×64, terrain scanned from every depth frame
+(``tests/test_observation_follow.py`` scans every 4th), pose targets rendered, one recording held out. Models (``marionette train observation``'s trainer): the tiny video DiT at 18×32
 (``reduce`` 2), 5-frame clips, patch 2, batch 8, lr 1e-3, warm-up 20, for each ``--swap`` (the probability
 that a training clip's first frame comes from another chunk), and the pixel-AR baseline (no swap). On the
 held-out chunks, 16 Euler steps (``marionette.observation.quality``):
