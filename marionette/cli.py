@@ -103,9 +103,11 @@ def _strict_status(strict: bool, failures: dict[str, int]) -> int:
     return 0
 
 
-def inspect_text(corpus_path: Path) -> str:
-    """A human summary of a corpus: segments, frames, hours, splits, vocab, layout, shards, quarantine."""
+def inspect_text(corpus_path: Path, play_shards: int = 64) -> str:
+    """A human summary of a corpus: segments, frames, hours, splits, vocab, recorded play statistics (separation,
+    class mix, tokens played; read from the first ``play_shards`` state shards), layout, shards, quarantine."""
     from marionette.corpus import Corpus
+    from marionette.corpus.play_stats import play_stats, play_stats_lines
 
     c = Corpus(corpus_path)
     info, seg = c.info, c.segments
@@ -131,6 +133,8 @@ def inspect_text(corpus_path: Path) -> str:
         for act in v["actions"][1:]:
             kinds[act["class"]] = kinds.get(act["class"], 0) + 1
         lines.append(f"vocab    {etype}: {v['size']} tokens ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})")
+    if info.total_segments:
+        lines += play_stats_lines(play_stats(c, max_shards=play_shards))
     lines.append(f"shards   {len(info.shards)} state + video: {c.path / 'state'}, {c.path / 'video'}")
     q = c.quarantine.to_pylist()
     lines.append(f"quarantine {len(q)}")

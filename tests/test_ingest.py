@@ -103,14 +103,17 @@ def test_vocab_kinds_and_classes_match_truth(corpus, synth_source):
         assert tokens == list(range(len(tokens)))
         for act in v["actions"][1:]:
             want = clips[act["composite"]]
-            assert act["kind"] == want["kind"], (etype, act, want)
-            assert act["class"] == want["class"], (etype, act, want)
             # clip length = largest motion_frame seen + 1: exact once a whole play was recorded
             assert act["clip_length"] <= want["length"], (etype, act, want)
             if runs[act["composite"]] >= want["length"]:
                 assert act["clip_length"] == want["length"], (etype, act, want)
                 full += 1
-            compared += 1
+            # kind and class are read from the played motion: a loop that a segment's end stopped before it
+            # wrapped reads as an event, so they are compared where a whole play (a loop: one cycle and a frame) was recorded
+            if runs[act["composite"]] >= want["length"] + (want["kind"] == "state"):
+                assert act["kind"] == want["kind"], (etype, act, want)
+                assert act["class"] == want["class"], (etype, act, want)
+                compared += 1
     assert compared >= 8 and full >= 6
 
 

@@ -60,7 +60,6 @@ COLUMNS = (
     + [f"monster.list.0.{f}" for f in MONSTER_FIELDS]
 )
 RIGS = {"monster": "drake", "hunter": "hunter", "weapon": "greatsword"}
-HIT = {"attack": (0.55, 40.0), "heavy_attack": (0.55, 70.0), "bite": (0.42, 18.0), "tail_swipe": (0.5, 25.0)}
 
 
 def _tuple(v, digits: int = 6) -> str:
@@ -92,14 +91,14 @@ def _hp(plan: sim.Plan, roots: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Hit points per frame: each attack that lands (targets within reach at its hit frame) takes damage."""
     N = plan.n_frames
     hp = {"hunter": np.full(N, 150.0), "monster": np.full(N, 2400.0)}
-    for ent, other, reach in (("hunter", "monster", 6.0), ("monster", "hunter", 7.5)):
+    for ent, other in (("hunter", "monster"), ("monster", "hunter")):
         for seg in plan.tracks[ent].segments:
-            if seg.clip not in HIT:
+            c = CLIPS[ent][seg.clip]
+            if c.cls != "attack":
                 continue
-            at, dmg = HIT[seg.clip]
-            f = seg.start + int(at * CLIPS[ent][seg.clip].length)
-            if f < N and np.linalg.norm(roots[ent][f] - roots[other][f]) < reach:
-                hp[other][f:] -= dmg * (3.0 if other == "monster" else 1.0)
+            f = seg.start + int(c.hit_at * c.length)
+            if f < N and np.linalg.norm(roots[ent][f] - roots[other][f]) < sim.REACH[ent]:
+                hp[other][f:] -= c.damage * (3.0 if other == "monster" else 0.3)  # the hunter's armour takes 70 %
     hp["hunter"] = np.maximum(hp["hunter"], 1.0)
     hp["monster"] = np.maximum(hp["monster"], 1.0)
     return hp
@@ -255,7 +254,7 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
         row += [_num(npc[f]) if not isinstance(npc[f], str) else npc[f] for f in NPC_FIELDS]
         if present[i]:
             frac = hp["monster"][i] / 2400.0
-            cond = "angry" if frac < 0.7 else "tired" if mc.name == "idle" and frac < 0.9 else "none"
+            cond = "angry" if frac < 0.7 else "tired" if mc.cls == "stationary" and frac < 0.9 else "none"
             mon = {
                 "type_id": TYPE_IDS["monster"],
                 "pos": _tuple(roots["monster"][i]),

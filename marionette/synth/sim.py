@@ -1,9 +1,16 @@
 """The synthetic game's behaviour and its continuous-time motion.
 
-``simulate(seed, index, n_frames, fps)`` plays one recording: the hunter starts on the bridge deck
-and runs (or walks) off its east end (even ``index``), or starts in the valley south of the bridge
-and runs under it to the north (odd ``index``: the follow camera, lower than the deck, then sees the
-valley floor beneath it), then fights the drake, which roams, charges and attacks.
+``simulate(seed, index, n_frames, fps)`` plays one recording. It opens with a short approach: the
+hunter starts on the bridge deck and runs off its east end (even ``index``), or starts in the valley
+south of the bridge and runs under it to the north (odd ``index``: the follow camera, lower than the
+deck, then sees the valley floor beneath it), while the drake charges. Then they fight at close
+range: the hunter keeps a preferred distance (3.8–5.2 m), circles the drake with strafes, attacks with
+a swing chosen by distance, dodges or blocks the drake's attacks, reacts to hits, backs off and
+closes in again; the drake turns in place to face it, attacks (bites, claws, tail, lunges), stalks
+sideways, hops back, roars, and now and then walks off to another spot of the fight ground, often
+up a terrace ramp, where the hunter follows. Variants are picked by distance, angle and the
+recording's random generator, so a few minutes of play use most of the clip table.
+
 Decisions are taken at frame boundaries; roots are integrated at ``SUBSTEPS`` per frame and stored,
 so the motion is a function of continuous time: roots interpolate linearly between the stored
 samples, poses are functions of (clip, phase) blended over ``BLEND_FRAMES`` at clip changes.
@@ -24,13 +31,15 @@ from .clips import CLIPS, Clip
 from .poses import HUNTER_PELVIS_H, MONSTER_PELVIS_H, hunter_controls, hunter_skeleton, monster_controls, monster_skeleton
 
 SUBSTEPS = 4
-BLEND_FRAMES = 10.0
-RADIUS = {"hunter": 0.8, "monster": 3.0}  # keep-out margins around obstacles (m)
-YAW_RATE = {"hunter": 1.8, "monster": 0.5, "monster_run": 0.3}  # rad/s while in a loop clip
+BLEND_FRAMES = 12.0
+RADIUS = {"hunter": 0.8, "monster": 3.0}  # keep-out margins around obstacles and ledges (m)
+YAW_RATE = {"hunter": 2.2, "monster": 0.6, "monster_run": 0.35}  # rad/s while moving in a loop clip
+STAND_YAW_RATE = {"hunter": 0.0, "monster": 0.0}  # rad/s while standing: both turn with turn clips (feet stay planted)
 MIN_SEP = 3.5  # the two roots never get closer (m)
-DODGE_SPEED = 4.5  # m/s plateau of the dodge's root speed profile
+REACH = {"hunter": 6.0, "monster": 7.5}  # an attack lands when the roots are closer at its hit frame (m)
 DECK_Z = (ter.DECK[2] + ter.DECK[3]) / 2
 UNDER_EXIT_M = 6.0  # an under-bridge crossing ends this far north of the deck
+FIGHT_CENTER = (-944.0, 846.0)  # the drake's spots to fight from lie around here (m)
 
 
 @dataclass
@@ -38,7 +47,7 @@ class Segment:
     start: int  # frame
     clip: str
     length: int  # frames
-    dodge_yaw: float = 0.0  # world direction of a dodge's motion
+    move_yaw: float = 0.0  # world heading of an event's root motion
 
 
 @dataclass
@@ -67,13 +76,23 @@ def _wrap(a):
 
 
 class _Actor:
-    def __init__(self, name: str, x: float, z: float, yaw: float, on_deck: bool):
+    def __init__(self, name: str, x: float, z: float, yaw: float, on_deck: bool, rng: np.random.Generator, index: int):
         self.name, self.x, self.z, self.yaw, self.on_deck = name, x, z, yaw, on_deck
         self.clips = CLIPS[name]
         self.segments: list[Segment] = []
         self.waypoint = (x, z)
         self.crossing = on_deck  # running off the deck (or, with ``under``, through the valley beneath it)
         self.under = False
+        self.level = -1  # index of the terrace it stands on, -1 on the ground
+        self.hit_frame = -(10**6)  # the last frame an attack of the other landed on it
+        self.hit_side = 0.0  # where that attack came from, radians from its facing (+ = left)
+        self.pref = float(rng.uniform(3.8, 5.2))  # preferred distance to the other (m)
+        self.circle = 1.0 if rng.random() < 0.5 else -1.0  # strafing direction (+ = left)
+        self.wandering = False  # walking to a spot of the fight ground (the drake)
+        self.wander_start = 0  # frame
+        # clip name → times started; each recording starts with a different half of the variants "played", so the
+        # recordings of a seed favour different variants and a few minutes of play use most of them
+        self.plays: dict[str, int] = {n: int((c.composite + index) % 2) for n, c in self.clips.items()}
 
     @property
     def seg(self) -> Segment:
@@ -82,13 +101,27 @@ class _Actor:
     def clip(self) -> Clip:
         return self.clips[self.seg.clip]
 
-    def start(self, frame: int, name: str, cycles: int = 2, dodge_yaw: float = 0.0) -> None:
+    def prev(self) -> str | None:
+        return self.seg.clip if self.segments else None
+
+    def start(self, frame: int, name: str, cycles: int = 2) -> None:
         c = self.clips[name]
-        if self.segments and self.seg.clip == name and c.kind == "state":
+        if self.segments and self.seg.clip == name:
+            if c.kind == "event":  # a replayed event would read as a loop (its motion_frame wraps)
+                raise ValueError(f"{self.name}: event clip {name!r} started twice in a row at frame {frame}")
             self.seg.length += c.length  # a loop continues: its phase runs on
             return
         n = c.length * cycles if c.kind == "state" else c.length
-        self.segments.append(Segment(frame, name, n, dodge_yaw))
+        self.plays[name] = self.plays.get(name, 0) + 1
+        self.segments.append(Segment(frame, name, n, float(self.yaw + c.move_dir)))
+
+    def pick(self, rng: np.random.Generator, names: list[str]) -> str:
+        """One of ``names`` at random, the less played ones likelier (weight 1 / (1 + plays)²), never the
+        event that just played."""
+        prev = self.prev()
+        options = [n for n in names if not (n == prev and self.clips[n].kind == "event")]
+        w = np.array([1.0 / (1.0 + self.plays.get(n, 0)) ** 2 for n in options])
+        return options[int(rng.choice(len(options), p=w / w.sum()))]
 
 
 def _push_out(x: float, z: float, rect, margin: float) -> tuple[float, float]:
@@ -98,6 +131,72 @@ def _push_out(x: float, z: float, rect, margin: float) -> tuple[float, float]:
     d = [x - x0, x1 - x, z - z0, z1 - z]
     k = int(np.argmin(d))
     return [(x0, z), (x1, z), (x, z0), (x, z1)][k]
+
+
+def _lane(t: ter.Terrace, margin: float) -> tuple[float, float]:
+    return t.x0 + margin, t.x1 - margin
+
+
+def _ledges(t: ter.Terrace) -> tuple[tuple[float, float, float, float], ...]:
+    """A terrace's ledges as segments (x0, z0, x1, z1): its west, east and south sides (the north side is
+    the ramp's foot, level with the ground)."""
+    return ((t.x0, t.z0, t.x0, t.z1), (t.x1, t.z0, t.x1, t.z1), (t.x0, t.z0, t.x1, t.z0))
+
+
+def _closest_on(x: float, z: float, seg: tuple[float, float, float, float]) -> tuple[float, float]:
+    ax, az, bx, bz = seg
+    dx, dz = bx - ax, bz - az
+    s = float(np.clip(((x - ax) * dx + (z - az) * dz) / (dx * dx + dz * dz), 0.0, 1.0))
+    return ax + s * dx, az + s * dz
+
+
+def _terraces(a: _Actor, x: float, z: float) -> tuple[float, float]:
+    """(x, z) kept clear of the terraces' ledges: on a terrace inside its lane and plateau, off it at least
+    ``RADIUS`` from every ledge; the ramp's foot is the only way up or down. Updates ``a.level``."""
+    m = RADIUS[a.name]
+    for i, t in enumerate(ter.TERRACES):
+        lo, hi = _lane(t, m)
+        if a.level == i:
+            x, z = float(np.clip(x, lo, hi)), max(z, t.z0 + m)
+            if z > t.z1:
+                a.level = -1
+            continue
+        if t.x0 <= x < t.x1 and z < t.z1 and a.z >= t.z1:
+            a.level = i  # stepped onto the ramp's foot
+            x = float(np.clip(x, lo, hi))
+            continue
+        for seg in _ledges(t):
+            cx, cz = _closest_on(x, z, seg)
+            d = float(np.hypot(x - cx, z - cz))
+            if d < m:
+                if d < 1e-9:
+                    raise ValueError(f"{a.name}: root on a ledge of {t} at ({x:.3f}, {z:.3f})")
+                x, z = cx + (x - cx) * m / d, cz + (z - cz) * m / d
+    return x, z
+
+
+def _level_of(x: float, z: float) -> int:
+    for i, t in enumerate(ter.TERRACES):
+        if t.x0 <= x < t.x1 and t.z0 <= z < t.z1:
+            return i
+    return -1
+
+
+def _route(a: _Actor, tx: float, tz: float, level: int) -> tuple[float, float]:
+    """The point to head for on the way to (tx, tz) on terrace ``level`` (-1: the ground): a ramp's foot
+    when the way there leads on or off a terrace, else the target itself."""
+    m = RADIUS[a.name]
+    if a.level >= 0 and level != a.level:  # down the ramp first
+        t = ter.TERRACES[a.level]
+        return float(np.clip(a.x, *_lane(t, m))), t.z1 + m + 1.0
+    if level >= 0 and a.level != level:
+        t = ter.TERRACES[level]
+        lo, hi = _lane(t, m)
+        gx = float(np.clip(tx, lo + 0.5, hi - 0.5))
+        if lo <= a.x <= hi and t.z1 < a.z < t.z1 + m + 2.0:
+            return gx, t.z1 - 2.0  # at the foot: walk up
+        return gx, t.z1 + m + 1.0
+    return tx, tz
 
 
 def _avoid_dir(a: _Actor, tx: float, tz: float) -> float:
@@ -122,65 +221,185 @@ def _avoid_dir(a: _Actor, tx: float, tz: float) -> float:
 _DECK_OBSTACLE = (ter.DECK[0] + 2.0, ter.DECK[1] - 2.0, ter.DECK[2], ter.DECK[3])
 
 
+def _geometry(a: _Actor, o: _Actor) -> tuple[float, float]:
+    """(distance m, bearing of ``o`` from ``a``'s facing in radians, + = left)."""
+    d = float(np.hypot(o.x - a.x, o.z - a.z))
+    return d, float(_wrap(np.arctan2(o.x - a.x, o.z - a.z) - a.yaw))
+
+
+def _names(a: _Actor, *prefixes: str, cls: str | None = None) -> list[str]:
+    return [n for n, c in a.clips.items() if n.startswith(prefixes) and (cls is None or c.cls == cls)]
+
+
+def _side(angle: float) -> str:
+    """The hit-reaction side of an attack from ``angle`` (radians from the facing, + = left)."""
+    return "front" if abs(angle) < 0.8 else ("left" if angle > 0 else "right")
+
+
 def _decide_hunter(a: _Actor, m: _Actor, f: int, rng: np.random.Generator) -> None:
-    prev = a.seg.clip if a.segments else None
+    prev = a.prev()
     if a.crossing:
-        a.start(f, prev if prev in ("walk", "run") else "run", cycles=1)
+        a.start(f, prev if prev in ("walk", "run", "jog") else "run", cycles=1)
         return
-    d = np.hypot(m.x - a.x, m.z - a.z)
-    m_attacking = m.clips[m.seg.clip].cls == "attack"
-    if m_attacking and d < 9.0 and prev != "dodge" and rng.random() < 0.8:
-        away = np.arctan2(a.x - m.x, a.z - m.z) + rng.uniform(-0.9, 0.9)
-        a.start(f, "dodge", dodge_yaw=float(away))
-    elif d > 14.0:
-        a.start(f, "run")
-    elif d > 5.0:
-        a.start(f, "walk")
-    elif rng.random() < 0.15 and prev != "idle":
-        a.start(f, "idle")
+    d, ang = _geometry(a, m)
+    mc = m.clip()
+    m_attacking = mc.cls == "attack" and f < m.seg.start + mc.hit_at * mc.length
+    r = rng.random()
+    if f - a.hit_frame < 12 and a.clips[prev].cls != "other":
+        side = "left" if a.hit_side > 0 else "right"
+        a.start(
+            f,
+            a.pick(
+                rng,
+                ["hit_heavy", "stagger"]
+                if r < 0.25
+                else ["hit_front", f"hit_{side}"]
+                if abs(a.hit_side) < 0.8
+                else [f"hit_{side}"],
+            ),
+        )
+    elif m_attacking and d < REACH["monster"] + 0.5 and a.clips[prev].cls != "other" and r < 0.75:
+        if r < 0.2:
+            a.start(f, a.pick(rng, ["block_light", "block_heavy"]))
+        else:
+            away = "back" if abs(ang) < 0.6 and rng.random() < 0.4 else ("left" if rng.random() < 0.5 else "right")
+            a.start(f, a.pick(rng, [f"sidestep_{away}", f"roll_{away}"] + (["roll_forward"] if d > 5.0 else [])))
+    elif d > 13.0:
+        a.start(f, a.pick(rng, ["run", "sprint"]))
+    elif d > a.pref + 2.5:
+        a.start(f, a.pick(rng, ["walk_fast", "jog", "walk"] + [f"advance_{s}" for s in ("left", "right")]))
+    elif abs(ang) > 0.5:
+        a.start(f, f"turn_{'left' if ang > 0 else 'right'}{'_fast' if abs(ang) > 1.2 else ''}", cycles=2)
+    elif d < MIN_SEP + 0.4 and r < 0.6:
+        a.start(f, a.pick(rng, ["back_walk", "back_jog", "retreat_left", "retreat_right", "sidestep_back", "roll_back"]))
+    elif r < 0.5:
+        if d > a.pref + 0.8:
+            options = ["lunge_thrust", "jump_slam", "hop_slam", "thrust"]
+        else:
+            options = _names(a, "overhead", "diag", "sweep", "rising", "low", "chop")
+            options += ["thrust", "double_thrust", "spin_slash", "spin_slash_rev", "double_slash", "triple_combo"]
+            if rng.random() < 0.15:
+                options = ["charged_overhead", "charged_sweep"]
+        a.start(f, a.pick(rng, options))
+    elif r < 0.74:
+        if rng.random() < 0.15:
+            a.circle = -a.circle
+        side = "left" if a.circle > 0 else "right"
+        a.start(f, a.pick(rng, [f"strafe_slow_{side}", f"strafe_{side}", f"strafe_fast_{side}", f"guard_strafe_{side}"]))
+    elif r < 0.82:
+        if d < a.pref:
+            a.start(f, a.pick(rng, ["back_walk", "retreat_left", "retreat_right"]))
+        else:
+            a.start(f, a.pick(rng, ["walk_slow", "advance_left", "advance_right"]))
+    elif r < 0.91:
+        a.start(f, a.pick(rng, _names(a, "guard_", cls="stationary") + ["ready_crouch", "ready_wide"]))
+    elif r < 0.94:
+        a.start(f, a.pick(rng, _names(a, "idle_")))
     else:
-        options = [c for c in ("attack", "heavy_attack") if c != prev]
-        a.start(f, options[int(rng.integers(len(options)))])
+        a.start(f, a.pick(rng, ["taunt_raise", "taunt_shout", "taunt_beckon", "heal", "shoulder_roll"]))
+
+
+def _fight_spot(a: _Actor, rng: np.random.Generator) -> tuple[float, float]:
+    """A spot of the fight ground for the drake to walk to: often up a terrace, else near the fight's centre."""
+    m = RADIUS[a.name]
+    if rng.random() < 0.65:
+        t = ter.TERRACES[int(rng.integers(len(ter.TERRACES)))]
+        return float(rng.uniform(*_lane(t, m + 0.5))), float(rng.uniform(t.z0 + m + 0.5, t.z1 - 1.0))
+    cx, cz = FIGHT_CENTER
+    return cx + float(rng.uniform(-12, 12)), cz + float(rng.uniform(-6, 8))
 
 
 def _decide_monster(a: _Actor, h: _Actor, f: int, rng: np.random.Generator) -> None:
-    prev = a.seg.clip if a.segments else None
-    d = np.hypot(h.x - a.x, h.z - a.z)
+    prev = a.prev()
+    d, ang = _geometry(a, h)
     r = rng.random()
-    if d < 7.0 and r < 0.7:
-        options = [c for c in ("bite", "tail_swipe") if c != prev]
-        a.start(f, options[int(rng.integers(len(options)))])
-    elif d > 18.0 and r < 0.6:
+    wandering, a.wandering = a.wandering, False
+    if f - a.hit_frame < 12 and a.clips[prev].cls != "other" and r < 0.5:
+        a.start(f, a.pick(rng, ["stagger"] if r < 0.1 else [f"flinch_{_side(a.hit_side)}"]))
+    elif wandering and np.hypot(a.waypoint[0] - a.x, a.waypoint[1] - a.z) > 2.0 and f - a.wander_start < 180:
+        a.wandering = True
+        a.start(f, prev)  # on the way to a new spot
+    elif d > 14.0 and r < 0.7:
         a.waypoint = (h.x, h.z)
-        a.start(f, "run")
-    elif r < 0.1 and prev != "roar":
-        a.start(f, "roar")
-    elif r < 0.25 and prev != "idle":
-        a.start(f, "idle")
-    else:
-        if rng.random() < 0.5:
-            cx, cz = ter.ARENA_CENTER
-            a.waypoint = (cx + rng.uniform(-40, 40), cz + rng.uniform(-40, 40))
+        a.start(f, a.pick(rng, ["run", "trot"]))
+    elif d > 9.0:
+        a.waypoint = (h.x, h.z)
+        if r < 0.8:
+            a.start(f, a.pick(rng, ["walk", "walk_fast", "trot"]))
         else:
-            a.waypoint = (h.x, h.z)
-        a.start(f, "walk")
+            a.start(f, a.pick(rng, ["lunge", "charge"] if abs(ang) < 0.3 else ["roar_short", "roar"]))
+    elif abs(ang) > 0.5:
+        a.start(f, f"turn_{'left' if ang > 0 else 'right'}{'_fast' if abs(ang) > 1.2 else ''}", cycles=2)
+    elif r < 0.45 and d < 8.0:
+        if d > 6.5:
+            options = ["lunge", "charge"]
+        elif d < 4.5:
+            options = [
+                "claw_left",
+                "claw_right",
+                "stomp",
+                "bite_low",
+                "headbutt",
+                "wing_buffet",
+                "tail_swipe_left",
+                "tail_swipe_right",
+            ]
+        else:
+            options = _names(a, "bite") + ["double_bite", "headbutt", "tail_slam", "claw_left", "claw_right", "wing_buffet"]
+        a.start(f, a.pick(rng, options))
+    elif r < 0.54:
+        a.start(f, a.pick(rng, ["stalk_left", "stalk_right", "stalk_fast_left", "stalk_fast_right"]))
+    elif r < 0.62:
+        a.start(f, a.pick(rng, ["back_walk", "back_walk_fast", "hop_back", "hop_left", "hop_right"]))
+    elif r < 0.7:
+        a.waypoint, a.wandering, a.wander_start = _fight_spot(a, rng), True, f
+        a.start(f, a.pick(rng, ["walk_slow", "walk", "walk_fast"]))
+    elif r < 0.83:
+        a.start(f, a.pick(rng, ["roar", "roar_short", "roar_sky"]))
+    elif r < 0.88:
+        a.start(f, a.pick(rng, ["shake_head", "sniff"]))
+    else:
+        a.start(f, a.pick(rng, _names(a, "idle_") + ["alert", "crouch"]))
+
+
+def _event_speed(c: Clip, u: float) -> float:
+    """An event's root speed (m/s) at phase u: a trapezoid over its ``move`` window."""
+    u0, u1 = c.move
+    r = (u - u0) / (u1 - u0)
+    return c.speed * min(1.0, r / 0.2, (1 - r) / 0.2) if 0 <= r <= 1 else 0.0
 
 
 def _step(a: _Actor, other: _Actor, target: tuple[float, float], dt: float, f_sub: float) -> None:
     c = a.clip()
+    face = float(np.arctan2(other.x - a.x, other.z - a.z))
     if c.kind == "state":
-        want = _avoid_dir(a, *target) if c.speed > 0 else float(np.arctan2(other.x - a.x, other.z - a.z))
+        if c.turn:
+            a.yaw += c.turn * dt  # a turning step turns at the clip's own rate
+            want = None
+        elif c.speed > 0 and c.move_dir == 0.0:
+            want = _avoid_dir(a, *target)
+        else:
+            want = face  # standing, strafing or backing off: facing the other
         if a.on_deck:
             want = np.pi / 2  # along the deck, toward its east end
-        rate = YAW_RATE["monster_run" if a.name == "monster" and c.name == "run" else a.name]
-        a.yaw += float(np.clip(_wrap(want - a.yaw), -rate * dt, rate * dt))
-        vx, vz = c.speed * np.sin(a.yaw), c.speed * np.cos(a.yaw)
-    elif c.name == "dodge":
-        u = (f_sub - a.seg.start) / c.length
-        v = DODGE_SPEED * min(1.0, u / 0.15, (1 - u) / 0.15) if 0 <= u <= 1 else 0.0
-        vx, vz = v * np.sin(a.seg.dodge_yaw), v * np.cos(a.seg.dodge_yaw)
+        if want is not None:
+            rate = (
+                YAW_RATE["monster_run" if a.name == "monster" and c.speed > 3.0 else a.name]
+                if c.speed > 0
+                else STAND_YAW_RATE[a.name]
+            )
+            a.yaw += float(np.clip(_wrap(want - a.yaw), -rate * dt, rate * dt))
+        heading = a.yaw + c.move_dir
+        if c.speed > 0 and c.move_dir != 0.0:
+            heading = _avoid_dir(a, a.x + np.sin(heading), a.z + np.cos(heading))
+        vx, vz = c.speed * np.sin(heading), c.speed * np.cos(heading)
+        if c.speed > 0 and abs(np.sin(c.move_dir)) > 0.9:  # circling: hold the preferred distance
+            d = np.hypot(other.x - a.x, other.z - a.z) + 1e-9
+            k = float(np.clip(0.8 * (d - a.pref), -0.8, 0.8))
+            vx, vz = vx + k * (other.x - a.x) / d, vz + k * (other.z - a.z) / d
     else:
-        vx = vz = 0.0
+        v = _event_speed(c, (f_sub - a.seg.start) / c.length)
+        vx, vz = v * np.sin(a.seg.move_yaw), v * np.cos(a.seg.move_yaw)
     # Separation: drop the part of the velocity that closes in on the other entity.
     ox, oz = other.x - a.x, other.z - a.z
     d = np.hypot(ox, oz) + 1e-9
@@ -194,6 +413,7 @@ def _step(a: _Actor, other: _Actor, target: tuple[float, float], dt: float, f_su
     elif not a.under:
         x, z = _push_out(x, z, _DECK_OBSTACLE, RADIUS[a.name])
     x, z = _push_out(x, z, ter.WALL, RADIUS[a.name])
+    x, z = _terraces(a, x, z)
     cx, cz = ter.ARENA_CENTER
     lim = ter.ARENA_HALF - RADIUS[a.name] - 2.0
     a.x, a.z = float(np.clip(x, cx - lim, cx + lim)), float(np.clip(z, cz - lim, cz + lim))
@@ -203,21 +423,50 @@ def _step(a: _Actor, other: _Actor, target: tuple[float, float], dt: float, f_su
         a.crossing = a.under = False
 
 
+def _land_hits(a: _Actor, o: _Actor, f: int) -> None:
+    """When ``a``'s attack reaches its hit frame at ``f`` within reach of ``o``, ``o`` is hit."""
+    c = a.clip()
+    if c.cls == "attack" and f == a.seg.start + int(c.hit_at * c.length):
+        d, _ = _geometry(a, o)
+        if d < REACH[a.name]:
+            o.hit_frame = f
+            o.hit_side = _geometry(o, a)[1]
+
+
+def _interrupted(a: _Actor, o: _Actor, f: int) -> bool:
+    """Whether ``a`` drops the loop it plays at ``f``: hit just now, or (the hunter, out of its approach) the
+    other starts an attack within reach. Only a loop that has played a full cycle is dropped, so every
+    loop's motion_frame wraps (ingest reads a loop from that)."""
+    c = a.clip()
+    if c.kind != "state" or a.crossing or f - a.seg.start <= c.length:
+        return False
+    if a.hit_frame == f:
+        return True
+    oc = o.clip()
+    return a.name == "hunter" and oc.cls == "attack" and o.seg.start == f and _geometry(a, o)[0] < REACH[o.name]
+
+
 @lru_cache(maxsize=16)
 def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
     """Play recording ``index`` of ``seed`` for ``n_frames`` frames: the roots and clip segments."""
     rng = np.random.default_rng([seed, index])
-    x0 = ter.DECK[1] - rng.uniform(8.0, 12.0)
+    x0 = ter.DECK[1] - rng.uniform(7.0, 10.0)
     z0 = DECK_Z + rng.uniform(-0.8, 0.8)
     if index % 2:  # under the bridge: up the valley floor from the south
         hunter = _Actor(
-            "hunter", ter.VALLEY_X + (x0 - ter.DECK[1] + 10.0), ter.DECK[2] - 12.0 - (z0 - DECK_Z), 0.0, on_deck=False
+            "hunter",
+            ter.VALLEY_X + (x0 - ter.DECK[1] + 10.0),
+            ter.DECK[2] - 8.0 - (z0 - DECK_Z),
+            0.0,
+            on_deck=False,
+            rng=rng,
+            index=index,
         )
         hunter.crossing = hunter.under = True
     else:
-        hunter = _Actor("hunter", x0, z0, np.pi / 2, on_deck=True)
-    mx, mz = ter.DECK[1] + rng.uniform(22.0, 30.0), DECK_Z + rng.uniform(-10.0, 6.0)
-    monster = _Actor("monster", mx, mz, float(np.arctan2(hunter.x - mx, hunter.z - mz)), on_deck=False)
+        hunter = _Actor("hunter", x0, z0, np.pi / 2, on_deck=True, rng=rng, index=index)
+    mx, mz = ter.DECK[1] + rng.uniform(22.0, 28.0), DECK_Z + rng.uniform(-1.0, 7.0)
+    monster = _Actor("monster", mx, mz, float(np.arctan2(hunter.x - mx, hunter.z - mz)), on_deck=False, rng=rng, index=index)
     hunter.start(0, "run", cycles=1)
     monster.waypoint = (hunter.x + 12.0, hunter.z)
     monster.start(0, "run")  # the drake charges at the hunter as the recording opens
@@ -227,8 +476,11 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
     actors = {"hunter": hunter, "monster": monster}
     dt = 1.0 / (fps * SUBSTEPS)
     for f in range(n_frames):
+        _land_hits(hunter, monster, f)
+        _land_hits(monster, hunter, f)
         for a, o, decide in ((hunter, monster, _decide_hunter), (monster, hunter, _decide_monster)):
-            if f >= a.seg.start + a.seg.length:
+            if f >= a.seg.start + a.seg.length or (f > a.seg.start and _interrupted(a, o, f)):
+                a.seg.length = f - a.seg.start
                 decide(a, o, f, rng)
         for s in range(SUBSTEPS):
             i = f * SUBSTEPS + s
@@ -236,20 +488,32 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
                 xz, yaw, deck = store[n]
                 xz[i], yaw[i], deck[i] = (a.x, a.z), a.yaw, a.on_deck
             for a, o in ((hunter, monster), (monster, hunter)):
-                target = a.waypoint
                 if a is hunter:
-                    target = (o.x, o.z)
+                    target = _route(a, o.x, o.z, o.level)
                     if a.crossing:
                         target = (a.x, ter.DECK[3] + 2 * UNDER_EXIT_M) if a.under else (ter.DECK[1] + 6.0, DECK_Z)
+                else:
+                    target = _route(a, *a.waypoint, _level_of(*a.waypoint))
                 _step(a, o, target, dt, f + s / SUBSTEPS)
     for n, a in actors.items():
         xz, yaw, deck = store[n]
         xz[-1], yaw[-1], deck[-1] = (a.x, a.z), a.yaw, a.on_deck
-    absent_start = int(rng.uniform(0.35, 0.55) * n_frames)
-    cam_start = int(rng.uniform(0.7, 0.85) * n_frames)
     n_abs = min(30, max(1, n_frames // 6))
+    absent_start = _gap(actors, int(rng.uniform(0.35, 0.55) * n_frames), n_abs, n_frames)
+    cam_start = _gap(actors, int(rng.uniform(0.7, 0.85) * n_frames), 4, n_frames)
     tracks = {n: Track(*store[n], segments=list(actors[n].segments)) for n in actors}
     return Plan(seed, index, n_frames, fps, tracks, (absent_start, absent_start + n_abs), (cam_start, cam_start + 4))
+
+
+def _gap(actors: dict[str, _Actor], start: int, n: int, n_frames: int) -> int:
+    """The first frame from ``start`` on where an invalid span of ``n`` frames (which splits the recording into
+    segments) cuts no event of either entity short: a cut attack could lose its strike, and ingest classes an
+    action by its played instances. ``start`` itself when there is none within 3 s (and the recording's first 90 %)."""
+    events = [(s.start, s.start + s.length) for a in actors.values() for s in a.segments if a.clips[s.clip].kind == "event"]
+    for f in range(start, min(start + 90, int(0.9 * n_frames) - n)):
+        if not any(a - 1 <= f + n and f <= b + 1 for a, b in events):
+            return f
+    return start
 
 
 # ------------------------------------------------------------------------------------- evaluation

@@ -8,12 +8,17 @@ World frame: metric, Y up, right-handed. The arena is a 120 m × 120 m square ce
   with vertical sides (a sharp step, taller than the 1.5 m a character may step up);
 - the bridge deck: a second layer over the valley, inside ``DECK`` (x ∈ [−995, −965],
   z ∈ [846, 850]), about 5.3 m above the valley floor at its middle and level with the ground
-  at both ends.
+  at both ends;
+- the fight ground east of the bridge: raised ``TERRACES``, each a rectangle whose south part is a
+  plateau ``rise`` metres above the ground (1.5 m and 1 m) with vertical sides (ledges), and whose
+  north part is a ramp falling linearly to the ground at the north edge (the one way up).
 
 Every function is vectorised over numpy arrays of x and z (world metres).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -24,6 +29,33 @@ WALL_HEIGHT = 3.0
 DECK = (-995.0, -965.0, 846.0, 850.0)  # x0, x1, z0, z1 of the bridge deck
 DECK_THICKNESS = 0.5
 VALLEY_X, VALLEY_DEPTH, VALLEY_SIGMA = -980.0, 5.5, 6.0
+
+
+@dataclass(frozen=True)
+class Terrace:
+    """A raised block: plateau over z ∈ [z0, z_ramp], ramp down to the ground over [z_ramp, z1] (metres)."""
+
+    x0: float
+    x1: float
+    z0: float
+    z_ramp: float
+    z1: float
+    rise: float  # plateau height above the ground (m)
+
+    def height(self, x, z) -> np.ndarray:
+        """Height (m) the terrace adds to the ground at (x, z): rise on the plateau, linear on the ramp, 0 outside."""
+        x = np.asarray(x, dtype=np.float64)
+        z = np.asarray(z, dtype=np.float64)
+        inside = (x >= self.x0) & (x < self.x1) & (z >= self.z0) & (z < self.z1)
+        ramp = np.clip((self.z1 - z) / (self.z1 - self.z_ramp), 0.0, 1.0)
+        return np.where(inside, self.rise * ramp, 0.0)
+
+
+# Edges on integer metres (grid lines of the mesh and of 1 m terrain cells); ramps of 10–11°.
+TERRACES = (
+    Terrace(-958.0, -942.0, 822.0, 834.0, 842.0, 1.5),
+    Terrace(-934.0, -922.0, 832.0, 842.0, 848.0, 1.0),
+)
 
 
 def _valley(x: np.ndarray) -> np.ndarray:
@@ -64,11 +96,32 @@ def in_arena(x, z, margin: float = 0.0) -> np.ndarray:
     return (np.abs(np.asarray(x) - cx) <= h) & (np.abs(np.asarray(z) - cz) <= h)
 
 
-def ground_height(x, z) -> np.ndarray:
-    """Height (m) of the ground layer at (x, z): base + valley, +3 m on the wall block."""
+def terrace_height(x, z) -> np.ndarray:
+    """Height (m) the terraces add to the ground at (x, z)."""
+    return sum(t.height(x, z) for t in TERRACES)
+
+
+def in_terrace(x, z, margin: float = 0.0) -> np.ndarray:
+    """True where (x, z) lies inside a terrace (plateau or ramp) grown by ``margin`` metres."""
     x = np.asarray(x, dtype=np.float64)
     z = np.asarray(z, dtype=np.float64)
-    return base_height(x, z) + _valley(x) + np.where(in_wall(x, z), WALL_HEIGHT, 0.0)
+    out = np.zeros(np.broadcast_shapes(x.shape, z.shape), bool)
+    for t in TERRACES:
+        out |= (x >= t.x0 - margin) & (x < t.x1 + margin) & (z >= t.z0 - margin) & (z < t.z1 + margin)
+    return out
+
+
+def near_step(x, z, margin: float = 0.6) -> np.ndarray:
+    """True within ``margin`` metres of a vertical step: the wall's sides, the deck's edges, a terrace's ledges."""
+    step = (in_wall(x, z, margin) & ~in_wall(x, z, -margin)) | (in_deck(x, z, margin) & ~in_deck(x, z, -margin))
+    return step | (in_terrace(x, z, margin) & ~in_terrace(x, z, -margin))
+
+
+def ground_height(x, z) -> np.ndarray:
+    """Height (m) of the ground layer at (x, z): base + valley + terraces, +3 m on the wall block."""
+    x = np.asarray(x, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    return base_height(x, z) + _valley(x) + terrace_height(x, z) + np.where(in_wall(x, z), WALL_HEIGHT, 0.0)
 
 
 def deck_height(x, z) -> np.ndarray:
@@ -93,12 +146,13 @@ def surface_height(x, z, ref_y) -> np.ndarray:
 
 
 def ground_normal(x, z, eps: float = 0.05) -> np.ndarray:
-    """Unit normal (..., 3) of the ground layer by central differences (ignores the wall step)."""
+    """Unit normal (..., 3) of the ground layer by central differences (ignores the wall step; a terrace's
+    ledge tilts it only within ``eps`` of the edge)."""
     x = np.asarray(x, dtype=np.float64)
     z = np.asarray(z, dtype=np.float64)
 
     def h(a, b):
-        return base_height(a, b) + _valley(a)
+        return base_height(a, b) + _valley(a) + terrace_height(a, b)
 
     dx = (h(x + eps, z) - h(x - eps, z)) / (2 * eps)
     dz = (h(x, z + eps) - h(x, z - eps)) / (2 * eps)
@@ -133,9 +187,10 @@ class StageTerrain:
 def terrain_mesh(cell_m: float = 1.0, extent_m: float = 80.0) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """Triangle meshes of the stage: [(material, vertices (V, 3) float32, triangles (T, 3) uint32)].
 
-    The ground is a height-field grid over the arena ± ``extent_m`` (the wall footprint is
-    covered by the wall block); the wall is a block whose top follows the ground + 3 m; the deck
-    a slab of ``DECK_THICKNESS``. Grid lines fall on the wall and deck edges (integer metres).
+    The ground is a height-field grid over the arena ± ``extent_m`` (the wall and terrace footprints
+    are covered by their blocks); the wall is a block whose top follows the ground + 3 m; each
+    terrace a block whose top is the ground plus the terrace; the deck a slab of ``DECK_THICKNESS``.
+    Grid lines fall on the wall, terrace and deck edges (integer metres).
     """
     cx, cz = ARENA_CENTER
     out = []
@@ -147,6 +202,13 @@ def terrain_mesh(cell_m: float = 1.0, extent_m: float = 80.0) -> list[tuple[str,
     top = lambda x, z: base_height(x, z) + _valley(x) + WALL_HEIGHT  # noqa: E731
     low = lambda x, z: base_height(x, z) + _valley(x) - 0.5  # noqa: E731
     out.append(("wall", *_block(np.arange(x0, x1 + 1e-9, 0.5), np.arange(z0, z1 + 1e-9, 0.5), top, low)))
+    for t in TERRACES:
+        # Inside the block (x < x1, z < z1) the terrace's own height: evaluated a hair inside its far edges.
+        def top(x, z, t=t):
+            return base_height(x, z) + _valley(x) + t.height(np.minimum(x, t.x1 - 1e-6), np.minimum(z, t.z1 - 1e-6))
+
+        xs_t, zs_t = np.arange(t.x0, t.x1 + 1e-9, 0.5), np.arange(t.z0, t.z1 + 1e-9, 0.5)
+        out.append(("wall", *_block(xs_t, zs_t, top, low)))
 
     x0, x1, z0, z1 = DECK
     top = deck_height
