@@ -17,19 +17,24 @@ the controllability probe and the rule ablation. Definitions are DESIGN's "Evalu
   scanned terrain (NaN without one), the body's share of a follow-camera pose-control frame
   (``body_shares`` with the weapon counted for its owner; rendered at a small size), and the scene's
   root separation. Each generated number sits beside the same measurement on the recorded rows.
-- **Probe** (``controllability_probe``): Free (no control), Force-GT (the recorded token stream of the
-  probe entity forced run by run, ``force_windows``) and Force-Shuf (that stream permuted over frames
-  with ``default_rng([seed, window])``): mean ± std of the entity's RA-MPJPE, and the windows where
-  Force-GT < Force-Shuf. **Per-class compliance**: each run of one recorded token of class c (vocab.json)
-  is one instance; the motion over its frames is classified with the corpus's own rule
-  (``ingest.finalize.classify`` on mean horizontal root speed, peak root-frame body speed incl. owned
-  attachments, frames); compliance = share of instances whose motion classifies as c. It is given for
-  Force-GT, for Free (the same instances, uncontrolled: the baseline) and for the recorded motion
-  (the reference: at the model's rate and cut at window edges, recorded motion does not always
-  reproduce its own class either — peaks at 20 fps are lower than at the 30 fps the vocab used).
-- **Rule ablation** (``rule_ablation``): recorded / no rule / + collider / + collider + cap on the same
-  windows, seed and checkpoint: CFR, MMP, skate (means over articulated entities) and the horizontal
-  root separation.
+- **Probe** (``controllability_probe``, Table 2): Free (no control), Force-GT (the recorded token stream of the
+  probe entity forced run by run, ``force_windows``), Force-Shuf (that stream permuted over frames with
+  ``default_rng([seed, window])``, ``shuffle_frames``) and the run-level shuffle (its runs of one token permuted as
+  wholes with ``default_rng([seed, window, 1])``, ``shuffle_runs``: progress runs on within each run, so its gap to
+  Force-GT is the token's effect alone, Force-Shuf's also the restarted progress): mean ± std of the entity's
+  RA-MPJPE, and the windows where Force-GT < Force-Shuf (and < the run-level shuffle). **Per-class ratios**
+  (``class_ratios``, the headline): every predicted frame belongs to the class (vocab.json) of its recorded token;
+  per class, the mean per-frame RA-MPJPE of each condition over its frames (all windows pooled) and its ratio to
+  Force-GT's. **Per-class compliance** (secondary): each run of one recorded token of class c is one instance; the
+  motion over its frames is classified with the corpus's own rule (``corpus.vocab.classify`` on mean horizontal
+  root speed, peak root-frame body speed incl. owned attachments, frames); compliance = share of instances whose
+  motion classifies as c, for Force-GT, Free and the recorded motion.
+- **Driving states** (``ablation_rollouts`` / ``rule_ablation``, Table 3): recorded / no rule / + collider /
+  + collider + cap on the same windows, seed and checkpoint: CFR (share of windows with a key joint below
+  H − 0.15 m), MMP, skate (``final_frame_skate``) and the root separation, all at the **final frame**, means over
+  windows and articulated entities; beside them the share of frames whose root is over scanned ground.
+- **Protocols** (``EvalProtocol``, ``PROTOCOLS``, ``parse_protocol``): the counts and lengths of one evaluation,
+  "paper" (the paper's) and "quick" (the demo's), checked when made; ``reduced`` lists what is smaller than the paper's.
 """
 
 from __future__ import annotations
@@ -569,10 +574,10 @@ def class_ratios(
 ) -> dict[str, dict[str, Any]]:
     """Per class of the recorded token at each frame: frames, mean per-frame RA-MPJPE (m) of every condition over those
     frames (all windows pooled) and each condition's ratio to ``base``'s. ``errors``: condition → per window (H,);
-    ``classes``: per window (H,) class names."""
+    ``classes``: per window (H,) class names ("none", token 0's, left out)."""
     cls = np.concatenate([np.asarray(c) for c in classes])
     out: dict[str, dict[str, Any]] = {}
-    for c in [c for c in CLASSES if c in set(cls)] + sorted(set(cls) - set(CLASSES)):
+    for c in [c for c in CLASSES if c in set(cls)] + sorted(set(cls) - set(CLASSES) - {"none"}):  # "none": token 0, no class
         on = cls == c
         row: dict[str, Any] = {"frames": int(on.sum())}
         for cond, per in errors.items():

@@ -845,13 +845,15 @@ def evaluate(
     fps = model_fps(dynamics_dir)
     proto.video_frames(float(c.fps))  # a protocol whose rollouts cannot hold its clips fails before any compute
     split = "test" if c.segment_ids("test") else "train"
-    T = proto.temperature
+    temp = proto.temperature
     windows = select_windows(c, proto.probe_windows, proto.seed_frames, proto.horizon, seed, split=split, fps=fps)
     horizon_long = long_horizon(proto, float(c.fps), fps, [m.config.frames for m in models.values()])
     try:
         long = select_windows(c, proto.rollouts, proto.seed_frames, horizon_long, seed + 1, split=split, fps=fps)
     except ValueError as err:  # a corpus of short segments: Tables 1 and 3 say why they were not run
         long, why_not = [], str(err)
+    else:
+        why_not = ""
     names = [e.name for e in c.layout.articulated]
     entity = entity if entity in names else names[-1]
     log(
@@ -859,35 +861,15 @@ def evaluate(
         f"{len(long)} long rollouts of {horizon_long} frames, split {split!r}"
     )
     free, ran = run_windows(
-        dynamics_dir, c, windows, rules="auto", temperature=T, seed=seed, progress=progress, phase="Free rollouts"
+        dynamics_dir, c, windows, rules="auto", temperature=temp, seed=seed, progress=progress, phase="Free rollouts"
     )
     log(f"evaluate: Free rollouts done (rules per stage {ran}); state-layer metrics")
     state = state_layer(dynamics_dir, c, windows, free, render_size=render_size, progress=progress)
     log("evaluate: controllability probe (Table 2)")
-    probe = controllability_probe(dynamics_dir, c, windows, entity=entity, temperature=T, seed=seed, free=free, progress=progress)
-    if long:
-        log("evaluate: the driving states on the long rollouts (Table 3)")
-        states = ablation_rollouts(dynamics_dir, c, long, temperature=T, seed=seed, progress=progress)
-        ablation = rule_ablation(dynamics_dir, c, long, rollouts=states)
-        tables = {k: v["tables"] for k, v in states.items()}
-        curves = long_horizon_curves(c, long, tables, proto, fps)
-        log("evaluate: the observation layer (Tables 1 and 3)" if models else "evaluate: no observation model: no FVD")
-        video = video_tables(
-            c,
-            long,
-            tables,
-            proto,
-            models.get("observation"),
-            models.get("baseline"),
-            extractor=extractor,
-            seed=seed,
-            progress=progress,
-        )
-    else:
-        log(f"evaluate: Tables 1 and 3 not run: {why_not}")
-        ablation = {"run": False, "reason": why_not, "conditions": [], "windows": []}
-        curves = {"run": False, "reason": why_not, "fps": fps, "drift_m": {}, "body_share": {}}
-        video = {"run": False, "reason": why_not}
+    probe = controllability_probe(
+        dynamics_dir, c, windows, entity=entity, temperature=temp, seed=seed, free=free, progress=progress
+    )
+    ablation, curves, video = _long_tables(dynamics_dir, c, long, why_not, proto, models, extractor, seed, log, progress)
     sheet = video.pop("sheet", None)
     video.update({k: str(v) for k, v in (("observation", observation), ("baseline", baseline)) if v is not None})
     report = {
@@ -899,7 +881,7 @@ def evaluate(
         "seed": seed,
         "seed_frames": proto.seed_frames,
         "horizon": proto.horizon,
-        "temperature": T,
+        "temperature": temp,
         "render_size": list(render_size),
         "windows": [asdict(w) for w in windows],
         "rules_free": ran,
@@ -909,7 +891,54 @@ def evaluate(
         "long_horizon": curves,
         "video": video,
     }
-    report = _plain(report)
+    report = _write_report(_plain(report), sheet, out)
+    log(f"evaluate: report in {out}")
+    return {
+        "out_dir": str(out),
+        "report_md": str(out / "report.md"),
+        "report_json": str(out / "report.json"),
+        "plots": {k: str(out / v) for k, v in report["plots"].items()},
+        "headline": report["headline"],
+        "windows": len(windows),
+    }
+
+
+def _long_tables(
+    dynamics_dir: Path | str,
+    c: Corpus,
+    long: Sequence[Window],
+    why_not: str,
+    proto: EvalProtocol,
+    models: dict[str, Any],
+    extractor: Any,
+    seed: int,
+    log: Callable[[str], Any],
+    progress: Progress | None,
+) -> tuple[dict, dict, dict]:
+    """Table 3's state columns, the long-horizon curves and the video tables over the long rollouts (``why_not``
+    in each, marked not run, when there are none)."""
+    fps = model_fps(dynamics_dir)
+    if not long:
+        log(f"evaluate: Tables 1 and 3 not run: {why_not}")
+        return (
+            {"run": False, "reason": why_not, "conditions": [], "windows": []},
+            {"run": False, "reason": why_not, "fps": fps, "drift_m": {}, "body_share": {}},
+            {"run": False, "reason": why_not},
+        )
+    log("evaluate: the driving states on the long rollouts (Table 3)")
+    states = ablation_rollouts(dynamics_dir, c, long, temperature=proto.temperature, seed=seed, progress=progress)
+    ablation = rule_ablation(dynamics_dir, c, long, rollouts=states)
+    tables = {k: v["tables"] for k, v in states.items()}
+    curves = long_horizon_curves(c, long, tables, proto, fps)
+    log("evaluate: the observation layer (Tables 1 and 3)" if models else "evaluate: no observation model: no FVD")
+    obs, base = models.get("observation"), models.get("baseline")
+    video = video_tables(c, long, tables, proto, obs, base, extractor=extractor, seed=seed, progress=progress)
+    return ablation, curves, video
+
+
+def _write_report(report: dict, sheet: dict | None, out: Path) -> dict:
+    """Write the plots, report.json and report.md to a temp directory beside ``out`` and rename it into place;
+    returns the report with its "plots" and "headline"."""
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     os.chmod(tmp, 0o755)  # mkdtemp makes 0700; reports are read by other users and services
@@ -923,15 +952,7 @@ def evaluate(
         _swap_in(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    log(f"evaluate: report in {out}")
-    return {
-        "out_dir": str(out),
-        "report_md": str(out / "report.md"),
-        "report_json": str(out / "report.json"),
-        "plots": {k: str(out / v) for k, v in report["plots"].items()},
-        "headline": report["headline"],
-        "windows": len(windows),
-    }
+    return report
 
 
 def _load_models(observation: Path | str | None, baseline: Path | str | None) -> dict[str, Any]:

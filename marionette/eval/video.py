@@ -178,10 +178,10 @@ def video_tables(
             }
         except WindowSkipped as err:
             skipped.append({"window": k, "segment": w.segment, "start": w.start, "reason": str(err)})
-            continue
-        kept.append(k)
-        for s, clip in got.items():
-            clips[s].append(clip)
+        else:
+            kept.append(k)
+            for s, clip in got.items():
+                clips[s].append(clip)
         if progress is not None:
             progress("video: rendering long rollouts", k + 1, len(windows))
     out: dict[str, Any] = {"run": True, "frames": T, "painted_frames": frames, "skipped": skipped, "windows": kept}
@@ -223,7 +223,7 @@ def contact_sheet(clip: Any, real: torch.Tensor, painted: dict[str, torch.Tensor
     rows = {"pose control": (clip.pose[t].permute(0, 2, 3, 1).numpy() * 255).clip(0, 255).astype(np.uint8)}
     rows.update({("Marionette" if k == MARIONETTE_STATE else "pixel-AR baseline"): rgb(v) for k, v in painted.items()})
     rows["recorded RGB"] = rgb(real)
-    return {"frames": t.tolist(), "fps": None, "rows": rows, "source_frames": list(clip.source_frames)}
+    return {"frames": t.tolist(), "rows": rows, "source_frames": list(clip.source_frames)}
 
 
 def long_horizon_curves(
