@@ -4,7 +4,7 @@
 hunter starts on the bridge deck and runs off its east end (even ``index``), or starts in the valley
 south of the bridge and runs under it to the north (odd ``index``: the follow camera, lower than the
 deck, then sees the valley floor beneath it), while the drake charges. Then they fight at close
-range: the hunter keeps a preferred distance (3.8–5.2 m), circles the drake with strafes, attacks with
+range: the hunter keeps a preferred distance (3.7–4.8 m), circles the drake with strafes, attacks with
 a swing chosen by distance, dodges or blocks the drake's attacks, reacts to hits, backs off and
 closes in again; the drake turns in place to face it, attacks (bites, claws, tail, lunges), stalks
 sideways, hops back, roars, and now and then walks off to another spot of the fight ground, often
@@ -86,13 +86,14 @@ class _Actor:
         self.level = -1  # index of the terrace it stands on, -1 on the ground
         self.hit_frame = -(10**6)  # the last frame an attack of the other landed on it
         self.hit_side = 0.0  # where that attack came from, radians from its facing (+ = left)
-        self.pref = float(rng.uniform(3.8, 5.2))  # preferred distance to the other (m)
+        self.pref = float(rng.uniform(3.7, 4.8))  # preferred distance to the other (m)
         self.circle = 1.0 if rng.random() < 0.5 else -1.0  # strafing direction (+ = left)
         self.wandering = False  # walking to a spot of the fight ground (the drake)
         self.wander_start = 0  # frame
-        # clip name → times started; each recording starts with a different half of the variants "played", so the
-        # recordings of a seed favour different variants and a few minutes of play use most of them
-        self.plays: dict[str, int] = {n: int((c.composite + index) % 2) for n, c in self.clips.items()}
+        self.climbed = False  # the drake has taken the fight up a terrace
+        # clip name → times started; each recording starts with two thirds of the variants "played" (another third
+        # fresh in each), so the recordings of a seed favour different variants and a few minutes of play use most of them
+        self.plays: dict[str, int] = {n: int((c.composite + index) % 3 != 0) for n, c in self.clips.items()}
 
     @property
     def seg(self) -> Segment:
@@ -116,11 +117,11 @@ class _Actor:
         self.segments.append(Segment(frame, name, n, float(self.yaw + c.move_dir)))
 
     def pick(self, rng: np.random.Generator, names: list[str]) -> str:
-        """One of ``names`` at random, the less played ones likelier (weight 1 / (1 + plays)²), never the
+        """One of ``names`` at random, the less played ones likelier (weight 1 / (1 + plays)³), never the
         event that just played."""
         prev = self.prev()
         options = [n for n in names if not (n == prev and self.clips[n].kind == "event")]
-        w = np.array([1.0 / (1.0 + self.plays.get(n, 0)) ** 2 for n in options])
+        w = np.array([1.0 / (1.0 + self.plays.get(n, 0)) ** 3 for n in options])
         return options[int(rng.choice(len(options), p=w / w.sum()))]
 
 
@@ -199,11 +200,20 @@ def _route(a: _Actor, tx: float, tz: float, level: int) -> tuple[float, float]:
     return tx, tz
 
 
-def _avoid_dir(a: _Actor, tx: float, tz: float) -> float:
-    """Heading toward (tx, tz), bent around the wall and the deck by a repulsive field."""
+def _avoid_dir(a: _Actor, tx: float, tz: float, other: _Actor | None = None) -> float:
+    """Heading toward (tx, tz), bent around the wall and the deck by a repulsive field (and around ``other``
+    when given: walking past it rather than into it)."""
     vx, vz = tx - a.x, tz - a.z
     n = np.hypot(vx, vz) + 1e-9
     vx, vz = vx / n, vz / n
+    if other is not None:
+        ox, oz = a.x - other.x, a.z - other.z
+        d = np.hypot(ox, oz) + 1e-9
+        reach = MIN_SEP + 3.0
+        if d < reach and (ox * vx + oz * vz) < 0:  # the other stands ahead: go round it on the nearer side
+            side = 1.0 if (vx * oz - vz * ox) > 0 else -1.0
+            w = 1.5 * (reach - d) / reach
+            vx, vz = vx + w * (ox / d + side * oz / d), vz + w * (oz / d - side * ox / d)
     rects = [ter.WALL] + ([] if a.on_deck or a.under else [_DECK_OBSTACLE])
     for r in rects:
         cx, cz = np.clip(a.x, r[0], r[1]), np.clip(a.z, r[2], r[3])
@@ -267,7 +277,12 @@ def _decide_hunter(a: _Actor, m: _Actor, f: int, rng: np.random.Generator) -> No
     elif d > 13.0:
         a.start(f, a.pick(rng, ["run", "sprint"]))
     elif d > a.pref + 2.5:
-        a.start(f, a.pick(rng, ["walk_fast", "jog", "walk"] + [f"advance_{s}" for s in ("left", "right")]))
+        if d > a.pref + 5.0:
+            a.start(f, a.pick(rng, ["jog", "run", "sprint"]))
+        elif r < 0.3:  # closing the gap with a lunge, a leap or a roll
+            a.start(f, a.pick(rng, ["lunge_thrust", "jump_slam", "hop_slam", "roll_forward", "charged_overhead"]))
+        else:
+            a.start(f, a.pick(rng, ["walk_fast", "jog", "walk"] + [f"advance_{s}" for s in ("left", "right")]))
     elif abs(ang) > 0.5:
         a.start(f, f"turn_{'left' if ang > 0 else 'right'}{'_fast' if abs(ang) > 1.2 else ''}", cycles=2)
     elif d < MIN_SEP + 0.4 and r < 0.6:
@@ -299,14 +314,28 @@ def _decide_hunter(a: _Actor, m: _Actor, f: int, rng: np.random.Generator) -> No
         a.start(f, a.pick(rng, ["taunt_raise", "taunt_shout", "taunt_beckon", "heal", "shoulder_roll"]))
 
 
-def _fight_spot(a: _Actor, rng: np.random.Generator) -> tuple[float, float]:
-    """A spot of the fight ground for the drake to walk to: often up a terrace, else near the fight's centre."""
+def _fight_spot(a: _Actor, rng: np.random.Generator, terrace: bool = False) -> tuple[float, float]:
+    """A spot of the fight ground for the drake to walk to: up a terrace (always when ``terrace``, else often),
+    or near the fight's centre."""
     m = RADIUS[a.name]
-    if rng.random() < 0.65:
-        t = ter.TERRACES[int(rng.integers(len(ter.TERRACES)))]
+    if terrace or rng.random() < 0.65:
+        near = int(np.argmin([np.hypot((t.x0 + t.x1) / 2 - a.x, t.z1 - a.z) for t in ter.TERRACES]))
+        t = ter.TERRACES[near if rng.random() < 0.8 else int(rng.integers(len(ter.TERRACES)))]
         return float(rng.uniform(*_lane(t, m + 0.5))), float(rng.uniform(t.z0 + m + 0.5, t.z1 - 1.0))
     cx, cz = FIGHT_CENTER
     return cx + float(rng.uniform(-12, 12)), cz + float(rng.uniform(-6, 8))
+
+
+def _walk_to(a: _Actor, f: int, rng: np.random.Generator, gait: str | None = None) -> None:
+    """Head for ``a.waypoint``: turn in place toward the way there first when it lies off to a side, else walk
+    (``gait`` when given, a walk picked by the distance otherwise)."""
+    tx, tz = _route(a, *a.waypoint, _level_of(*a.waypoint))
+    bearing = float(_wrap(np.arctan2(tx - a.x, tz - a.z) - a.yaw))
+    if abs(bearing) > 0.9:
+        a.start(f, f"turn_{'left' if bearing > 0 else 'right'}_fast", cycles=2)
+    else:
+        far = np.hypot(a.waypoint[0] - a.x, a.waypoint[1] - a.z) > 10.0
+        a.start(f, gait or a.pick(rng, ["walk_fast", "trot"] if far else ["walk_slow", "walk", "walk_fast"]))
 
 
 def _decide_monster(a: _Actor, h: _Actor, f: int, rng: np.random.Generator) -> None:
@@ -316,9 +345,13 @@ def _decide_monster(a: _Actor, h: _Actor, f: int, rng: np.random.Generator) -> N
     wandering, a.wandering = a.wandering, False
     if f - a.hit_frame < 12 and a.clips[prev].cls != "other" and r < 0.5:
         a.start(f, a.pick(rng, ["stagger"] if r < 0.1 else [f"flinch_{_side(a.hit_side)}"]))
-    elif wandering and np.hypot(a.waypoint[0] - a.x, a.waypoint[1] - a.z) > 2.0 and f - a.wander_start < 180:
+    elif wandering and np.hypot(a.waypoint[0] - a.x, a.waypoint[1] - a.z) > 2.0 and f - a.wander_start < 240:
         a.wandering = True
-        a.start(f, prev)  # on the way to a new spot
+        _walk_to(a, f, rng, prev if a.clips[prev].cls == "locomotion" else None)  # on the way to a new spot
+    elif not a.climbed and not h.crossing and d < 9.0 and r < 0.6:
+        # once the fight has begun, the drake takes it up a terrace
+        a.waypoint, a.wandering, a.wander_start, a.climbed = _fight_spot(a, rng, terrace=True), True, f, True
+        _walk_to(a, f, rng)
     elif d > 14.0 and r < 0.7:
         a.waypoint = (h.x, h.z)
         a.start(f, a.pick(rng, ["run", "trot"]))
@@ -353,7 +386,7 @@ def _decide_monster(a: _Actor, h: _Actor, f: int, rng: np.random.Generator) -> N
         a.start(f, a.pick(rng, ["back_walk", "back_walk_fast", "hop_back", "hop_left", "hop_right"]))
     elif r < 0.7:
         a.waypoint, a.wandering, a.wander_start = _fight_spot(a, rng), True, f
-        a.start(f, a.pick(rng, ["walk_slow", "walk", "walk_fast"]))
+        _walk_to(a, f, rng)
     elif r < 0.83:
         a.start(f, a.pick(rng, ["roar", "roar_short", "roar_sky"]))
     elif r < 0.88:
@@ -377,7 +410,8 @@ def _step(a: _Actor, other: _Actor, target: tuple[float, float], dt: float, f_su
             a.yaw += c.turn * dt  # a turning step turns at the clip's own rate
             want = None
         elif c.speed > 0 and c.move_dir == 0.0:
-            want = _avoid_dir(a, *target)
+            going_elsewhere = np.hypot(target[0] - other.x, target[1] - other.z) > 2.0
+            want = _avoid_dir(a, *target, other if going_elsewhere else None)
         else:
             want = face  # standing, strafing or backing off: facing the other
         if a.on_deck:
@@ -408,6 +442,10 @@ def _step(a: _Actor, other: _Actor, target: tuple[float, float], dt: float, f_su
         if closing > 0:
             vx, vz = vx - closing * ox / d, vz - closing * oz / d
     x, z = a.x + vx * dt, a.z + vz * dt
+    ox, oz = x - other.x, z - other.z
+    d = np.hypot(ox, oz) + 1e-9
+    if d < MIN_SEP:  # pushed (by a ledge, a wall) or sliding into the other: held at MIN_SEP
+        x, z = other.x + ox * MIN_SEP / d, other.z + oz * MIN_SEP / d
     if a.on_deck:
         z = float(np.clip(z, ter.DECK[2] + 0.6, ter.DECK[3] - 0.6))
     elif not a.under:
@@ -507,9 +545,14 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
 
 def _gap(actors: dict[str, _Actor], start: int, n: int, n_frames: int) -> int:
     """The first frame from ``start`` on where an invalid span of ``n`` frames (which splits the recording into
-    segments) cuts no event of either entity short: a cut attack could lose its strike, and ingest classes an
-    action by its played instances. ``start`` itself when there is none within 3 s (and the recording's first 90 %)."""
-    events = [(s.start, s.start + s.length) for a in actors.values() for s in a.segments if a.clips[s.clip].kind == "event"]
+    segments) cuts no event of either entity short and no loop before its first wrap: ingest classes an action
+    by its played instances (a cut attack could lose its strike) and reads a loop from a wrapping motion_frame.
+    ``start`` itself when there is none within 3 s (and the recording's first 90 %)."""
+    events = [
+        (s.start, s.start + (s.length if a.clips[s.clip].kind == "event" else min(s.length, a.clips[s.clip].length + 1)))
+        for a in actors.values()
+        for s in a.segments
+    ]
     for f in range(start, min(start + 90, int(0.9 * n_frames) - n)):
         if not any(a - 1 <= f + n and f <= b + 1 for a, b in events):
             return f
