@@ -1,7 +1,9 @@
 """The evaluation protocol end to end on the session's dynamics corpus with its tiny checkpoint: windows,
-the state layer beside the recorded rows, the controllability probe, the rule ablation, the report
-directory, the observation layer's proxy-FVD on a small model (recorded pose-control chunks, and the rollouts
-rendered through the bridge from the recorded view), and clear errors on bad input."""
+the state layer beside the recorded rows, the controllability probe, the driving states, the report directory
+(quick protocol: its first lines say what it reduces), Tables 1 and 3 with a tiny observation model and a tiny
+pixel-AR baseline trained here for a few steps (both columns in the same table, the contact sheet), the
+whole-clip proxy-FVD rows, rollout clips rendered through the bridge from the recorded view, and clear errors on
+bad input."""
 
 from __future__ import annotations
 
