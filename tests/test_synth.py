@@ -436,4 +436,8 @@ def test_bodies_follow_the_terraces(play):
             F = X[:, [src.index(f) for f in feet]]
             surf = terrain.surface_height(F[..., 0], F[..., 2], (pos[:, 1] - pelvis)[:, None])
             assert np.all((F[..., 1] - surf)[ok] > -0.05), (d.name, entity)
+            # bones keep their lengths (slopes tilt the toes, never stretch them)
+            parents = load_rig(rig).source_parents
+            bones = np.stack([np.linalg.norm(X[ok, c] - X[ok, p], axis=-1) for c, p in enumerate(parents) if p >= 0], 1)
+            assert (bones.std(0) / bones.mean(0)).max() < 0.01, (d.name, entity)
     assert on_terrace > 200

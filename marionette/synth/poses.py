@@ -361,7 +361,10 @@ def hunter_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> tuple[np.nd
         J[:, idx[f"hand_{side}"]] = hand
         fwd = blade if side == "r" else _unit(hand - elbow)
         J[:, idx[f"fingers_{side}"]] = hand + 0.08 * fwd
-        J[:, idx[f"thumb_{side}"]] = hand + 0.05 * fwd + np.array([sx * 0.03, 0.02, 0.0])
+        # the thumb: along the hand and off it, at right angles, toward the side (or up when the hand points sideways)
+        side_dir = np.where(np.abs(fwd[:, :1]) < 0.8, np.array([sx, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+        off = _unit(side_dir - np.sum(side_dir * fwd, -1, keepdims=True) * fwd)
+        J[:, idx[f"thumb_{side}"]] = hand + 0.05 * fwd + 0.036 * off
 
     for side, sx in (("l", 1.0), ("r", -1.0)):
         hip = np.array([sx * 0.10, -0.07, 0.0])
@@ -376,9 +379,8 @@ def hunter_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> tuple[np.nd
         J[:, idx[f"shin_{side}"]] = knee
         J[:, idx[f"thigh_twist_{side}"]] = (hip + knee) / 2
         J[:, idx[f"foot_{side}"]] = ankle
-        for name, fz, h in ((f"toe_{side}", 0.12, 0.02), (f"toe_tip_{side}", 0.20, 0.0)):
-            tx, tz = ankle[:, 0] + fz * sa, ankle[:, 2] + fz * ca
-            J[:, idx[name]] = np.stack([tx, surface_local(tx, tz) + h + lift, tz], -1)
+        toe, tip = _foot_chain(ankle, sa, ca, lift, surface_local, 0.08, ((0.12, 0.02), (0.20, 0.0)))
+        J[:, idx[f"toe_{side}"]], J[:, idx[f"toe_tip_{side}"]] = toe, tip
 
     hand = J[:, idx["hand_r"]]
     W = np.stack([hand + f * blade for f in (0.0, 0.2, 0.3, 0.95, BLADE_M)], axis=1)
@@ -573,7 +575,7 @@ def monster_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> np.ndarray
         J[:, idx[f"forearm_{f}"]] = elbow
         J[:, idx[f"upperarm_twist_{f}"]] = (sh + elbow) / 2
         J[:, idx[f"hand_{f}"]] = wrist
-        _toes(J, idx, f"toe_{f}", f"claw_{f}", wrist, lift, rot, surface_local, 0.2, 0.38)
+        _toes(J, idx, f"toe_{f}", f"claw_{f}", wrist, lift, rot, surface_local, 0.2, 0.38, 0.3)
     for f, sx in (("hl", 1.0), ("hr", -1.0)):
         hip = np.broadcast_to(np.array([sx * 0.45, -0.1, 0.0]), (M, 3))
         J[:, idx[f"thigh_{f}"]] = hip
@@ -584,7 +586,7 @@ def monster_skeleton(rig, c: dict[str, np.ndarray], surface_local) -> np.ndarray
         J[:, idx[f"shin_{f}"]] = knee
         J[:, idx[f"thigh_twist_{f}"]] = (hip + knee) / 2
         J[:, idx[f"ankle_{f}"]] = ankle
-        _toes(J, idx, f"toe_{f}", f"claw_{f}", ankle, lift, rot, surface_local, 0.25, 0.4)
+        _toes(J, idx, f"toe_{f}", f"claw_{f}", ankle, lift, rot, surface_local, 0.25, 0.4, 0.35)
     return J
 
 
@@ -594,9 +596,34 @@ def _turned(x, z, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x * ca + z * sa, -x * sa + z * ca
 
 
+def _foot_chain(start: np.ndarray, sa, ca, lift: np.ndarray, surface_local, start_h: float, points) -> list[np.ndarray]:
+    """Toe points (M, 3) ahead of an ankle along the heading (sin, cos) = (sa, ca): each at its nominal distance
+    ahead and height over the surface (``points``: (distance from the ankle, height) pairs, m), but placed at its
+    fixed bone length from the point before, so a slope under the foot tilts the toes without stretching them."""
+    out, prev, prev_d, prev_h = [], start, 0.0, start_h
+    for d, h in points:
+        step, length = d - prev_d, float(np.hypot(d - prev_d, h - prev_h))
+        x, z = prev[:, 0] + step * sa, prev[:, 2] + step * ca
+        v = np.stack([x - prev[:, 0], surface_local(x, z) + h + lift - prev[:, 1], z - prev[:, 2]], -1)
+        prev = prev + length * _unit(v)
+        out.append(prev)
+        prev_d, prev_h = d, h
+    return out
+
+
 def _toes(
-    J, idx, toe: str, claw: str, wrist: np.ndarray, lift: np.ndarray, rot: np.ndarray, surface_local, toe_z: float, claw_z: float
+    J,
+    idx,
+    toe: str,
+    claw: str,
+    wrist: np.ndarray,
+    lift: np.ndarray,
+    rot: np.ndarray,
+    surface_local,
+    toe_z: float,
+    claw_z: float,
+    wrist_h: float,
 ) -> None:
-    for name, fz, h in ((toe, toe_z, 0.08), (claw, claw_z, 0.0)):
-        x, z = wrist[:, 0] + fz * np.sin(rot), wrist[:, 2] + fz * np.cos(rot)
-        J[:, idx[name]] = np.stack([x, surface_local(x, z) + h + lift, z], -1)
+    J[:, idx[toe]], J[:, idx[claw]] = _foot_chain(
+        wrist, np.sin(rot), np.cos(rot), lift, surface_local, wrist_h, ((toe_z, 0.08), (claw_z, 0.0))
+    )

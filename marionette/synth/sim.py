@@ -544,19 +544,26 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
 
 
 def _gap(actors: dict[str, _Actor], start: int, n: int, n_frames: int) -> int:
-    """The first frame from ``start`` on where an invalid span of ``n`` frames (which splits the recording into
-    segments) cuts no event of either entity short and no loop before its first wrap: ingest classes an action
-    by its played instances (a cut attack could lose its strike) and reads a loop from a wrapping motion_frame.
-    ``start`` itself when there is none within 3 s (and the recording's first 90 %)."""
-    events = [
-        (s.start, s.start + (s.length if a.clips[s.clip].kind == "event" else min(s.length, a.clips[s.clip].length + 1)))
-        for a in actors.values()
-        for s in a.segments
-    ]
-    for f in range(start, min(start + 90, int(0.9 * n_frames) - n)):
-        if not any(a - 1 <= f + n and f <= b + 1 for a, b in events):
-            return f
-    return start
+    """The frame in the 6 s from ``start`` (within the recording's first 90 %) where an invalid span of ``n`` frames,
+    which splits the recording into segments, cuts the fewest plays short: events first (a cut attack could lose its
+    strike, and ingest classes an action by its played instances), then loops before their first wrap (ingest reads
+    a loop from a wrapping motion_frame). The earliest such frame; ``start`` when the range is empty."""
+    spans = []  # (first frame, last frame, cost of cutting it)
+    for a in actors.values():
+        for s in a.segments:
+            c = a.clips[s.clip]
+            if c.kind == "event":
+                spans.append((s.start, s.start + s.length, 10))
+            else:
+                spans.append((s.start, s.start + min(s.length, c.length + 1), 1))
+    best, best_cost = start, None
+    for f in range(start, min(start + 180, int(0.9 * n_frames) - n)):
+        cost = sum(w for a, b, w in spans if a - 1 <= f + n and f <= b + 1)
+        if best_cost is None or cost < best_cost:
+            best, best_cost = f, cost
+        if cost == 0:
+            break
+    return best
 
 
 # ------------------------------------------------------------------------------------- evaluation
