@@ -175,6 +175,9 @@ def test_inspect_lists_everything(corpus):
     text = inspect_text(corpus)
     for word in ("segments", "hours", "splits", "vocab", "drake", "hunter", "shards", "quarantine", "monster.rot6d"):
         assert word in text
+    # the recorded play statistics (marionette.corpus.play_stats)
+    for line in ("separation monster–hunter: median ", "classes monster: ", "classes hunter: ", "tokens hunter: "):
+        assert f"\n  {line}" in text, line
 
 
 def test_adding_a_recording_keeps_splits_and_shards(synth_source, tmp_path):
