@@ -10,7 +10,8 @@ import pytest
 from marionette.bridge.targets import TerrainScene, render_rows
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.corpus.paths import stage_dir
-from marionette.dynamics.rollout import Rollout, main, open_terrain_field, rollout
+from marionette.dynamics.data import ActionTokens
+from marionette.dynamics.rollout import Rollout, force_windows, forced_at, main, open_terrain_field, rollout
 from marionette.dynamics.train import TrainConfig, train
 from marionette.io import read_ipc
 from marionette.schema import check_layout
@@ -92,12 +93,59 @@ def test_forcing_sets_the_token_and_restarts_progress(ckpt, scanned, segment):
     actions = predicted(table, f"{e.name}.action")
     assert np.all(actions[start:end] == ro.tokens.composites[0][token])
     mf = predicted(table, f"{e.name}.motion_frame")
-    assert mf[start] == 0
+    if predicted(table, f"{e.name}.action")[start - 1] != ro.tokens.composites[0][token]:  # a new token restarts
+        assert mf[start] == 0
     assert np.all(np.diff(mf[start : start + 4]) > 0)  # an unchanged (state) token advances ~1.5 clip frames a step
     # the streaming class gives the same stream as the function
     ro.start(c.dynamics_segment(segment).slice(0, SEED_FRAMES))
-    first = [ro.step({0: token} if start <= t < end else None, restart=[0] if t == start else ()) for t in range(end)]
+    force, names, first = [(e.name, start, end, token)], [x.name for x in c.layout.articulated], []
+    for t in range(end):
+        forced, restart = forced_at(force, t, names)
+        first.append(ro.step(forced, None, restart))
     assert np.array_equal(np.stack(first), fixed_rows(table["state"], c.layout.dim)[SEED_FRAMES : SEED_FRAMES + end])
+
+
+def _playing_start(c: Corpus, segment: str, entity: int, run: int) -> int:
+    """A seed start whose last seed frame and the next ``run`` recorded frames hold one token of ``entity``,
+    well into its clip (motion_frame ≥ 6 at the first predicted frame)."""
+    view = c.dynamics_segment(segment)
+    tok = ActionTokens.from_corpus(c).encode(c.layout, view)[0][:, entity]
+    mf = view[f"{c.layout.articulated[entity].name}.motion_frame"].to_numpy()
+    for k in range(len(tok) - SEED_FRAMES - run):
+        at = k + SEED_FRAMES  # the first predicted frame
+        if tok[at - 1] != 0 and np.all(tok[at - 1 : at + run] == tok[at - 1]) and mf[at] >= 6:
+            return k
+    pytest.skip(f"{segment}: no stretch of {run} frames of one playing token")
+
+
+def test_forcing_the_playing_token_continues_it_and_another_token_restarts(ckpt, scanned):
+    """Force-GT over a recorded stretch where the hunter's action keeps playing continues its progress (the
+    rollout's motion_frame follows the recording's within 2 clip frames, never back to 0); forcing another
+    token restarts at 0; back-to-back windows of one token replay it from 0."""
+    c = Corpus(scanned)
+    names = [e.name for e in c.layout.articulated]
+    hi, run_ = names.index("hunter"), 12
+    segment = max(c.segment_ids(), key=lambda s: c.dynamics_segment(s).num_rows)
+    start = _playing_start(c, segment, hi, run_)
+    recorded = c.dynamics_segment(segment).slice(start + SEED_FRAMES, run_)
+    stream = ActionTokens.from_corpus(c).encode(c.layout, recorded)[0][:, hi]
+    gt = run(ckpt, scanned, segment, start=start, horizon=run_, force=force_windows("hunter", stream))
+    mf_gt, mf_rec = predicted(gt, "hunter.motion_frame"), recorded["hunter.motion_frame"].to_numpy()
+    print(f"\nForce-GT of a playing action: motion_frame rollout {mf_gt.tolist()}, recorded {mf_rec.tolist()}")
+    assert np.array_equal(predicted(gt, "hunter.action"), recorded["hunter.action"].to_numpy())
+    assert np.all(np.abs(mf_gt.astype(int) - mf_rec) <= 2)
+    assert mf_gt[0] >= 4  # continued, not restarted
+
+    other = next(t for t in range(1, ActionTokens.from_corpus(c).sizes[hi]) if t != stream[0])
+    shifted = run(ckpt, scanned, segment, start=start, horizon=run_, force=[("hunter", 0, run_, other)])
+    mf_other = predicted(shifted, "hunter.motion_frame")
+    print(f"forcing token {other} instead of {stream[0]}: motion_frame {mf_other.tolist()}")
+    assert mf_other[0] == 0 and mf_other[1] > 0
+
+    replay = [("hunter", 0, 4, int(stream[0])), ("hunter", 4, run_, int(stream[0]))]
+    again = predicted(run(ckpt, scanned, segment, start=start, horizon=run_, force=replay), "hunter.motion_frame")
+    print(f"back-to-back windows of token {stream[0]}: motion_frame {again.tolist()}")
+    assert np.array_equal(again[:4], mf_gt[:4]) and again[4] == 0
 
 
 def test_the_table_is_a_corpus_state_table_continuous_with_its_seed(ckpt, scanned, segment):

@@ -10,7 +10,9 @@ per predicted frame t = 0, 1, ... (counted from the first frame after the seed):
 2. ``force`` entries (entity, start, end, token) replace the token for start ≤ t < end (END exclusive).
 3. Progress: an unchanged token advances by (source fps / model fps) / clip length, i.e. 1.5 clip
    frames per 20 fps step (docs/architecture.md); a "state" action wraps to [0, 1), an "event" holds at
-   1. A changed token, or the first frame of a force window, restarts at 0.
+   1. A changed token restarts at 0. Forcing the token already playing is an unchanged token: it
+   continues (so forcing the recorded stream, Force-GT, keeps the recording's progress); only a window
+   that starts where a window of the same token ends replays it from 0 (``forced_at``).
 4. ``root_override`` (the scripted root, state units) replaces root-stream channels where it is finite;
    nothing else changes.
 5. PoseGPT reads the current body and the (possibly overridden) tokens and root of the frame being
@@ -300,6 +302,10 @@ class Rollout:
         """World roots (N, 3) float64 of the first stream's current frame."""
         return self.roots_of(self.scenes[0])
 
+    def wraps(self, entity: int, tokens: np.ndarray) -> np.ndarray:
+        """Per token of ``entity`` (entity index): whether its action is a "state" (progress wraps) or not (holds at 1)."""
+        return self._wraps[entity][tokens]
+
     def _sample(self, logits: torch.Tensor, generator: torch.Generator) -> int:
         lg = logits.reshape(-1).double().clone()
         if lg.numel() > 1:
@@ -315,7 +321,7 @@ class Rollout:
         """Predict, correct and return the next state row (dim,) float32.
 
         ``force_tokens``: entity index → token for this frame; ``restart``: entity indices whose progress
-        restarts even if the token is unchanged (a force window's first frame); ``root_override``: root
+        restarts even if the token is unchanged (a replayed action, ``forced_at``); ``root_override``: root
         stream (root_dim,) in state units, NaN = the model's value."""
         return self.step_batch([force_tokens], [root_override], [restart])[0]
 
@@ -441,12 +447,15 @@ def _state_after(layout, prev_roots: dict[str, np.ndarray], joints: dict[str, np
 
 
 def forced_at(force: Sequence[Force], t: int, names: Sequence[str]) -> tuple[dict[int, int], list[int]]:
-    """At predicted frame ``t``: the forced token per entity index, and the entities whose window starts here."""
+    """At predicted frame ``t``: the forced token per entity index, and the entities whose action replays from
+    progress 0 although its token is unchanged: a window that starts where a window of the same entity and
+    token ends (back-to-back windows play the action twice). A lone window forcing the token already playing
+    continues it; one forcing another token restarts at 0 because the token changed."""
     forced, restart = {}, []
     for name, first, end, token in force:
         if int(first) <= t < int(end):
             forced[names.index(name)] = int(token)
-            if t == int(first):
+            if t == int(first) and any(n == name and int(e) == t and int(k) == int(token) for n, _, e, k in force):
                 restart.append(names.index(name))
     return forced, restart
 
@@ -592,7 +601,9 @@ def rollout_table(
             int(ro.tokens.type_keys[i][k].split(":")[1]) if k else int(last[f"{e.name}.type_id"]) for k in tok
         ]
         cols[f"{e.name}.action"] = ro.tokens.composites[i][tok]
-        cols[f"{e.name}.motion_frame"] = np.where(tok == 0, -1, np.rint(progs[:, i] * clip)).astype(np.int32)
+        frame = np.rint(progs[:, i] * clip)  # a clip's frames are 0 … clip − 1: a state action wraps, an event holds
+        frame = np.where(ro.wraps(i, tok), frame % np.maximum(clip, 1), np.minimum(frame, np.maximum(clip - 1, 0)))
+        cols[f"{e.name}.motion_frame"] = np.where(tok == 0, -1, frame).astype(np.int32)
         cols[f"{e.name}.hp"] = last[f"{e.name}.hp"]
         cols[f"{e.name}.root_world"] = roots[:, i]
         cols[f"{e.name}.rot_world"] = quats[:, i]
