@@ -53,6 +53,17 @@ def random_frames(cfg: DynamicsConfig, batch: int, length: int, seed: int = 0) -
     )
 
 
+def with_heads(model: DynamicsModel, seed: int = 5) -> DynamicsModel:
+    """``model`` with its output heads drawn N(0, 0.02) instead of zero (an untrained model's heads are zero, so its
+    outputs are its anchors and the copy gain: these tests look at what the transformer passes to the heads)."""
+    g = torch.Generator().manual_seed(seed)
+    heads = [model.action.root_head, *model.action.action_heads.values(), model.pose.body_head]
+    with torch.no_grad():
+        for head in heads:
+            head.weight.normal_(0.0, 0.02, generator=g)
+    return model
+
+
 def flat(out) -> torch.Tensor:
     """All of a model's outputs as (B, T, ·), float32."""
     if isinstance(out, torch.Tensor):
@@ -123,6 +134,30 @@ def test_config_json_round_trip(duel):
     assert DynamicsConfig.from_json(d) == cfg
     with pytest.raises(ValueError, match="unknown fields"):
         DynamicsConfig.from_json({**d, "widht": 3})
+    anchored = DynamicsConfig.preset("tiny", duel, VOCAB, body_anchor=True, rotation_anchor=True)
+    assert DynamicsConfig.from_json(json.loads(json.dumps(anchored.to_json()))) == anchored
+    before = {k: v for k, v in anchored.to_json().items() if k not in ("body_anchor", "rotation_anchor")}
+    assert not DynamicsConfig.from_json(before).body_anchor  # a config from before the anchors: absolute heads, as trained
+    with pytest.raises(ValueError, match="excludes"):
+        DynamicsConfig.preset("tiny", duel, VOCAB, residual=True, body_anchor=True)
+
+
+def test_an_untrained_model_predicts_its_anchors(tiny):
+    """Zero heads: the body and the rotations come back as given, the displacements as 0 (the mean), and the
+    current token is the argmax; a trained body gain g and head Δ give g ⊙ body + Δ."""
+    cfg = replace(tiny, body_anchor=True, rotation_anchor=True)
+    model = DynamicsModel(cfg).eval()
+    frames = random_frames(cfg, 2, 8, seed=3)
+    with torch.no_grad():
+        out, body = model.action(frames), model.pose(frames)
+        rot = model.action.rotation_mask.bool()
+        assert torch.equal(out.root[..., rot], frames.root[..., rot]) and torch.all(out.root[..., ~rot] == 0)
+        assert torch.equal(body, frames.body)
+        for i, lg in enumerate(out.logits):
+            assert torch.equal(lg.argmax(-1), frames.tokens[..., i])
+        model.pose.body_gain.fill_(0.5)
+        model.pose.body_head.bias.fill_(0.25)
+        assert torch.allclose(model.pose(frames), 0.5 * frames.body + 0.25)
 
 
 # -- causality and the cache ---------------------------------------------------------------------------
@@ -130,7 +165,7 @@ def test_config_json_round_trip(duel):
 
 @pytest.mark.parametrize("which", ["action", "pose"])
 def test_causal(tiny, which):
-    model = getattr(DynamicsModel(tiny), which).eval()
+    model = getattr(with_heads(DynamicsModel(tiny)), which).eval()
     frames = random_frames(tiny, 2, 12)
     k = 5
     fields = ["root", "body", "tokens", "terrain"] + (["progress"] if which == "action" else [])
@@ -158,7 +193,7 @@ def test_cache_matches_window_recompute_one_layer(tiny, which):
     """One layer: streaming past the window gives, at every frame, the last output of a fresh forward
     over the last min(t + 1, window) frames (positions from 0): RoPE sees only position differences."""
     cfg = replace(tiny, action_gpt=replace(tiny.action_gpt, layers=1), pose_gpt=replace(tiny.pose_gpt, layers=1))
-    model = getattr(DynamicsModel(cfg), which).eval()
+    model = getattr(with_heads(DynamicsModel(cfg)), which).eval()
     T = 2 * WINDOW + 5
     frames = random_frames(cfg, 2, T, seed=1)
     with torch.no_grad():
@@ -173,7 +208,7 @@ def test_cache_matches_window_recompute_one_layer(tiny, which):
 def test_cache_matches_forward(tiny, which):
     """Any depth: streaming equals ``forward`` over the whole stream (a band mask past the window),
     which for t < window is plain causal attention over frames 0..t."""
-    model = getattr(DynamicsModel(tiny), which).eval()
+    model = getattr(with_heads(DynamicsModel(tiny)), which).eval()
     T = 2 * WINDOW + 5
     frames = random_frames(tiny, 2, T, seed=2)
     with torch.no_grad():
@@ -207,7 +242,7 @@ def test_rope_scores_depend_on_position_differences_only():
 
 def test_cache_is_exact_at_far_positions(tiny):
     """A stream that starts a million frames in gives what one starting at 0 gives (angles in float64)."""
-    model = DynamicsModel(tiny).pose.eval()
+    model = with_heads(DynamicsModel(tiny)).pose.eval()
     frames = random_frames(tiny, 1, WINDOW + 3, seed=3)
     with torch.no_grad():
         for block in model.transformer.blocks:  # peaked attention, as after training, so scores matter
@@ -223,9 +258,9 @@ def test_cache_is_exact_at_far_positions(tiny):
 
 
 def test_terrain_switch(duel):
-    off = DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB, terrain=(False, False)))
-    on = DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB))  # monster only
-    both = DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB, terrain=(True, True)))
+    off = with_heads(DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB, terrain=(False, False))))
+    on = with_heads(DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB)))  # monster only
+    both = with_heads(DynamicsModel(DynamicsConfig.preset("tiny", duel, VOCAB, terrain=(True, True))))
     assert not any("terrain" in n for n, _ in off.named_parameters())
     assert list(on.action.terrain_mlp) == ["monster"] and list(both.pose.terrain_mlp) == ["monster", "hunter"]
     assert on.action.terrain_mlp["monster"][-1].out_features == 32 and on.pose.terrain_mlp["monster"][-1].out_features == 64
@@ -250,8 +285,8 @@ def test_terrain_switch(duel):
 
 
 def test_relative_position_switch(duel, tiny):
-    off = DynamicsModel(tiny)
-    on = DynamicsModel(replace(tiny, relative_position=True))
+    off = with_heads(DynamicsModel(tiny))
+    on = with_heads(DynamicsModel(replace(tiny, relative_position=True)))
     for a, b in ((off.action, on.action), (off.pose, on.pose)):
         assert b.input.in_features == a.input.in_features + 3 * tiny.n_entities
     frames = random_frames(tiny, 2, 8, seed=5)
@@ -283,7 +318,7 @@ def test_training_pairs_align(tiny):
 
 
 def test_bf16_autocast(tiny):
-    model = DynamicsModel(tiny).eval()
+    model = with_heads(DynamicsModel(tiny)).eval()
     frames = random_frames(tiny, 2, 12, seed=7)
     with torch.no_grad():
         ref = {w: flat(getattr(model, w)(frames)) for w in ("action", "pose")}

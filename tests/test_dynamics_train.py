@@ -67,6 +67,22 @@ def test_training_learns_and_records(split_corpus, tmp_path):
     assert (ckpt / "model.safetensors").stat().st_mtime_ns == written
 
 
+def test_an_untrained_model_is_copy_last(split_corpus, tmp_path):
+    """Zero output heads, the action copy gain and the body anchor's unit gain: before its first step the model's
+    held-out action accuracy and body MSE are the copy-last baselines' exactly, so training starts from them."""
+    cfg = TrainConfig(preset="tiny", steps=10, batch_size=4, window=32, seed=0)
+    s = train(split_corpus, tmp_path / "run", cfg, log=lambda *_: None, stop_at=0)
+    ev, base = s["eval"], s["baselines"]
+    print(
+        f"\nuntrained, {ev['windows']} held-out windows: action accuracy {ev['action_accuracy']:.4f} "
+        f"(copy-last {base['copy_last_action_accuracy']:.4f}), body MSE {ev['body_mse']:.5f} (copy-last "
+        f"{base['copy_last_body_mse']:.5f}), root MSE {ev['root_mse']:.5f} (constant velocity {base['constant_velocity_root_mse']:.5f})"
+    )
+    assert s["steps"] == 0 and ev["windows"] > 0
+    assert ev["action_accuracy"] == base["copy_last_action_accuracy"]
+    assert ev["body_mse"] == base["copy_last_body_mse"]
+
+
 def test_penetration_hinge_on_recorded_bodies(scanned_corpus):
     """On recorded bodies the hinge is mean ReLU(margin − clearance)² over known key joints (the
     clearances the terrain features hold), and its gradient lifts joints that sink."""

@@ -22,9 +22,16 @@ Alignment, for training on a window of frames x[0..T] (``action_training_pair``,
   caller's, possibly overridden), root[t+1] (likewise), terrain[t+1] and relative[t+1]; it predicts
   body[t+1].
 
-The heads predict the next frame's values outright, or, with ``residual`` on, a change added to
-the current frame's (root[t+1] = root[t] + Δ, body[t+1] = body[t] + Δ); residual heads drift in long
-rollouts (docs/architecture.md), so they are off by default. Inputs are expected normalised by the caller.
+Heads. ActionGPT's root head predicts the next displacements outright and, with ``rotation_anchor``
+on, each next rotation as rot6d[t] + Δ (the rollout re-orthonormalises it). PoseGPT's body head, with
+``body_anchor`` on, predicts body[t+1] = g ⊙ body[t] + Δ with g one learned gain per body dimension
+(starting at 1); with either off, that part is predicted outright. With ``residual`` on (for
+comparison; it excludes both anchors) both heads add Δ to the current frame with gain 1. Every output
+head starts at zero, so an untrained model predicts its anchors: copy-last body and rotations, the
+mean displacement, and (with ActionGPT's copy gain) the current action. Residual heads drift in long
+rollouts, and a learned gain on the displacement does too (it amplifies the head's bias by 1/(1 − g);
+the pair ran off by kilometres over 10,000 frames, docs/tradeoffs.md), so displacements stay absolute.
+Inputs are expected normalised by the caller.
 
 Attention window and streaming. ``forward`` over T frames lets frame i attend to frames
 max(0, i − window + 1)..i (plain causal attention when T ≤ window, a band mask beyond). ``step``
@@ -58,6 +65,7 @@ PATCH_SIZE = 11  # egocentric height patch, cells per side
 N_CLEARANCES = 11  # signed clearances of key joints
 TERRAIN_FEATURES = PATCH_SIZE * PATCH_SIZE + N_CLEARANCES
 ROPE_BASE = 10000.0
+ROOT_PER_ENTITY = 9  # root stream per articulated entity: E.root (3) then E.rot6d (6)
 
 
 # -- the state split ----------------------------------------------------------------------------------
@@ -171,6 +179,8 @@ class DynamicsConfig:
     terrain_features: int = TERRAIN_FEATURES
     relative_position: bool = False  # read the other entity's root in my root frame (3 per entity)
     residual: bool = False  # heads predict a change added to the current frame's value
+    body_anchor: bool = False  # PoseGPT predicts gain ⊙ body[t] + Δ, a learned gain per dimension (init 1)
+    rotation_anchor: bool = False  # ActionGPT predicts every E.rot6d as rot6d[t] + Δ (displacements stay absolute)
     dropout: float = 0.0
 
     def __post_init__(self) -> None:
@@ -184,6 +194,8 @@ class DynamicsConfig:
             raise ValueError(f"dynamics config: vocab sizes {self.vocab_sizes} must be ≥ 1 (token 0 = no valid action)")
         if self.window < 1:
             raise ValueError(f"dynamics config: window {self.window} must be ≥ 1 frame")
+        if self.residual and (self.body_anchor or self.rotation_anchor):
+            raise ValueError("dynamics config: residual (both heads, gain 1) excludes body_anchor and rotation_anchor")
         for name, spec in (("action_gpt", self.action_gpt), ("pose_gpt", self.pose_gpt)):
             if spec.width % spec.heads or spec.head_dim % 2:
                 raise ValueError(
@@ -501,6 +513,13 @@ class _FrameGPT(nn.Module, ABC):
                     if m.bias is not None:
                         m.bias.zero_()
 
+    def _zero_heads(self, *heads: nn.Linear) -> None:
+        """Zero the output heads, so an untrained model predicts its anchor (module doc: the baselines)."""
+        with torch.no_grad():
+            for head in heads:
+                head.weight.zero_()
+                head.bias.zero_()
+
     def _build_encoders(self, spec: TransformerSpec, config: DynamicsConfig, own_dims: int) -> None:
         c = config
         self.embed = nn.ModuleDict({e: nn.Embedding(v, spec.action_embed) for e, v in zip(c.entities, c.vocab_sizes)})
@@ -559,8 +578,9 @@ class ActionGPT(_FrameGPT):
 
     The logits of entity i's next token are ``head_i(h) + copy_gain[i] · onehot(current token)``: one
     learned scalar per entity lets the model hold the current action and spend the head on when it
-    changes. It starts at log(99 (vocab − 1)), so an untrained model gives the current token 0.99. Actions persist for tens of frames, so copy-last is a strong baseline
-    (~0.99 next-token accuracy on the synthetic corpus) that a head alone learns only slowly."""
+    changes. It starts at log(99 (vocab − 1)) and the heads at zero, so an untrained model gives the current
+    token 0.99 and predicts copy-last exactly. Actions persist for tens of frames, so copy-last is a strong
+    baseline (~0.98 next-token accuracy on the synthetic corpus) that a head alone learns only slowly."""
 
     def __init__(self, config: DynamicsConfig, seed: int | torch.Generator = 0) -> None:
         super().__init__()
@@ -572,7 +592,10 @@ class ActionGPT(_FrameGPT):
             self.action_heads = nn.ModuleDict({e: nn.Linear(s.width, v) for e, v in zip(c.entities, c.vocab_sizes)})
             self.copy_gain = nn.Parameter(torch.empty(c.n_entities))
         self._materialize(seed)
-        with torch.no_grad():  # initial P(next token = current) = 0.99 (the heads start near 0)
+        rot6d = [k % ROOT_PER_ENTITY >= 3 for k in range(c.root_dim)]  # per entity: E.root (3) then E.rot6d (6)
+        self.register_buffer("rotation_mask", torch.tensor(rot6d, dtype=torch.float32), persistent=False)
+        self._zero_heads(self.root_head, *self.action_heads.values())
+        with torch.no_grad():  # initial P(next token = current) = 0.99 (the heads start at 0)
             self.copy_gain.copy_(torch.tensor([math.log(99.0 * (v - 1)) if v > 1 else 0.0 for v in c.vocab_sizes]))
 
     def features(self, frames: Frames) -> Tensor:
@@ -583,9 +606,11 @@ class ActionGPT(_FrameGPT):
         return torch.cat([frames.root, frames.progress.to(frames.root.dtype), weapon, *self._shared_features(frames)], dim=-1)
 
     def read_out(self, frames: Frames, h: Tensor) -> ActionOutputs:
-        root = self.root_head(h)
+        root = self.root_head(h)  # (B, T, root_dim)
         if self.config.residual:
             root = frames.root + root
+        elif self.config.rotation_anchor:
+            root = root + self.rotation_mask.to(h.dtype) * frames.root
         logits = []
         for i, (e, v) in enumerate(zip(self.config.entities, self.config.vocab_sizes)):
             current = F.one_hot(frames.tokens[..., i], v).to(h.dtype)  # (B, T, v)
@@ -595,7 +620,7 @@ class ActionGPT(_FrameGPT):
 
 class PoseGPT(_FrameGPT):
     """The next body state from the current one and the actions, root stream and terrain of the frame
-    being animated (see the module doc for the alignment)."""
+    being animated (see the module doc for the alignment and for ``body_anchor``'s gain)."""
 
     def __init__(self, config: DynamicsConfig, seed: int | torch.Generator = 0) -> None:
         super().__init__()
@@ -604,13 +629,20 @@ class PoseGPT(_FrameGPT):
         with torch.device("meta"):
             self._build_encoders(s, c, own_dims=c.body_dim + c.root_dim)
             self.body_head = nn.Linear(s.width, c.body_dim)
+            if c.body_anchor:
+                self.body_gain = nn.Parameter(torch.empty(c.body_dim))
         self._materialize(seed)
+        self._zero_heads(self.body_head)
+        if c.body_anchor:
+            nn.init.ones_(self.body_gain)
 
     def features(self, frames: Frames) -> Tensor:
         return torch.cat([frames.body, frames.root, *self._shared_features(frames)], dim=-1)
 
     def read_out(self, frames: Frames, h: Tensor) -> Tensor:
-        body = self.body_head(h)
+        body = self.body_head(h)  # (B, T, body_dim)
+        if self.config.body_anchor:
+            return self.body_gain.to(h.dtype) * frames.body + body
         return frames.body + body if self.config.residual else body
 
 

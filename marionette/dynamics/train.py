@@ -73,6 +73,7 @@ from marionette.dynamics.data import ActionTokens, Batch, HeldOutWindows, Normal
 from marionette.dynamics.model import (
     PATCH_SIZE,
     PRESETS,
+    ROOT_PER_ENTITY,
     DynamicsConfig,
     DynamicsModel,
     Frames,
@@ -86,7 +87,6 @@ from marionette.schema import Layout
 from marionette.training import knob
 
 HELD_OUT_SPLIT = "test"
-ROOT_PER_ENTITY = 9  # E.root (3) then E.rot6d (6)
 N_PATCH = PATCH_SIZE * PATCH_SIZE  # terrain feature slots before the key joints' clearances
 TENSORBOARD = "tensorboard"  # event files under the training directory (rank 0)
 SUMMARY = training.SUMMARY
@@ -110,9 +110,12 @@ class TrainConfig:
     terrain: bool = knob(True, "load terrain features: monsters read them (DynamicsConfig.from_layout), the hinge uses them")
     relative: bool = knob(False, "the relative-position feature (DESIGN: beyond the paper)")
     dropout: float = knob(0.0, "dropout in both transformers", min=0.0, below=1.0)
-    # Long rollouts (docs/tradeoffs.md): residual heads trained on clean inputs integrate their errors and
-    # leave the data within ~200 frames; absolute heads reading noised inputs stay stable over 10,000.
-    residual: bool = knob(False, "heads predict a change added to the current frame (DynamicsConfig.residual)")
+    # Long rollouts (docs/tradeoffs.md): residual heads integrate their errors and leave the data; a learned gain on
+    # the body anchor (it falls below 1 on noised inputs) keeps bones steady over 10,000 frames; on the displacement
+    # it still runs off by kilometres, so displacements are absolute. Untrained, the anchors are the baselines.
+    residual: bool = knob(False, "both heads add a change to the current frame, gain 1 (DynamicsConfig.residual)")
+    body_anchor: bool = knob(True, "PoseGPT predicts gain ⊙ current body + a change, a gain per dimension; off with residual")
+    rotation_anchor: bool = knob(True, "ActionGPT predicts each root rotation as the current one + a change; off with residual")
     input_noise: float = knob(0.1, "std (normalised units) of Gaussian noise on the models' root and body inputs", min=0.0)
     w_action: float = knob(1.0, "weight of the next-action cross-entropy", min=0.0)
     w_root: float = knob(1.0, "weight of the next-root MSE", min=0.0)
@@ -443,6 +446,8 @@ def train(
         relative_position=config.relative,
         dropout=config.dropout,
         residual=config.residual,
+        body_anchor=config.body_anchor and not config.residual,
+        rotation_anchor=config.rotation_anchor and not config.residual,
         **terrain_switch,
     )
     hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None
