@@ -1,7 +1,8 @@
 """The layered height field: query speed and accuracy (bilinear vs nearest), and the scan's speed and accuracy by knob.
 
     .venv/bin/python benchmarks/bench_terrain.py [--points 1000000] [--repeats 3] [--seconds 10]
-        [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--max-depths 10,20,30] [--image-normal-ys 0,0.8] [--part all|queries|scan]
+        [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--max-depths 10,20,30] [--image-normal-ys 0,0.8] [--edge-ms 0,0.1]
+        [--part all|queries|scan]
 
 Input: one seeded synthetic recording (``marionette.synth.generate``, 320×180, ``--seconds`` long),
 made in a temp dir; every figure is per core (BLAS/OpenMP pools and torch at one thread).
@@ -18,15 +19,19 @@ same points against the analytic surface (the hand-built fields: the ground, or 
 above it, whichever layer ref_y was drawn near; the scanned field: ``terrain.surface_height`` at the
 point, ref_y the height of a layer of the scanned cell, points drawn uniformly inside cells the scan
 observed, not hole-filled). "away from steps" leaves out points within ``STEP_MARGIN_M`` of the
-wall's sides or the deck's edges, where a 1 m cell straddles two heights whatever the query does.
+wall's sides, the deck's edges or the terraces' ledges (``terrain.near_step``), where the 2 × 2 cells
+a bilinear query reads hold two heights whatever the query does.
 
 Scan. ``scan_recording(ref, load_scene("duel"), DepthDecoder.synthetic(), ...)`` then
-``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, max depth 20 m, image-normal test 0.8):
+``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, max depth 20 m, image-normal test 0.8,
+edge-leak test 0.1 m; 0 turns a test off):
 depth frames/s (wall time of the whole scan: sample read, video decode, back-projection, open3d
 pass, contacts, merge; one run each, a scan takes seconds) and height error of the merged layers at
 their cell centres against ``terrain.surface_height`` (as ``tests/test_terrain_accumulate.py``):
 all observed cells, and those away from the vertical steps (cell centre more than 0.6 m outside /
-inside the wall's and deck's edges).
+inside the wall's, the deck's and the terraces' edges). The edges lie on integer metres, so no cell
+straddles one: a layer of a cell touching an edge that reads the level across it is a leak, and
+counts in "RMSE all" and "max all".
 """
 
 from __future__ import annotations
@@ -64,20 +69,23 @@ TARGET_QPS = 5e6  # bilinear queries/s per core (the target this benchmark check
 ROOF_M = 6.0  # the hand-built second layer lies this far above the ground (> 2 · MATCH_M: never mixed)
 CHUNKS_X, CHUNKS_Z = range(-12, -8), range(6, 10)  # 4 × 4 chunks: x ∈ [−1200, −800), z ∈ [600, 1000)
 STEP_MARGIN_M = 1.5  # a query reads the 2 × 2 cells around it: within 1.5 m of a step they may straddle it
-CELL_STEP_MARGIN_M = 0.6  # the scan test's margin around a cell centre
+CELL_STEP_MARGIN_M = 0.6  # the scan test's margin: the cells whose sides or corners touch a step edge
 SCAN_HEADER = [
     "varied",
     "voxel m",
     "stride",
     "max depth m",
     "image ny",
+    "edge m",
     "frames",
     "time s",
     "frames/s",
     "points kept",
+    "leaked",
     "cells",
     "layers",
     "RMSE all m",
+    "max all m",
     "layers away",
     "RMSE away m",
     "p99 away m",
@@ -124,13 +132,6 @@ def scanned_points(stage: Stage, n: int, rng: np.random.Generator):
     return x, z, ref, terrain.surface_height(x, z, ref)
 
 
-def near_step(x: np.ndarray, z: np.ndarray, margin: float) -> np.ndarray:
-    """Within ``margin`` of the wall's sides or the deck's edges."""
-    return (terrain.in_wall(x, z, margin) & ~terrain.in_wall(x, z, -margin)) | (
-        terrain.in_deck(x, z, margin) & ~terrain.in_deck(x, z, -margin)
-    )
-
-
 # -- queries -------------------------------------------------------------------------------------------
 
 
@@ -174,7 +175,7 @@ def bench_queries(fields, n: int, repeats: int):
             met = ("**met**" if qps >= TARGET_QPS else "**not met**") if method == "bilinear `query`" else ""
             extra = f"{region.nx}×{region.nz} cells, built in {1e3 * t_region:.0f} ms" if "torch" in method else ""
             speed.append([name, width, method, f"{1e3 * t:.0f}", f"{qps / 1e6:.2f}", met, extra])
-        away = ~near_step(x, z, STEP_MARGIN_M)
+        away = ~terrain.near_step(x, z, STEP_MARGIN_M)
         for method, h in (("bilinear `query`", h_bil), ("nearest `cell_height`", h_near), ("bilinear `query_torch` f32", h_tor)):
             acc.append([name, method, "all", *err_cells(h - truth)])
             acc.append([name, method, "away from steps", *err_cells((h - truth)[away])])
@@ -191,7 +192,7 @@ def scan_row(ref, layout, decoder, label: str, **kw) -> tuple[list[object], obje
     dt = time.perf_counter() - t0
     x, z = obs.gx + 0.5, obs.gz + 0.5
     d = obs.h - terrain.surface_height(x, z, obs.h)
-    away = ~near_step(x, z, CELL_STEP_MARGIN_M)
+    away = ~terrain.near_step(x, z, CELL_STEP_MARGIN_M)
     cells = len(set(zip(obs.gx.tolist(), obs.gz.tolist())))
     row = [
         label,
@@ -199,13 +200,16 @@ def scan_row(ref, layout, decoder, label: str, **kw) -> tuple[list[object], obje
         kw.get("frame_stride", 1),
         f"{kw.get('max_depth_m', SCAN_DEFAULTS['max_depth_m']):g}",
         f"{kw.get('image_normal_y', SCAN_DEFAULTS['image_normal_y']):g}",
+        f"{kw.get('edge_m', SCAN_DEFAULTS['edge_m']):g}",
         res.frames_total,
         f"{dt:.1f}",
         f"{res.frames_total / dt:.1f}",
         f"{res.points_kept:,}",
+        f"{res.points_leaked:,}",
         f"{cells:,}",
         f"{len(obs):,}",
         f"{np.sqrt(np.mean(d**2)):.3f}",
+        f"{np.abs(d).max():.2f}",
         f"{away.sum():,}",
         f"{np.sqrt(np.mean(d[away] ** 2)):.3f}",
         f"{np.percentile(np.abs(d[away]), 99):.3f}",
@@ -226,6 +230,7 @@ def main() -> None:
     ap.add_argument("--strides", type=lambda s: [int(v) for v in s.split(",")], default=[1, 2, 4])
     ap.add_argument("--max-depths", type=floats, default=[10.0, 20.0, 30.0])
     ap.add_argument("--image-normal-ys", type=floats, default=[0.0, 0.8])
+    ap.add_argument("--edge-ms", type=floats, default=[0.0, 0.1])
     ap.add_argument("--part", choices=("all", "queries", "scan"), default="all")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
@@ -254,6 +259,9 @@ def main() -> None:
             for ny in args.image_normal_ys:
                 if ny != SCAN_DEFAULTS["image_normal_y"]:
                     scan_rows.append(scan_row(ref, layout, decoder, "image normal", image_normal_y=ny)[0])
+            for e in args.edge_ms:
+                if e != SCAN_DEFAULTS["edge_m"]:
+                    scan_rows.append(scan_row(ref, layout, decoder, "edge leak", edge_m=e)[0])
 
         speed_rows, acc_rows = [], []
         if args.part in ("all", "queries"):

@@ -13,7 +13,9 @@ Two sources of evidence, both in world metres (Y up), binned into 1 m cells by f
    remaining points of all frames are voxel down-sampled (``voxel_m``), outliers removed
    (statistical), normals estimated over a radius of ``normal_radius_voxels`` voxels and oriented
    to +Y; points whose normal has ny ≥ ``min_normal_y`` (walkable, upward-facing) each give one
-   observation of hit weight 1 at their own height.
+   observation of hit weight 1 at their own height, except those of a layer lying wholly within
+   ``edge_m`` of a cell edge at the height of the cell across it: a neighbour's surface leaked a few
+   centimetres over the edge (``edge_leaks``).
 2. **Contacts.** A contact joint touching the ground marks the surface exactly: a leaf contact
    joint of an articulated rig (one with no kept child: the hunter's ``toe_tip_*``, the drake's
    ``claw_*``, ``jaw_tip``, ``tail10``) counts at a frame when it is at rest — speed below
@@ -42,7 +44,7 @@ from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, 
 from marionette.schema import Layout
 
 from .depth import DepthDecoder, depth_edges, smooth_codes
-from .layers import Observations, merge
+from .layers import MERGE_M, DenseGrid, Observations, layer_labels, merge
 
 
 @dataclass
@@ -56,7 +58,8 @@ class ScanResult:
     frames_skipped_camera: int = 0  # frames whose recorded camera is invalid
     points_valid: int = 0  # back-projected pixels kept by the depth range, edge and steepness tests
     points_masked: int = 0  # of those, dropped as characters
-    points_kept: int = 0  # after down-sampling, outlier removal and the normal test
+    points_kept: int = 0  # after down-sampling, outlier removal, the normal test and the edge-leak test
+    points_leaked: int = 0  # dropped as a neighbouring cell's surface leaked across a cell edge (``edge_leaks``)
     contacts_added: int = 0
     points: np.ndarray | None = field(default=None, repr=False)  # (P, 3) kept world points, if asked for
 
@@ -68,6 +71,7 @@ class ScanResult:
             "points_valid",
             "points_masked",
             "points_kept",
+            "points_leaked",
             "contacts_added",
         )
         return {k: getattr(self, k) for k in keys}
@@ -254,6 +258,45 @@ def ground_cloud(
     return p[keep], n[keep]
 
 
+def edge_leaks(points: np.ndarray, edge_m: float = 0.1, merge_m: float = MERGE_M) -> np.ndarray:
+    """(P,) bool: the points of layers that are a neighbouring cell's surface leaked across a cell edge.
+
+    A surface that ends on a cell edge (a ledge's side, a wall's foot, a deck's rim) puts points a
+    few centimetres into the next cell (depth error along the ray; measured up to 6 cm on the
+    synthetic terraces), where they would make a layer metres from that cell's own surface. Points
+    are grouped into per-cell layers by the merge rule (``layers.layer_labels``, each point one hit);
+    a layer is a leak when all its points lie within ``edge_m`` of one edge of its cell and the cell
+    across that edge holds a layer within ``merge_m`` of its height that does not itself lie wholly
+    within ``edge_m`` of that edge. Only the layer's position tells it apart: its hits can match the
+    cell's own surface where that is seen sparsely.
+    """
+    if not len(points):
+        return np.zeros(0, bool)
+    gx, gz = np.floor(points[:, 0]).astype(np.int64), np.floor(points[:, 2]).astype(np.int64)
+    fx, fz = points[:, 0] - gx, points[:, 2] - gz
+    order = np.lexsort((points[:, 1], gz, gx))
+    label = np.empty(len(points), np.int64)
+    label[order] = layer_labels(gx[order], gz[order], points[:, 1][order], np.ones(len(points)), merge_m)
+    n = int(label.max()) + 1
+    hits = np.bincount(label, minlength=n)
+    h = np.bincount(label, weights=points[:, 1], minlength=n) / hits
+    _, first = np.unique(label, return_index=True)  # a point of each layer, for its cell
+    layers = Observations(gx[first], gz[first], h, np.tile([0.0, 1.0, 0.0], (n, 1)), hits, np.zeros(n, np.int64))
+    # edges as (dx, dz) to the cell across them, with the points near each: west, east, south, north
+    edges = (((-1, 0), fx < edge_m), ((1, 0), fx >= 1 - edge_m), ((0, -1), fz < edge_m), ((0, 1), fz >= 1 - edge_m))
+    hugs = np.stack([np.bincount(label, weights=near, minlength=n) == hits for _, near in edges], axis=1)  # (n, 4)
+    g = DenseGrid.of(layers)  # its one-cell margin keeps neighbours in range
+    H = g.scatter(h, np.nan)  # (X, Z, L)
+    leak = np.zeros(n, bool)
+    for e, ((dx, dz), _) in enumerate(edges):
+        across = e ^ 1  # the same edge seen from the other cell
+        Hug = g.scatter(hugs[:, across], False)
+        i = np.flatnonzero(hugs[:, e])
+        Hn, Un = H[g.cx[i] + dx, g.cz[i] + dz], Hug[g.cx[i] + dx, g.cz[i] + dz]  # (k, L)
+        leak[i] |= ((np.abs(Hn - h[i, None]) <= merge_m) & ~Un).any(axis=1)  # NaN compares False
+    return leak[label]
+
+
 def voxel_reduce(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """Mean point of each occupied voxel (a per-frame reduction before the global open3d pass)."""
     if not len(points):
@@ -339,6 +382,7 @@ def scan_sample(
     smooth_tol: float = 1.0,
     edge_rel: float = 0.1,
     normal_radius_voxels: float = 2.0,
+    edge_m: float = 0.1,
     mask_radius_scale: float = 3.0,
     mask_margin_m: float = 0.3,
     image_normal_y: float = 0.8,
@@ -382,6 +426,9 @@ def scan_sample(
         chunks.append(voxel_reduce(P, voxel_m / 2))
     pts = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     p, nrm = ground_cloud(pts, voxel_m, min_normal_y, normal_radius_voxels)
+    leak = edge_leaks(p, edge_m)
+    p, nrm = p[~leak], nrm[~leak]
+    res.points_leaked = int(leak.sum())
     res.points_kept = len(p)
     if keep_points:
         res.points = p

@@ -71,20 +71,9 @@ def merge(obs: Observations, merge_m: float = MERGE_M, max_layers: int = MAX_LAY
     # total order: cell, height, then the other fields, so equal heights merge identically in any input order
     order = np.lexsort((obs.ts, obs.hits, obs.n[:, 2], obs.n[:, 1], obs.n[:, 0], obs.h, obs.gz, obs.gx))
     o = obs.take(order)
-    new_cell = np.ones(len(o), bool)
-    new_cell[1:] = (o.gx[1:] != o.gx[:-1]) | (o.gz[1:] != o.gz[:-1])
-    # greedy clustering: sequential within a cell (clusters are few per cell)
-    label = np.empty(len(o), np.int64)
-    cur, w_sum, hw_sum = -1, 0.0, 0.0
     h, w = o.h, o.hits.astype(np.float64)
-    for i in range(len(o)):
-        if new_cell[i] or abs(h[i] - hw_sum / w_sum) > merge_m:
-            cur += 1
-            w_sum, hw_sum = 0.0, 0.0
-        w_sum += w[i]
-        hw_sum += w[i] * h[i]
-        label[i] = cur
-    n_layers = cur + 1
+    label = layer_labels(o.gx, o.gz, h, w, merge_m)
+    n_layers = int(label[-1]) + 1
     hits = np.bincount(label, weights=w, minlength=n_layers)
     hm = np.bincount(label, weights=w * h, minlength=n_layers) / hits
     nsum = np.stack([np.bincount(label, weights=w * o.n[:, k], minlength=n_layers) for k in range(3)], axis=1)
@@ -95,6 +84,24 @@ def merge(obs: Observations, merge_m: float = MERGE_M, max_layers: int = MAX_LAY
     first = np.flatnonzero(np.r_[True, label[1:] != label[:-1]])
     layers = Observations(o.gx[first], o.gz[first], hm, normal, np.rint(hits).astype(np.int64), ts)
     return _cap(layers, max_layers)
+
+
+def layer_labels(gx: np.ndarray, gz: np.ndarray, h: np.ndarray, w: np.ndarray, merge_m: float = MERGE_M) -> np.ndarray:
+    """Layer index (0, 1, ... over all cells) of each row by the greedy rule of the module docstring;
+    rows sorted by (gx, gz, h), ``w`` their hit weights."""
+    new_cell = np.ones(len(h), bool)
+    new_cell[1:] = (gx[1:] != gx[:-1]) | (gz[1:] != gz[:-1])
+    # sequential within a cell (clusters are few per cell)
+    label = np.empty(len(h), np.int64)
+    cur, w_sum, hw_sum = -1, 0.0, 0.0
+    for i in range(len(h)):
+        if new_cell[i] or abs(h[i] - hw_sum / w_sum) > merge_m:
+            cur += 1
+            w_sum, hw_sum = 0.0, 0.0
+        w_sum += w[i]
+        hw_sum += w[i] * h[i]
+        label[i] = cur
+    return label
 
 
 def _cap(layers: Observations, max_layers: int) -> Observations:

@@ -20,7 +20,7 @@ from terrain_scan.accumulate import scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.store import Stage
 
-SCAN_VERSION = "2"  # 2: image-space steepness test, 20 m depth range
+SCAN_VERSION = "3"  # 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped
 
 
 @dataclass(frozen=True)

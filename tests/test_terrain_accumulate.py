@@ -14,6 +14,7 @@ from marionette.synth.render import decode_depth, encode_depth
 from terrain_scan.accumulate import (
     backproject,
     depth_frames,
+    edge_leaks,
     entity_bones,
     frame_points,
     scan_recording,
@@ -25,10 +26,14 @@ from terrain_scan.field import open_stage
 from terrain_scan.layers import Observations
 from terrain_scan.store import Stage
 
-# the issue's target over every observed (not hole-filled) cell of the stage the two recordings make;
-# measured 0.030 m at default settings (docs/formats.md)
+# the issue's target over every observed (not hole-filled) cell of the stage the two recordings make,
+# step cells included; measured 0.029 m at default settings (docs/formats.md)
 RMSE_TARGET_M = 0.05
 RMSE_AWAY_FROM_STEPS_M = 0.04
+# Every step edge (the wall's sides, the deck's rim, the terraces' ledges) lies on an integer metre, so
+# no 1 m cell straddles one: a cell touching an edge has its centre 0.5 m from it and one level under
+# its whole area. A 0.6 m margin around the edges picks exactly these cells (sides and corners).
+STEP_MARGIN_M = 0.6
 
 
 @pytest.fixture(scope="module")
@@ -131,6 +136,8 @@ def test_scan_counters_ts_and_no_nan(scan, rec):
     assert scan.frames_skipped_camera == n_invalid == 4
     assert scan.frames_used == 300 - n_invalid
     assert scan.points_masked > 0 and scan.contacts_added > 0 and scan.points_kept > 1000
+    # the deck's rim and the ledges leak points over cell edges; the leak test takes few of the points
+    assert 0 < scan.points_leaked < 0.01 * scan.points_kept, (scan.points_leaked, scan.points_kept)
     assert scan.recording_ts == truth["recording_time"]
     assert np.isfinite(o.h).all() and np.isfinite(o.n).all() and (o.hits > 0).all()
     assert (o.ts == truth["recording_time"]).all()
@@ -140,24 +147,48 @@ def test_scan_counters_ts_and_no_nan(scan, rec):
 def _errors(layers):
     x, z = layers.gx + 0.5, layers.gz + 0.5
     d = layers.h - terrain.surface_height(x, z, layers.h)
-    # cells touching a vertical step (the wall's sides, the deck's long edges)
-    step = (terrain.in_wall(x, z, 0.6) & ~terrain.in_wall(x, z, -0.6)) | (
-        terrain.in_deck(x, z, 0.6) & ~terrain.in_deck(x, z, -0.6)
-    )
-    return d, step
+    return d, terrain.near_step(x, z, STEP_MARGIN_M)
+
+
+def test_edge_leaks_drop_a_neighbours_surface_leaked_over_a_cell_edge():
+    """Known answer: a ledge at x = 10 (lower ground west, plateau 1.5 m up east) leaks ground points
+    3 cm into the plateau's cell; only those are dropped, not a surface of its own on an edge."""
+    rng = np.random.default_rng(0)
+
+    def patch(x0, x1, z0, z1, y, n):
+        return np.c_[rng.uniform(x0, x1, n), np.full(n, y) + rng.normal(0, 0.01, n), rng.uniform(z0, z1, n)]
+
+    ground = patch(9.0, 10.0, 5.0, 6.0, 30.2, 16)  # cell (9, 5)
+    plateau = patch(10.0, 11.0, 5.0, 6.0, 31.7, 16)  # cell (10, 5)
+    leaked = patch(10.0, 10.03, 5.0, 6.0, 30.2, 4)  # cell (10, 5), 3 cm in: the ground's points
+    rim = patch(12.97, 13.0, 5.0, 6.0, 20.0, 3)  # cell (12, 5) on its east edge, no surface at 20 m east of it
+    thin = np.r_[patch(7.97, 8.0, 5.0, 6.0, 25.0, 3), patch(8.0, 8.03, 5.0, 6.0, 25.0, 3)]  # on the edge x = 8
+    P = np.r_[ground, plateau, leaked, rim, thin]
+    leak = edge_leaks(P)
+    want = np.r_[np.zeros(len(ground) + len(plateau), bool), np.ones(len(leaked), bool), np.zeros(len(rim) + len(thin), bool)]
+    np.testing.assert_array_equal(leak, want)
+    # the same strip 20 cm in is the plateau cell's own evidence, not a leak
+    assert not edge_leaks(np.r_[ground, plateau, leaked + [0.2, 0.0, 0.0]]).any()
+    assert edge_leaks(np.zeros((0, 3))).shape == (0,)
 
 
 def test_height_rmse_over_observed_cells(stage):
     layers, filled = stage.layers()
     observed = layers.take(np.flatnonzero(~filled))
     d, step = _errors(observed)
-    assert len(d) > 2000 and step.sum() > 20
+    x, z = observed.gx + 0.5, observed.gz + 0.5
+    ledge = step & terrain.in_terrace(x, z, STEP_MARGIN_M)
+    assert len(d) > 2000 and step.sum() > 100 and ledge.sum() > 20, (len(d), step.sum(), ledge.sum())
     rmse_all = float(np.sqrt(np.mean(d**2)))
     assert rmse_all < RMSE_TARGET_M, rmse_all
     rmse = float(np.sqrt(np.mean(d[~step] ** 2)))
     assert rmse < RMSE_AWAY_FROM_STEPS_M, rmse
-    # no layer of a wall cell sits at the ground's height or the reverse (a 3 m step leaking across a cell edge)
-    assert np.abs(d).max() < 0.5, np.abs(d).max()
+    # the cells touching a step hold their own level only: no layer of one sits at the level across the
+    # edge (a 1–4.8 m step leaking across a cell edge), the worst cell named
+    i = int(np.argmax(np.abs(d)))
+    assert abs(d[i]) < 0.5, f"cell ({observed.gx[i]}, {observed.gz[i]}): layer at {observed.h[i]:.2f} m, off by {d[i]:+.2f} m"
+    rmse_step = float(np.sqrt(np.mean(d[step] ** 2)))
+    assert rmse_step < RMSE_TARGET_M, rmse_step
 
 
 def test_one_recording_sees_the_deck_without_collapsing_it(scan):
@@ -166,7 +197,10 @@ def test_one_recording_sees_the_deck_without_collapsing_it(scan):
     assert float(np.sqrt(np.mean(d[~step] ** 2))) < RMSE_AWAY_FROM_STEPS_M
     ground, deck = terrain.layers(o.gx + 0.5, o.gz + 0.5)
     high = np.isfinite(deck) & (deck - ground > 3.0)
-    assert np.sum(np.abs(o.h[high] - deck[high]) < 0.3) >= 10  # seen at the deck's level, not the valley's
+    # seen at the deck's level, not the valley's: 8 cells. Two more, 1–3 points each, lie within 2 cm of the
+    # line x = −976 where this recording's view of the deck begins; per recording such a sliver is a leak
+    # to ``edge_leaks`` (it continues the neighbour's surface), so they are dropped.
+    assert np.sum(np.abs(o.h[high] - deck[high]) < 0.3) >= 8
 
 
 def test_both_bridge_levels_and_queries_under_the_deck(stage):
