@@ -4,7 +4,7 @@ One step reads a batch of windows x[0..T] (``WindowSampler``), runs ActionGPT on
 ``action_training_pair`` and PoseGPT on ``pose_training_pair`` (teacher forcing: PoseGPT reads the
 recorded root and tokens of the frame being animated), and minimises
 
-    w_action · CE(next tokens; token 0 "no valid action" ignored)       (pooled over entities)
+    w_action · CE(next tokens, smoothed; token 0 "no valid action" ignored)  (pooled over entities)
   + w_root   · MSE(next root stream, normalised)
   + w_body   · MSE(next body state, normalised)
   + w_drift  · mean over windows and entities of (Σ_t Δy_pred − Σ_t Δy_rec)²
@@ -118,6 +118,7 @@ class TrainConfig:
     rotation_anchor: bool = knob(True, "ActionGPT predicts each root rotation as the current one + a change; off with residual")
     input_noise: float = knob(0.1, "std (normalised units) of Gaussian noise on the models' root and body inputs", min=0.0)
     w_action: float = knob(1.0, "weight of the next-action cross-entropy", min=0.0)
+    label_smoothing: float = knob(0.1, "label smoothing of the next-action cross-entropy", min=0.0, below=1.0)
     w_root: float = knob(1.0, "weight of the next-root MSE", min=0.0)
     w_body: float = knob(1.0, "weight of the next-body MSE", min=0.0)
     w_drift: float = knob(0.1, "weight of the vertical-drift term", min=0.0)
@@ -218,12 +219,14 @@ def vertical_displacement(root: Tensor, normaliser: Normaliser) -> Tensor:
     return (R[..., 1, :] * per[..., 0:3]).sum(-1)  # (..., N)
 
 
-def action_loss(logits: tuple[Tensor, ...], target: Tensor) -> Tensor:
-    """Cross-entropy pooled over entities and frames whose next token is not 0 ("no valid action")."""
+def action_loss(logits: tuple[Tensor, ...], target: Tensor, smoothing: float = 0.0) -> Tensor:
+    """Cross-entropy pooled over entities and frames whose next token is not 0 ("no valid action"), its targets
+    smoothed by ``smoothing`` (spread over the vocabulary)."""
     total, count = logits[0].new_zeros(()), 0
     for i, lg in enumerate(logits):
         t = target[..., i].reshape(-1)
-        total = total + F.cross_entropy(lg.reshape(-1, lg.shape[-1]).float(), t, ignore_index=0, reduction="sum")
+        flat = lg.reshape(-1, lg.shape[-1]).float()
+        total = total + F.cross_entropy(flat, t, ignore_index=0, reduction="sum", label_smoothing=smoothing)
         count += int((t != 0).sum())
     return total / max(count, 1)
 
@@ -293,7 +296,7 @@ def losses(
     out = action(a_in)
     body = pose(p_in)
     terms = {
-        "action": action_loss(out.logits, tok_next),
+        "action": action_loss(out.logits, tok_next, config.label_smoothing),
         "root": F.mse_loss(out.root.float(), root_next),
         "body": F.mse_loss(body.float(), body_next),
     }
