@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 # Before torch loads its OpenMP runtime (read once, at load; subprocesses inherit it): a thread that waits at a
-# barrier sleeps instead of spinning. On a 2-core machine shared with other jobs, spinning threads made torch's
-# training steps 3-9x slower than one thread; sleeping ones are as fast as spinning ones on an idle machine.
+# barrier sleeps instead of spinning. On a 2-core machine shared with other jobs, two spinning threads made torch's
+# training steps up to 9× slower than one thread; sleeping ones are as fast as spinning ones on an idle machine.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("DO_NOT_TRACK", "1")

@@ -301,6 +301,31 @@ def test_relative_position_switch(duel, tiny):
                 model(replace(frames, relative=None))
 
 
+def test_token_classes_share_an_embedding_per_class(duel, tiny):
+    """With ``token_classes``, two tokens of one class differ only by their own embeddings: giving both the same own
+    embedding gives the same outputs, and moving a class's embedding moves every token of that class; the mapping
+    round-trips through JSON and a wrong one is refused."""
+    classes = tuple(tuple([0] + [1 + k % 4 for k in range(v - 1)]) for v in tiny.vocab_sizes)
+    cfg = replace(tiny, token_classes=classes)
+    assert DynamicsConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    with pytest.raises(ValueError, match="token_classes"):
+        replace(tiny, token_classes=((0, 9),) * tiny.n_entities)
+    model = with_heads(DynamicsModel(cfg))
+    e = cfg.entities[0]
+    frames = random_frames(cfg, 1, 6, seed=3)
+    a, b = 1, 5  # both of class 1
+    assert classes[0][a] == classes[0][b]
+    with torch.no_grad():
+        model.pose.embed[e].weight[b] = model.pose.embed[e].weight[a]
+        tok_a, tok_b = frames.tokens.clone(), frames.tokens.clone()
+        tok_a[..., 0], tok_b[..., 0] = a, b
+        out_a, out_b = model.pose(replace(frames, tokens=tok_a)), model.pose(replace(frames, tokens=tok_b))
+        assert torch.equal(flat(out_a), flat(out_b))
+        model.pose.class_embed[e].weight[classes[0][a]] += 1.0
+        assert (flat(model.pose(replace(frames, tokens=tok_b))) - flat(out_b)).abs().max() > 1e-4
+    assert not hasattr(DynamicsModel(tiny).pose, "class_embed")  # off by default in the config: old checkpoints load
+
+
 # -- alignment, precision, determinism -----------------------------------------------------------------
 
 

@@ -40,6 +40,9 @@ def classify(kind: str, instances: list[list[float]]) -> str:
     return "other"
 
 
+MOTION_CLASSES = ("stationary", "locomotion", "attack", "other")  # a token's class index is 1 + its place here
+
+
 def entity_type_key(entity: Entity, type_id: int) -> str:
     """The vocab.json key of an entity's type: ``<rig>:<type_id>``."""
     return f"{entity.rig.name}:{int(type_id)}"
@@ -93,6 +96,19 @@ class ActionTokens:
             tuple(comp),
             tuple(clip),
         )
+
+    def class_indices(self, vocab: dict) -> tuple[tuple[int, ...], ...]:
+        """Per entity, per token: 1 + the index of its vocab class in ``MOTION_CLASSES`` (0 for token 0 and for a
+        class the list lacks)."""
+        types = vocab.get("entity_types", {})
+        out = []
+        for i in range(len(self.entities)):
+            row = [0]
+            for key, vt in zip(self.type_keys[i][1:], self.vocab_tokens[i][1:]):
+                cls = next((a.get("class") for a in types[key]["actions"] if a["token"] == int(vt)), None)
+                row.append(MOTION_CLASSES.index(cls) + 1 if cls in MOTION_CLASSES else 0)
+            out.append(tuple(row))
+        return tuple(out)
 
     @classmethod
     def from_corpus(cls, corpus: Corpus | Path | str) -> ActionTokens:

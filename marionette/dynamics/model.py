@@ -66,6 +66,7 @@ N_CLEARANCES = 11  # signed clearances of key joints
 TERRAIN_FEATURES = PATCH_SIZE * PATCH_SIZE + N_CLEARANCES
 ROPE_BASE = 10000.0
 ROOT_PER_ENTITY = 9  # root stream per articulated entity: E.root (3) then E.rot6d (6)
+N_TOKEN_CLASSES = 4  # motion classes a token may name (corpus.vocab.MOTION_CLASSES); 0 = none
 
 
 # -- the state split ----------------------------------------------------------------------------------
@@ -182,9 +183,21 @@ class DynamicsConfig:
     body_anchor: bool = False  # PoseGPT predicts gain ⊙ body[t] + Δ, a learned gain per dimension (init 1)
     rotation_anchor: bool = False  # ActionGPT predicts every E.rot6d as rot6d[t] + Δ (displacements stay absolute)
     dropout: float = 0.0
+    # per entity, per token: its motion class (1 + index in corpus.vocab.MOTION_CLASSES, 0 none); when given, a
+    # learned class embedding is added to every token's, so a rarely played token starts from its class's motion
+    token_classes: tuple[tuple[int, ...], ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.entities)
+        if self.token_classes and (
+            len(self.token_classes) != n
+            or any(len(t) != v for t, v in zip(self.token_classes, self.vocab_sizes))
+            or any(not 0 <= x <= N_TOKEN_CLASSES for t in self.token_classes for x in t)
+        ):
+            raise ValueError(
+                f"dynamics config: token_classes must give each of the {n} entities one class in 0..{N_TOKEN_CLASSES} "
+                f"per token (vocab sizes {self.vocab_sizes})"
+            )
         if len(self.vocab_sizes) != n or len(self.terrain) != n:
             raise ValueError(
                 f"dynamics config: {n} articulated entities {self.entities} but {len(self.vocab_sizes)} vocab sizes "
@@ -265,6 +278,8 @@ class DynamicsConfig:
         for k, v in d.items():
             if k in ("action_gpt", "pose_gpt"):
                 v = TransformerSpec(**v)
+            elif k == "token_classes" and isinstance(v, list):
+                v = tuple(tuple(int(x) for x in t) for t in v)
             elif isinstance(v, list):
                 v = tuple(bool(x) if k == "terrain" else x for x in v)
             kw[k] = v
@@ -523,6 +538,8 @@ class _FrameGPT(nn.Module, ABC):
     def _build_encoders(self, spec: TransformerSpec, config: DynamicsConfig, own_dims: int) -> None:
         c = config
         self.embed = nn.ModuleDict({e: nn.Embedding(v, spec.action_embed) for e, v in zip(c.entities, c.vocab_sizes)})
+        if c.token_classes:
+            self.class_embed = nn.ModuleDict({e: nn.Embedding(N_TOKEN_CLASSES + 1, spec.action_embed) for e in c.entities})
         on = [e for e, t in zip(c.entities, c.terrain) if t]
         self.terrain_mlp = nn.ModuleDict({e: _terrain_mlp(c.terrain_features, spec.terrain_hidden, spec.terrain_out) for e in on})
         in_dim = own_dims + c.n_entities * spec.action_embed + len(on) * spec.terrain_out
@@ -537,6 +554,10 @@ class _FrameGPT(nn.Module, ABC):
         if frames.tokens.shape != (B, T, c.n_entities):
             raise ValueError(f"tokens {tuple(frames.tokens.shape)} should be (B, T, {c.n_entities}) = {(B, T, c.n_entities)}")
         feats = [self.embed[e](frames.tokens[..., i]) for i, e in enumerate(c.entities)]
+        if c.token_classes:
+            for i, e in enumerate(c.entities):
+                of_token = torch.tensor(c.token_classes[i], dtype=torch.long, device=frames.tokens.device)
+                feats[i] = feats[i] + self.class_embed[e](of_token[frames.tokens[..., i]])
         if len(self.terrain_mlp):
             if frames.terrain is None:
                 raise ValueError(f"terrain features are on for {list(self.terrain_mlp)} but none were given")

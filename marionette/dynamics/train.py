@@ -114,6 +114,7 @@ class TrainConfig:
     # the body anchor (it falls below 1 on noised inputs) keeps bones steady over 10,000 frames; on the displacement
     # it still runs off by kilometres, so displacements are absolute. Untrained, the anchors are the baselines.
     residual: bool = knob(False, "both heads add a change to the current frame, gain 1 (DynamicsConfig.residual)")
+    token_classes: bool = knob(True, "add a learned embedding of each token's motion class (DynamicsConfig.token_classes)")
     body_anchor: bool = knob(True, "PoseGPT predicts gain ⊙ current body + a change, a gain per dimension; off with residual")
     rotation_anchor: bool = knob(True, "ActionGPT predicts each root rotation as the current one + a change; off with residual")
     input_noise: float = knob(0.1, "std (normalised units) of Gaussian noise on the models' root and body inputs", min=0.0)
@@ -451,6 +452,7 @@ def train(
         residual=config.residual,
         body_anchor=config.body_anchor and not config.residual,
         rotation_anchor=config.rotation_anchor and not config.residual,
+        token_classes=tokens.class_indices(corpus.vocab) if config.token_classes else (),
         **terrain_switch,
     )
     hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None
