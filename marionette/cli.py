@@ -456,11 +456,13 @@ def cmd_demo(a: argparse.Namespace) -> int:
     print(inspect_text(corpus))
     _demo_dynamics(c, out, a.dynamics_steps)
     _demo_observation(c, out, a.observation_steps)
-    print("[9/9] evaluation: state-layer metrics beside the recorded state, controllability probe, rule ablation, proxy-FVD")
+    print("[9/9] evaluation (quick protocol): Tables 1–3, long-horizon curves, the state layer")
     bars = ProgressBars()
     try:
-        options = dict(observation=out / "observation", segments=4, seed_frames=32, horizon=80, fvd_steps=8, fvd_frames=41)
-        report = evaluate(out / "dynamics", corpus, out / "evaluation", **options, log=lambda m: print("   ", m), progress=bars)
+        models = dict(observation=out / "observation", baseline=out / "observation-baseline")
+        report = evaluate(
+            out / "dynamics", corpus, out / "evaluation", protocol="quick", **models, log=lambda m: print("   ", m), progress=bars
+        )
     finally:
         bars.close()
     print(f"    report: {report['report_md']} (plots beside it)")
@@ -516,19 +518,25 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     from marionette.observation.train import ObservationTrainConfig, train
 
     runs = out / "observation"
-    t = time.time()
     video = c.info.video
     reduce = 8 if video["height"] % 8 == 0 and video["width"] % 8 == 0 else 4
-    print(f"[8/9] training the observation model (tiny video DiT, {steps} steps, 1/{reduce} of the chunk size) into {runs}")
     tiny = dict(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3, warmup=20)
-    s = train(
-        c,
-        runs,
-        ObservationTrainConfig(**tiny),
-        log=lambda m: print("   ", m) if not m.startswith("step ") else None,
-        progress=True,
-    )
-    print(f"    {s['steps']} steps in {time.time() - t:.1f} s")
+    for control, where, what in (
+        ("pose", runs, "the observation model"),
+        ("actions", out / "observation-baseline", "its pixel-AR baseline"),
+    ):
+        t = time.time()
+        print(
+            f"[8/9] training {what} (tiny video DiT, control {control}, {steps} steps, 1/{reduce} of the chunk size) into {where}"
+        )
+        s = train(
+            c,
+            where,
+            ObservationTrainConfig(**tiny, control=control),
+            log=lambda m: print("   ", m) if not m.startswith("step ") else None,
+            progress=True,
+        )
+        print(f"    {s['steps']} steps in {time.time() - t:.1f} s")
     split = "test" if c.segment_ids("test") else None
     for seg in (r["segment"] for r in c.segments.to_pylist() if r["chunks"] and split in (None, r["split"])):
         posed = list(segment_chunks(c, seg, ("pose.mkv",))[1])  # the chunks holding a pose target
@@ -706,7 +714,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=Path("demo-run"), help="directory for everything the demo writes")
     _synthetic_arguments(s, recordings=4, workers=2)
     s.add_argument("--dynamics-steps", type=positive_int, default=1000, help="training steps of the tiny dynamics model")
-    s.add_argument("--observation-steps", type=positive_int, default=1000, help="training steps of the tiny observation model")
+    s.add_argument(
+        "--observation-steps",
+        type=positive_int,
+        default=500,
+        help="training steps of each tiny observation model (the pose model and its baseline)",
+    )
     s.set_defaults(fn=cmd_demo)
     return p
 

@@ -199,3 +199,33 @@ def test_class_ratios_pool_frames_by_the_recorded_class():
     assert list(r) == ["stationary", "attack"]  # the order of CLASSES; token 0's frames have no class
     assert r["attack"]["frames"] == 5 and r["attack"]["force_shuf/force_gt"] == pytest.approx(3.0)
     assert r["stationary"]["force_shuf/force_gt"] == pytest.approx(0.6 / 0.4)
+
+
+def test_the_report_opens_with_the_model_against_its_trivial_baselines(tmp_path):
+    """A training summary whose model loses on root MSE: the report's first lines say so and show every comparison;
+    a summary with a non-number is refused naming the file; a directory without one adds nothing."""
+    import json
+
+    from marionette.eval.report import _baseline_lines, training_against_baselines
+
+    ev = {"action_accuracy": 0.98, "body_mse": 0.01, "root_mse": 0.05, "windows": 6, "step": 300}
+    base = {
+        "copy_last_action_accuracy": 0.97,
+        "most_frequent_action_accuracy": 0.2,
+        "copy_last_body_mse": 0.07,
+        "constant_velocity_root_mse": 0.02,
+    }
+    (tmp_path / "summary.json").write_text(json.dumps({"steps": 300, "eval": ev, "baselines": base}))
+    tb = training_against_baselines(tmp_path)
+    assert [r["wins"] for r in tb["rows"]] == [True, True, True, False]
+    text = "\n".join(_baseline_lines({"training": tb}))
+    assert "does not beat every trivial baseline" in text and "1 of 4" in text and "**no**" in text
+    ev["root_mse"] = 0.01
+    (tmp_path / "summary.json").write_text(json.dumps({"steps": 300, "eval": ev, "baselines": base}))
+    assert "beats every trivial baseline" in _baseline_lines({"training": training_against_baselines(tmp_path)})[0]
+    ev["root_mse"] = "0.01"
+    (tmp_path / "summary.json").write_text(json.dumps({"steps": 300, "eval": ev, "baselines": base}))
+    with pytest.raises(ValueError, match="summary.json"):
+        training_against_baselines(tmp_path)
+    assert training_against_baselines(tmp_path / "missing") is None
+    assert _baseline_lines({"training": None}) == []

@@ -53,7 +53,7 @@ from marionette.eval.protocol import (
     state_layer,
 )
 from marionette.eval.video import long_horizon, long_horizon_curves, video_tables
-from marionette.io import write_bytes, write_json
+from marionette.io import read_json, write_bytes, write_json
 
 PLOTS = ("contact_sheet", "ablation", "class_ratios", "compliance", "drift", "fvd_per_chunk")
 
@@ -407,6 +407,51 @@ def _fvd_cells(r: dict | None) -> list[str]:
     ]
 
 
+# (model key, baseline key, label, whether higher is better) of a dynamics training summary's held-out figures
+_AGAINST = (
+    ("action_accuracy", "copy_last_action_accuracy", "next-action accuracy against copy-last", True),
+    ("action_accuracy", "most_frequent_action_accuracy", "next-action accuracy against the most frequent action", True),
+    ("body_mse", "copy_last_body_mse", "body MSE against copy-last", False),
+    ("root_mse", "constant_velocity_root_mse", "root MSE against constant velocity", False),
+)
+
+
+def training_against_baselines(dynamics_dir: Path | str) -> dict[str, Any] | None:
+    """The dynamics training directory's held-out figures beside its trivial baselines (``summary.json``'s ``eval``
+    and ``baselines``), one row per comparison with whether the model wins; None when the directory has none."""
+    path = Path(dynamics_dir) / "summary.json"
+    if not Path(dynamics_dir).is_dir() or not path.is_file():
+        return None
+    summary = read_json(path, max_bytes=1 << 20)
+    ev, base = (summary.get(k) if isinstance(summary, dict) else None for k in ("eval", "baselines"))
+    if not isinstance(ev, dict) or not isinstance(base, dict):
+        return None
+    rows = []
+    for key, bkey, label, higher in _AGAINST:
+        m, b = ev.get(key), base.get(bkey)
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in (m, b)):
+            raise ValueError(f"{path}: eval.{key} and baselines.{bkey} must be finite numbers, not {m!r} and {b!r}")
+        rows.append({"what": label, "model": float(m), "baseline": float(b), "wins": m > b if higher else m < b})
+    return {"steps": summary.get("steps"), "windows": ev.get("windows"), "rows": rows}
+
+
+def _baseline_lines(report: dict) -> list[str]:
+    """The report's first lines about the dynamics model against its trivial baselines (held-out, teacher-forced)."""
+    tb = report.get("training")
+    if not tb:
+        return []
+    lost = [r for r in tb["rows"] if not r["wins"]]
+    head = (
+        f"**The dynamics model does not beat every trivial baseline on held-out data** ({len(lost)} of {len(tb['rows'])} "
+        "comparisons lost; its budget or its corpus is too small for the vocabulary):"
+        if lost
+        else "The dynamics model beats every trivial baseline on held-out data:"
+    )
+    rows = [[r["what"], _num(r["model"]), _num(r["baseline"]), "yes" if r["wins"] else "**no**"] for r in tb["rows"]]
+    note = f"From the training run's summary: {tb['steps']} steps, {tb['windows']} held-out windows, one step ahead."
+    return [head, "", _table(["comparison", "model", "baseline", "model wins"], rows), "", note, ""]
+
+
 def _protocol_lines(report: dict) -> list[str]:
     """The report's first lines about its protocol: which counts and lengths are smaller than the paper's."""
     pr = report["protocol"]
@@ -590,7 +635,7 @@ def render_markdown(report: dict) -> str:
     """The report's markdown: the protocol, Tables 1–3, the long-horizon figures, the state layer, the contact sheet."""
     st = report["state_layer"]
     ws = report["windows"]
-    out = [f"# Evaluation of `{report['dynamics']}`", ""] + _protocol_lines(report)
+    out = [f"# Evaluation of `{report['dynamics']}`", ""] + _protocol_lines(report) + _baseline_lines(report)
     out += [
         f"Corpus `{report['corpus']}`; probe windows: {len(ws)} of {report['seed_frames']} seed + {report['horizon']} "
         f"predicted frames at {report['fps']:g} fps (split {report['split']!r}, window seed {report['seed']}, temperature "
@@ -890,6 +935,7 @@ def evaluate(
         "ablation": ablation,
         "long_horizon": curves,
         "video": video,
+        "training": training_against_baselines(dynamics_dir),
     }
     report = _write_report(_plain(report), sheet, out)
     log(f"evaluate: report in {out}")
