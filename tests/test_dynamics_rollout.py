@@ -115,7 +115,7 @@ def _playing_start(c: Corpus, segment: str, entity: int, run: int) -> int:
         at = k + SEED_FRAMES  # the first predicted frame
         if tok[at - 1] != 0 and np.all(tok[at - 1 : at + run] == tok[at - 1]) and mf[at] >= 6:
             return k
-    pytest.skip(f"{segment}: no stretch of {run} frames of one playing token")
+    raise AssertionError(f"{segment}: no stretch of {run} frames of one playing token: the test needs one")
 
 
 def test_forcing_the_playing_token_continues_it_and_another_token_restarts(ckpt, scanned):
