@@ -540,6 +540,7 @@ class _FrameGPT(nn.Module, ABC):
         self.embed = nn.ModuleDict({e: nn.Embedding(v, spec.action_embed) for e, v in zip(c.entities, c.vocab_sizes)})
         if c.token_classes:
             self.class_embed = nn.ModuleDict({e: nn.Embedding(N_TOKEN_CLASSES + 1, spec.action_embed) for e in c.entities})
+        self._class_tables: dict[tuple[int, torch.device], Tensor] = {}  # (entity, device) → token → class, built once
         on = [e for e, t in zip(c.entities, c.terrain) if t]
         self.terrain_mlp = nn.ModuleDict({e: _terrain_mlp(c.terrain_features, spec.terrain_hidden, spec.terrain_out) for e in on})
         in_dim = own_dims + c.n_entities * spec.action_embed + len(on) * spec.terrain_out
@@ -556,8 +557,10 @@ class _FrameGPT(nn.Module, ABC):
         feats = [self.embed[e](frames.tokens[..., i]) for i, e in enumerate(c.entities)]
         if c.token_classes:
             for i, e in enumerate(c.entities):
-                of_token = torch.tensor(c.token_classes[i], dtype=torch.long, device=frames.tokens.device)
-                feats[i] = feats[i] + self.class_embed[e](of_token[frames.tokens[..., i]])
+                key = (i, frames.tokens.device)
+                if key not in self._class_tables:  # not per call: a rollout runs this every frame
+                    self._class_tables[key] = torch.tensor(c.token_classes[i], dtype=torch.long, device=key[1])
+                feats[i] = feats[i] + self.class_embed[e](self._class_tables[key][frames.tokens[..., i]])
         if len(self.terrain_mlp):
             if frames.terrain is None:
                 raise ValueError(f"terrain features are on for {list(self.terrain_mlp)} but none were given")
