@@ -25,7 +25,7 @@ import pyarrow as pa
 from marionette.corpus import Corpus, fixed_rows, paths, video_shards
 from marionette.corpus.lock import corpus_lock
 from marionette.io import text_sha256
-from marionette.schema import Layout
+from marionette.schema import Entity, Layout
 
 from .camera import Cameras, follow_cameras, recorded_cameras
 from .gbuffer import GBufferMeta, write_gbuffer
@@ -33,6 +33,7 @@ from .kinematics import bone_segments, world_skeletons
 from .render import TERRAIN_CULL_M, Rasterizer
 
 BRIDGE_VERSION = "1"
+PLAYER_EDGES_KEY = "npc"  # WildWorld's skeleton key of the player character (the hunter rig)
 
 
 @dataclass(frozen=True)
@@ -147,9 +148,18 @@ def chunk_inputs(layout: Layout, rows: pa.Table) -> tuple[np.ndarray, dict, dict
     return state, anchors, {e.name: valid for e in layout.articulated}, rows["t"].to_numpy().astype(np.float64)
 
 
-def follow_view(layout: Layout, skel, fps: float, width: int, height: int, start: Cameras | None = None) -> Cameras:
-    """The follow camera (``camera.follow_cameras``) framing a ``Skeletons``' articulated entities, optionally seeded."""
+def followed_entities(layout: Layout) -> tuple[Entity, ...]:
+    """The articulated entities in the follow camera's order: the player first (the first whose rig's
+    ``edges_key`` is ``PLAYER_EDGES_KEY``, else the first articulated entity), then the others in layout order."""
     ents = layout.articulated
+    player = next((e for e in ents if e.rig.edges_key == PLAYER_EDGES_KEY), ents[0])
+    return (player, *(e for e in ents if e is not player))
+
+
+def follow_view(layout: Layout, skel, fps: float, width: int, height: int, start: Cameras | None = None) -> Cameras:
+    """The follow camera (``camera.follow_cameras``) behind a ``Skeletons``' player, framing the other entity
+    (``followed_entities``), optionally seeded."""
+    ents = followed_entities(layout)
     fwd = skel.rot[ents[0].name] @ np.asarray(ents[0].rig.forward_axis, np.float64)
     return follow_cameras(
         [skel.joints[e.name][:, 0] for e in ents], fwd, [skel.valid[e.name] for e in ents], fps, width, height, start=start
