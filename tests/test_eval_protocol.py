@@ -147,6 +147,8 @@ def test_ablation_numbers_for_every_condition(ckpt, corpus, windows):
     assert np.isnan(rows["no rule"]["on_ground"])  # no scan: not measured
     assert np.isnan(rows["no rule"]["cfr"]) and np.isnan(rows["no rule"]["mmp_m"])
     assert rows["+ collider + cap"]["ran"] and all(v == ["cap"] for v in rows["+ collider + cap"]["ran"].values())
+    # the cap holds every window within max(6 m, its separation at the seed's last frame); the bound is what it holds
+    assert rows["+ collider + cap"]["beyond_cap"] == 0.0 and rows["recorded"]["beyond_cap"] >= 0.0
 
 
 def test_report_directory_end_to_end(ckpt, dynamics_corpus, tmp_path):

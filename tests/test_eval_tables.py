@@ -16,6 +16,7 @@ from marionette.eval.protocol import (
     EvalProtocol,
     _ablation_row,
     controllability_probe,
+    pair_separation,
     parse_protocol,
     recorded_window,
     select_windows,
@@ -94,6 +95,13 @@ def test_table3_reads_sep_and_the_contact_rows_at_the_final_frame(dynamics_corpu
     rows = rows.set_column(i, rows.schema.field(i), pa.array(list(hunter), type=rows.schema.field(i).type))
     row = _ablation_row(c.layout, [(rows, None)], 20.0)
     assert row["sep_m"] == pytest.approx(5.0, abs=1e-9) and row["sep_3d_m"] == pytest.approx(np.hypot(5.0, 0.5), abs=1e-9)
+    # beyond the cap: the final 5 m is within max(6 m, the seed's separation) for any seed separation; 7 m is not
+    # when the seed ended within 6 m, and is when it ended 7.5 m apart
+    assert _ablation_row(c.layout, [(rows, None)], 20.0, [2.0])["beyond_cap"] == 0.0
+    far = rows.set_column(i, rows.schema.field(i), pa.array(list(mon + [7.0, 0.0, 0.0]), type=rows.schema.field(i).type))
+    assert _ablation_row(c.layout, [(far, None), (rows, None)], 20.0, [2.0, 2.0])["beyond_cap"] == 0.5
+    assert _ablation_row(c.layout, [(far, None)], 20.0, [7.5])["beyond_cap"] == 0.0
+    assert np.isnan(row["beyond_cap"])  # no seed separations given: not measured
 
     class Flat:  # ground at y = 0 everywhere
         def query(self, x, z, ref_y):
@@ -107,6 +115,23 @@ def test_table3_reads_sep_and_the_contact_rows_at_the_final_frame(dynamics_corpu
     r = _ablation_row(c.layout, [(sunk, Flat())], 20.0)["per_entity"]["monster"]
     assert r["cfr"] == 1.0 and r["mmp_m"] > 5.0  # only the final frame sinks: a mean over frames would be 1/20 and ~0.5 m
     assert r["on_ground"] == 1.0
+
+
+def test_engaged_windows_start_with_the_pair_within_the_distance(dynamics_corpus):
+    """``select_windows(engaged=d)``: every window whose segment allows it ends its seed with the pair within d."""
+    c = Corpus(dynamics_corpus)
+    plain = select_windows(c, 12, 16, 40, seed=5)
+    near = select_windows(c, 12, 16, 40, seed=5, engaged=6.0)
+    assert [w.segment for w in near] == [w.segment for w in plain]  # the same segments, other starts
+    seps = [float(pair_separation(c.layout, recorded_window(c, w).slice(w.seed_frames - 1, 1))[0]) for w in near]
+    allowed = []
+    for w in near:
+        s = pair_separation(c.layout, c.dynamics_segment(w.segment))
+        allowed.append(bool((s[w.seed_frames - 1 : len(s) - w.horizon] <= 6.0).any()))
+    print(
+        f"\nseed-end separations (m): plain {[round(float(pair_separation(c.layout, recorded_window(c, w).slice(w.seed_frames - 1, 1))[0]), 1) for w in plain]}, engaged {[round(x, 1) for x in seps]}"
+    )
+    assert all(s <= 6.0 for s, ok in zip(seps, allowed) if ok) and any(allowed)
 
 
 def test_protocols_are_typed_and_checked():

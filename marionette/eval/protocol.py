@@ -6,7 +6,10 @@ the controllability probe and the rule ablation. Definitions are DESIGN's "Evalu
   ``horizon`` predicted rows of the segment's dynamics view (the model's rate). Segments come from the
   "test" split ("train" when the corpus has none). ``numpy.random.default_rng(seed)`` shuffles the
   segments long enough for a window; window k takes segment k mod their count and a start uniform in
-  [0, frames − length]. A window longer than every segment (or than a named segment) is a ValueError.
+  [0, frames − length]. A window longer than every segment (or than a named segment) is a ValueError. With
+  ``engaged`` (metres; Tables 1 and 3 pass the cap's 6 m), the start is uniform over the starts whose seed ends with the
+  two articulated entities within that horizontal distance (the fight the cap is for, as the paper's recorded sessions
+  are), and over all starts in a segment that has none.
 - **Rollouts** (``run_windows``): the windows of one stage run as one batch (``Rollout.start_batch``);
   rules the stage cannot run (the collider without a scanned stage, the cap without two articulated
   entities) are dropped and reported, never an error. Stream b's sampler is seeded ``_stream_seed(seed, b)``:
@@ -32,7 +35,9 @@ the controllability probe and the rule ablation. Definitions are DESIGN's "Evalu
 - **Driving states** (``ablation_rollouts`` / ``rule_ablation``, Table 3): recorded / no rule / + collider /
   + collider + cap on the same windows, seed and checkpoint: CFR (share of windows with a key joint below
   H − 0.15 m), MMP, skate (``final_frame_skate``) and the root separation, all at the **final frame**, means over
-  windows and articulated entities; beside them the share of frames whose root is over scanned ground.
+  windows and articulated entities; beside them the share of frames whose root is over scanned ground, and the
+  share of windows that end **beyond the cap**: a final horizontal separation above max(6 m, the separation at the
+  seed's last frame), the bound the cap holds (``beyond_cap``; 0 under the cap by construction).
 - **Protocols** (``EvalProtocol``, ``PROTOCOLS``, ``parse_protocol``): the counts and lengths of one evaluation,
   "paper" (the paper's) and "quick" (the demo's), checked when made; ``reduced`` lists what is smaller than the paper's.
 """
@@ -47,7 +52,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from marionette.bridge.rules import enabled_rules
+from marionette.bridge.rules import RuleParams, enabled_rules
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.corpus.vocab import ActionTokens, classify
 from marionette.dynamics.checkpoint import read_meta
@@ -213,8 +218,10 @@ def select_windows(
     split: str = "test",
     segments: Sequence[str] | None = None,
     fps: float = 20.0,
+    engaged: float | None = None,
 ) -> list[Window]:
-    """``n`` windows (module doc), deterministic in ``seed``; ``segments`` names them instead of a split."""
+    """``n`` windows (module doc), deterministic in ``seed``; ``segments`` names them instead of a split; ``engaged``
+    (m) prefers starts whose seed ends with the pair within that horizontal distance."""
     c = as_corpus(corpus)
     if n < 1 or seed_frames < 1 or horizon < 1:
         raise ValueError(f"need n ≥ 1 windows of seed_frames ≥ 1 and horizon ≥ 1, not {n}, {seed_frames}, {horizon}")
@@ -243,8 +250,18 @@ def select_windows(
     out = []
     for k in range(n):
         s = order[k % len(order)]
-        out.append(Window(s, int(rng.integers(0, frames[s] - length + 1)), seed_frames, horizon, str(c.segment_row(s)["stage"])))
+        starts = np.arange(frames[s] - length + 1)
+        if engaged is not None and len(c.layout.articulated) == 2:
+            seps = pair_separation(c.layout, c.dynamics_segment(s, fps))[starts + seed_frames - 1]
+            starts = starts[seps <= engaged] if (seps <= engaged).any() else starts
+        out.append(Window(s, int(starts[rng.integers(0, len(starts))]), seed_frames, horizon, str(c.segment_row(s)["stage"])))
     return out
+
+
+def pair_separation(layout: Layout, rows: pa.Table) -> np.ndarray:
+    """Horizontal distance (m) between the two articulated entities' recorded world roots, per row (N,)."""
+    a, b = (fixed_rows(rows[f"{e.name}.root_world"], 3) for e in layout.articulated)
+    return np.hypot(a[:, 0] - b[:, 0], a[:, 2] - b[:, 2])
 
 
 def recorded_rows(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table:
@@ -687,13 +704,18 @@ def on_ground_share(roots_world: np.ndarray, field: Any) -> float:
     return float(np.isfinite(field.query(r[:, 0], r[:, 2], r[:, 1])).mean())
 
 
-def _ablation_row(layout: Layout, pairs: Sequence[tuple[pa.Table, Any]], fps: float) -> dict[str, Any]:
+def _ablation_row(
+    layout: Layout, pairs: Sequence[tuple[pa.Table, Any]], fps: float, seed_seps: Sequence[float] | None = None
+) -> dict[str, Any]:
     """At the final frame of each (rows, field) pair, window means: CFR (share of windows with a key joint below
     H − 0.15 m), MMP (m), skate (m/s) per articulated entity and their means over entities, and the horizontal
-    (and 3-D) root separation (m); beside them the share of frames whose root is on scanned ground."""
+    (and 3-D) root separation (m); beside them the share of frames whose root is on scanned ground and, given each
+    window's separation at its seed's last frame (``seed_seps``, m), the share of windows ending beyond the cap's bound
+    max(cap, that separation)."""
     keys = ("cfr", "mmp_m", "skate_mps", "on_ground")
     per: dict[str, dict[str, list[float]]] = {e.name: {k: [] for k in keys} for e in layout.articulated}
     sep, sep3 = [], []
+    cap = RuleParams().max_separation_m
     for rows, field in pairs:
         w = world_of_rows(layout, rows)
         for e in layout.articulated:
@@ -710,7 +732,16 @@ def _ablation_row(layout: Layout, pairs: Sequence[tuple[pa.Table, Any]], fps: fl
             sep3.append(float(d3))
     entity = {n: {k: summarise(v)["mean"] for k, v in d.items()} for n, d in per.items()}
     row = {k: _nanmean([entity[n][k] for n in entity]) for k in keys}
-    return {**row, "sep_m": summarise(sep)["mean"], "sep_3d_m": summarise(sep3)["mean"], "per_entity": entity}
+    beyond = float("nan")
+    if sep and seed_seps is not None:
+        beyond = float(np.mean([d > max(cap, s0) + 1e-6 for d, s0 in zip(sep, seed_seps)]))
+    return {
+        **row,
+        "sep_m": summarise(sep)["mean"],
+        "sep_3d_m": summarise(sep3)["mean"],
+        "beyond_cap": beyond,
+        "per_entity": entity,
+    }
 
 
 def _nanmean(v: Sequence[float]) -> float:
@@ -775,8 +806,15 @@ def rule_ablation(
     if rollouts is None:
         rollouts = ablation_rollouts(ckpt, c, windows, temperature=temperature, seed=seed, progress=progress)
     fields = {w.stage: open_terrain_field(c, w.segment) for w in windows}
+    seed_seps = None
+    if len(c.layout.articulated) == 2:
+        seed_seps = [
+            float(pair_separation(c.layout, t.slice(w.seed_frames - 1, 1))[0])
+            for t, w in zip(rollouts["recorded"]["tables"], windows)
+        ]
     rows = []
     for name, r in rollouts.items():
         pairs = [(predicted(t, w), fields[w.stage]) for t, w in zip(r["tables"], windows)]
-        rows.append({"condition": name, **{k: r[k] for k in ("rules", "ran", "note")}, **_ablation_row(c.layout, pairs, fps)})
+        row = _ablation_row(c.layout, pairs, fps, seed_seps)
+        rows.append({"condition": name, **{k: r[k] for k in ("rules", "ran", "note")}, **row})
     return {"conditions": rows, "windows": [asdict(w) for w in windows], "at": "final frame"}
