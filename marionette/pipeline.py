@@ -81,17 +81,19 @@ def build(
     terrain: bool = True,
     pose: bool = True,
     progress: bool = True,
+    scan_options=None,
     log=lambda *_: None,
 ) -> dict:
-    """Ingest every sample under ``source`` (``marionette.ingest.build_corpus``), then ``refresh`` the corpus;
-    returns the build report with "refresh" (a RefreshReport) and "failures" (counts by kind) added."""
+    """Ingest every sample under ``source`` (``marionette.ingest.build_corpus``), then ``refresh`` the corpus
+    (``scan_options`` as there); returns the build report with "refresh" (a RefreshReport) and "failures" (counts
+    by kind) added."""
     from marionette.ingest import build_corpus
 
     with corpus_lock(corpus, "ingest", share=True):
         report = build_corpus(source, corpus, options, workers=workers, progress=progress)
         done = RefreshReport()
         if report["info"]["total_ingested"] and (terrain or pose):
-            done = refresh(corpus, terrain=terrain, pose=pose, progress=progress, log=log)
+            done = refresh(corpus, terrain=terrain, pose=pose, progress=progress, scan_options=scan_options, log=log)
     report["refresh"] = done
     failed = done.failures()
     report["failures"] = {
