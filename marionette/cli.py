@@ -521,30 +521,44 @@ def _demo_dynamics(c, out: Path, steps: int) -> None:
 
 
 def _demo_observation(c, out: Path, steps: int) -> None:
-    """The demo's observation stage: train the tiny video model, then paint a held-out chunk's pose video from its first frame."""
+    """The demo's observation stage: train the tiny video model and its pixel-AR baseline side by side (one torch
+    thread each, the baseline in a child process: the tiny models are overhead-bound, so two at once finish in about
+    the time one takes on two threads), then paint a held-out chunk's pose video from its first frame."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    import torch
+
     from marionette.observation.generate import paint_video
     from marionette.observation.train import ObservationTrainConfig, train
 
-    runs = out / "observation"
+    runs, base = out / "observation", out / "observation-baseline"
     video = c.info.video
     reduce = 8 if video["height"] % 8 == 0 and video["width"] % 8 == 0 else 4
     tiny = dict(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3, warmup=20)
-    for control, where, what in (
-        ("pose", runs, "the observation model"),
-        ("actions", out / "observation-baseline", "its pixel-AR baseline"),
-    ):
-        t = time.time()
-        print(
-            f"[8/9] training {what} (tiny video DiT, control {control}, {steps} steps, 1/{reduce} of the chunk size) into {where}"
-        )
-        s = train(
-            c,
-            where,
-            ObservationTrainConfig(**tiny, control=control),
-            log=lambda m: print("   ", m) if not m.startswith("step ") else None,
-            progress=True,
-        )
-        print(f"    {s['steps']} steps in {time.time() - t:.1f} s")
+    t = time.time()
+    print(
+        f"[8/9] training the observation model (tiny video DiT, control pose) into {runs} and, beside it, its pixel-AR "
+        f"baseline (control actions) into {base}: {steps} steps each, 1/{reduce} of the chunk size"
+    )
+    threads = torch.get_num_threads()
+    with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+        baseline = pool.submit(_train_quietly, str(c.path), str(base), {**tiny, "control": "actions"})
+        torch.set_num_threads(1)
+        try:
+            train(
+                c,
+                runs,
+                ObservationTrainConfig(**tiny, control="pose"),
+                log=lambda m: print("   ", m) if not m.startswith("step ") else None,
+                progress=True,
+            )
+        finally:
+            torch.set_num_threads(threads)
+        print(f"    the observation model: {steps} steps in {time.time() - t:.1f} s; waiting for the baseline")
+        for m in baseline.result():
+            print("    baseline:", m)
+    print(f"    both trained in {time.time() - t:.1f} s")
     split = "test" if c.segment_ids("test") else None
     for seg in (r["segment"] for r in c.segments.to_pylist() if r["chunks"] and split in (None, r["split"])):
         posed = list(segment_chunks(c, seg, ("pose.mkv",))[1])  # the chunks holding a pose target
@@ -557,6 +571,20 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     export_chunk(c, seg, chunk, out)  # out/pose.mkv, out/first.png (and the recorded out/rgb.mp4)
     print(f"    painting chunk {chunk} of held-out segment {seg} from its first frame")
     paint_video(runs, out / "pose.mkv", out / "first.png", out / "generated.mp4", chunks=4, steps=8, seed=0, fps=30.0)
+
+
+def _train_quietly(corpus: str, out: str, config: dict) -> list[str]:
+    """Train a tiny observation model on one torch thread without a progress bar (the demo's child process); returns
+    its log lines but the per-step ones."""
+    import torch
+
+    from marionette.observation.train import ObservationTrainConfig, train
+
+    torch.set_num_threads(1)
+    lines: list[str] = []
+    started = time.time()
+    s = train(corpus, out, ObservationTrainConfig(**config), log=lambda m: None if m.startswith("step ") else lines.append(m))
+    return [*lines, f"{s['steps']} steps in {time.time() - started:.1f} s"]
 
 
 def scene_name(s: str) -> str:
