@@ -248,12 +248,15 @@ def select_windows(
     rng = np.random.default_rng(seed)
     order = [fit[i] for i in rng.permutation(len(fit))]
     out = []
+    near: dict[str, np.ndarray] = {}  # segment → its engaged starts, read once however many windows take it
     for k in range(n):
         s = order[k % len(order)]
         starts = np.arange(frames[s] - length + 1)
         if engaged is not None and len(c.layout.articulated) == 2:
-            seps = pair_separation(c.layout, c.dynamics_segment(s, fps))[starts + seed_frames - 1]
-            starts = starts[seps <= engaged] if (seps <= engaged).any() else starts
+            if s not in near:
+                ok = pair_separation(c.layout, c.dynamics_segment(s, fps))[starts + seed_frames - 1] <= engaged
+                near[s] = starts[ok] if ok.any() else starts
+            starts = near[s]
         out.append(Window(s, int(starts[rng.integers(0, len(starts))]), seed_frames, horizon, str(c.segment_row(s)["stage"])))
     return out
 
@@ -261,7 +264,7 @@ def select_windows(
 def pair_separation(layout: Layout, rows: pa.Table) -> np.ndarray:
     """Horizontal distance (m) between the two articulated entities' recorded world roots, per row (N,)."""
     a, b = (fixed_rows(rows[f"{e.name}.root_world"], 3) for e in layout.articulated)
-    return np.hypot(a[:, 0] - b[:, 0], a[:, 2] - b[:, 2])
+    return M.separation(a, b)[1]
 
 
 def recorded_rows(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table:
