@@ -204,7 +204,13 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
 @pytest.mark.timeout(300)
 def test_flow_in_process_reports_quarantined_sample(synth_small, tmp_path):
     from prefect.server.api.server import SubprocessASGIServer
-    from prefect.settings import PREFECT_API_URL, PREFECT_HOME, PREFECT_LOGGING_TO_API_ENABLED, temporary_settings
+    from prefect.settings import (
+        PREFECT_API_URL,
+        PREFECT_HOME,
+        PREFECT_LOGGING_TO_API_ENABLED,
+        PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS,
+        temporary_settings,
+    )
 
     from flows.build_corpus import build_corpus
 
@@ -214,7 +220,14 @@ def test_flow_in_process_reports_quarantined_sample(synth_small, tmp_path):
     (bad / "rgb.mp4").unlink()
     corpus = tmp_path / "corpus"
     # logs stay local here: shipping them to the ephemeral API races its shutdown at exit
-    settings = {PREFECT_HOME: tmp_path / "prefect-home", PREFECT_API_URL: None, PREFECT_LOGGING_TO_API_ENABLED: False}
+    # a fresh PREFECT_HOME means the ephemeral server migrates a new database first: on a loaded 2-core CI machine
+    # that took longer than Prefect's default 20 s wait
+    settings = {
+        PREFECT_HOME: tmp_path / "prefect-home",
+        PREFECT_API_URL: None,
+        PREFECT_LOGGING_TO_API_ENABLED: False,
+        PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS: 180,
+    }
     with temporary_settings(updates=settings):
         try:
             report = build_corpus(source=str(source), corpus=str(corpus), n_workers=2, **SMALL_VIDEO)
