@@ -326,6 +326,87 @@ def test_token_classes_share_an_embedding_per_class(duel, tiny):
     assert not hasattr(DynamicsModel(tiny).pose, "class_embed")  # off by default in the config: old checkpoints load
 
 
+def test_time_left_counts_down_to_an_events_end(duel, tiny):
+    """With ``clip_frames``, ActionGPT reads each entity's time left in its event: seconds (capped at 4) and the
+    inverse of the source frames left (1 on the last frame); a token of length 0 (a loop, no action) reads 4 s and 0.
+    Known answers; the config round-trips, a wrong table is refused, and the feature reaches the outputs."""
+    assert tiny.vocab_sizes == (7, 7)
+    lengths = ((0.0, 30.0, 10.0, 30.0, 0.0, 50.0, 150.0),) * 2  # tokens 0 and 4 do not end on their own
+    cfg = replace(tiny, clip_frames=lengths, source_fps=30.0)
+    assert DynamicsConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    with pytest.raises(ValueError, match="clip_frames"):
+        replace(tiny, clip_frames=((0.0, 0.5),) * tiny.n_entities)
+    model = DynamicsModel(cfg)
+    n = cfg.n_entities
+    tokens = torch.tensor([[[3] * n, [3] * n, [2] * n, [6] * n, [4] * n, [0] * n]])
+    progress = torch.tensor([[[0.0] * n, [29 / 30] * n, [0.5] * n, [0.0] * n, [0.9] * n, [0.0] * n]])
+    left = model.action.time_left(tokens, progress)  # (1, 6, 2N): seconds per entity, then inverses
+    expected_s = torch.tensor([1.0, 1 / 30, 5 / 30, 4.0, 4.0, 4.0])  # 150 frames = 5 s, capped at 4
+    expected_inv = torch.tensor([1 / 30, 1.0, 1 / 5, 1 / 150, 0.0, 0.0])
+    for i in range(n):
+        assert torch.allclose(left[0, :, i], expected_s)
+        assert torch.allclose(left[0, :, n + i], expected_inv)
+    model = with_heads(model)
+    frames = random_frames(cfg, 1, 6, seed=4)
+    later = replace(frames, progress=(frames.progress + 0.3).clamp(max=1.0))
+    assert (flat(model.action(later)) - flat(model.action(frames))).abs().max() > 1e-4
+    assert model.action.input.in_features == DynamicsModel(tiny).action.input.in_features + 2 * n
+
+
+def test_displacement_gate_blends_the_carried_displacement_and_the_head(tiny):
+    """With ``displacement_gate``, each displacement is g · carried + (1 − g) · head, g = sigmoid(gate head), carried =
+    ``frames.skip`` (a rollout's own proposal) or else ``frames.root``, nothing where an action starts (``frames.changed``,
+    else a token unlike the frame before); rotations are untouched. Untrained: g = sigmoid(2) and a zero head."""
+    from marionette.dynamics.model import GATE_INIT
+
+    cfg = replace(tiny, displacement_gate=True, rotation_anchor=True)
+    assert DynamicsConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    with pytest.raises(ValueError, match="residual"):
+        replace(tiny, displacement_gate=True, residual=True)
+    model = DynamicsModel(cfg).eval()
+    frames = random_frames(cfg, 2, 5, seed=6)
+    n = cfg.n_entities
+    frames = replace(frames, changed=torch.zeros(2, 5, n, dtype=torch.bool))  # every action continues
+    skip = torch.randn(frames.root.shape, generator=torch.Generator().manual_seed(7))
+    rot = model.action.rotation_mask.bool()
+    g0 = torch.sigmoid(torch.tensor(GATE_INIT))
+    with torch.no_grad():
+        out = model.action(frames).root
+        assert torch.allclose(out[..., ~rot], g0 * frames.root[..., ~rot])
+        assert torch.equal(out[..., rot], frames.root[..., rot])
+        carried = model.action(replace(frames, skip=skip)).root
+        assert torch.allclose(carried[..., ~rot], g0 * skip[..., ~rot])
+        assert torch.equal(carried[..., rot], frames.root[..., rot])
+        starts = torch.zeros(2, 5, n, dtype=torch.bool)
+        starts[:, 2, 0] = True  # entity 0's action starts at frame 2: nothing carried there
+        fresh = model.action(replace(frames, changed=starts)).root
+        first = torch.arange(cfg.root_dim) < 9  # entity 0's root stream
+        assert torch.all(fresh[:, 2, ~rot & first] == 0)
+        assert torch.equal(fresh[:, 2, ~rot & ~first], out[:, 2, ~rot & ~first])
+        derived = model.action(replace(frames, changed=None, tokens=frames.tokens[:, :1].expand(-1, 5, -1))).root
+        assert torch.allclose(derived[..., ~rot], g0 * frames.root[..., ~rot])  # constant tokens: no start
+        model.action.gate_head.bias.fill_(0.0)  # g = 0.5
+        model.action.root_head.bias.fill_(0.25)
+        half = model.action(frames).root
+        assert torch.allclose(half[..., ~rot], 0.5 * frames.root[..., ~rot] + 0.5 * 0.25)
+    assert not hasattr(DynamicsModel(tiny).action, "gate_head")  # off in the preset: old checkpoints load
+
+
+def test_adaptive_copy_starts_at_the_copy_gain_and_can_let_go(tiny):
+    """With ``adaptive_copy``, the current token's logit gets copy_gain + stay_head(h): untrained (stay head zero) the
+    logits equal a plain model's; a stay head that cancels the copy gain leaves the action heads alone."""
+    cfg = replace(tiny, adaptive_copy=True)
+    assert DynamicsConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    model, plain = DynamicsModel(cfg).eval(), DynamicsModel(tiny).eval()
+    frames = random_frames(cfg, 2, 5, seed=8)
+    with torch.no_grad():
+        for a, b in zip(model.action(frames).logits, plain.action(frames).logits):
+            assert torch.equal(a, b)
+        for i in range(cfg.n_entities):
+            model.action.stay_head.bias[i] = -model.action.copy_gain[i]
+        assert all(torch.all(lg == 0) for lg in model.action(frames).logits)  # zero heads, no copy: uniform
+
+
 # -- alignment, precision, determinism -----------------------------------------------------------------
 
 

@@ -366,3 +366,28 @@ def test_a_batch_of_streams_equals_the_streams_run_alone(ckpt, scanned):
         alone.start(rows)
         np.testing.assert_allclose(drawn[b], np.stack([alone.step() for _ in range(8)]), atol=1e-4)
     assert len({_stream_seed(s, b) for s in range(4) for b in range(4)}) == 16  # nearby seeds never coincide
+
+
+def test_the_optional_action_heads_train_and_roll_out_cached_as_recomputed(scanned, segment, tmp_path):
+    """``time_left``, ``adaptive_copy`` and ``displacement_gate`` (off by default): a few steps train, the checkpoint
+    records them, and a rollout with the rules on is finite and the same through the KV cache as recomputed; the gate
+    reads the rollout's own proposal (``Frames.skip``) and where each action starts (``Frames.changed``)."""
+    runs = tmp_path / "heads"
+    cfg = TrainConfig(steps=3, batch_size=4, window=16, warmup=1, time_left=True, adaptive_copy=True, displacement_gate=True)
+    train(scanned, runs, cfg, log=lambda *_: None)
+    c = Corpus(scanned)
+    ro = Rollout(runs, c, rules="auto")
+    assert ro.config.clip_frames and ro.config.adaptive_copy and ro.config.displacement_gate
+    events = [k for k, n in enumerate(ro.config.clip_frames[0]) if n > 0]
+    assert events and len(events) < len(ro.config.clip_frames[0]) - 1  # loops and token 0 read "not ending"
+    seen = []
+    step = ro.action_stream.model.read_out
+    ro.action_stream.model.read_out = lambda frames, h: seen.append(frames) or step(frames, h)
+    a = rollout(runs, scanned, segment, seed_frames=8, horizon=12, rules="auto")
+    b = rollout(runs, scanned, segment, seed_frames=8, horizon=12, rules="auto", cached=False)
+    sa, sb = (fixed_rows(t["state"], c.layout.dim) for t in (a, b))
+    assert np.isfinite(sa).all() and np.abs(sa - sb).max() < 1e-4
+    ro.start(c.dynamics_segment(segment).slice(0, 8))
+    seen.clear()
+    ro.step()
+    assert seen[-1].skip is not None and seen[-1].changed is not None and seen[-1].changed.shape == (1, 1, 2)

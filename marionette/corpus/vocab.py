@@ -97,6 +97,19 @@ class ActionTokens:
             tuple(clip),
         )
 
+    def event_lengths(self, vocab: dict) -> tuple[tuple[float, ...], ...]:
+        """Per entity, per token: its clip length (source frames) if the vocab's kind is "event", else 0 (a loop,
+        token 0): how long an action that ends on its own lasts."""
+        types = vocab.get("entity_types", {})
+        out = []
+        for i in range(len(self.entities)):
+            row = [0.0]
+            for key, vt, n in zip(self.type_keys[i][1:], self.vocab_tokens[i][1:], self.clip_lengths[i][1:]):
+                kind = next((a.get("kind") for a in types[key]["actions"] if a["token"] == int(vt)), None)
+                row.append(float(n) if kind == "event" else 0.0)
+            out.append(tuple(row))
+        return tuple(out)
+
     def class_indices(self, vocab: dict) -> tuple[tuple[int, ...], ...]:
         """Per entity, per token: 1 + the index of its vocab class in ``MOTION_CLASSES`` (0 for token 0 and for a
         class the list lacks)."""

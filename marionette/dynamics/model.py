@@ -17,20 +17,34 @@ The state vector splits, from the layout, into
 Alignment, for training on a window of frames x[0..T] (``action_training_pair``, ``pose_training_pair``):
 
 - ActionGPT step t reads root[t], tokens[t], progress[t], weapon[t] (from body[t]), terrain[t] and
-  relative[t]; it predicts root[t+1] and the logits of tokens[t+1].
+  relative[t], and with ``clip_frames`` each entity's time left in its event at t (``ActionGPT.time_left``:
+  seconds, capped at 4, and the inverse of the source frames left, 1 on an event's last frame: a sharp
+  signal of the frame an event ends, which progress alone, 1.5/clip length per model frame, is not);
+  it predicts root[t+1] and the logits of tokens[t+1].
 - PoseGPT step t reads body[t] and the conditions of the frame being animated: tokens[t+1] (the
   caller's, possibly overridden), root[t+1] (likewise), terrain[t+1] and relative[t+1]; it predicts
   body[t+1].
 
 Heads. ActionGPT's root head predicts the next displacements outright and, with ``rotation_anchor``
-on, each next rotation as rot6d[t] + Δ (the rollout re-orthonormalises it). PoseGPT's body head, with
-``body_anchor`` on, predicts body[t+1] = g ⊙ body[t] + Δ with g one learned gain per body dimension
-(starting at 1); with either off, that part is predicted outright. With ``residual`` on (for
-comparison; it excludes both anchors) both heads add Δ to the current frame with gain 1. Every output
-head starts at zero, so an untrained model predicts its anchors: copy-last body and rotations, the
-mean displacement, and (with ActionGPT's copy gain) the current action. Residual heads drift in long
-rollouts, and a learned gain on the displacement does too (it amplifies the head's bias by 1/(1 − g);
-the pair ran off by kilometres over 10,000 frames, docs/tradeoffs.md), so displacements stay absolute.
+on, each next rotation as rot6d[t] + Δ (the rollout re-orthonormalises it). With ``displacement_gate``
+on, each next displacement is g · carried + (1 − g) · head, g = sigmoid(gate head) in (0, 1) per
+dimension, carried = ``frames.skip`` when given, else root[t]: a rollout passes its own proposal of
+root[t], before the rules corrected it (the separation cap moves both bodies by half the excess, and a
+carried correction became a common motion that grew to 50 m/s; the transformer still reads the corrected
+root), and g is 0 where an action starts (``ActionGPT.action_starts``): a new action's first displacement
+is the head's. Off by default in training: it beats constant velocity one step ahead but weakened what a
+forced token does (docs/tradeoffs.md). PoseGPT's body head, with ``body_anchor`` on, predicts
+body[t+1] = g ⊙ body[t] + Δ with g one learned gain per body dimension (starting at 1); with either
+off, that part is predicted outright. With
+``residual`` on (for comparison; it excludes the anchors and the gate) both heads add Δ to the current
+frame with gain 1. Every output head starts at zero, so an untrained model predicts its anchors:
+copy-last body and rotations, sigmoid(``GATE_INIT``) = 0.88 of the current displacement (the mean
+without the gate), and (with ActionGPT's copy gain) the current action; with ``adaptive_copy`` the copy
+gain gets a per-frame term from a stay head (starting at 0), so the model can let go of the current
+action where it expects a change without outbidding a gain of ~7 with one token's logit. Residual heads
+drift in long rollouts, and a learned gain on the displacement does too (it amplifies the head's bias by
+1/(1 − g); the pair ran off by kilometres over 10,000 frames, docs/tradeoffs.md): the gate's g stays
+below 1 and its carried displacement is the model's own.
 Inputs are expected normalised by the caller.
 
 Attention window and streaming. ``forward`` over T frames lets frame i attend to frames
@@ -182,13 +196,33 @@ class DynamicsConfig:
     residual: bool = False  # heads predict a change added to the current frame's value
     body_anchor: bool = False  # PoseGPT predicts gain ⊙ body[t] + Δ, a learned gain per dimension (init 1)
     rotation_anchor: bool = False  # ActionGPT predicts every E.rot6d as rot6d[t] + Δ (displacements stay absolute)
+    # ActionGPT predicts every E.root as g · root[t] + (1 − g) · head, g = sigmoid(gate head) in (0, 1) per dimension
+    displacement_gate: bool = False
+    # ActionGPT's copy gain on the current token gets a learned, frame-dependent term (``stay_head``, from 0)
+    adaptive_copy: bool = False
     dropout: float = 0.0
     # per entity, per token: its motion class (1 + index in corpus.vocab.MOTION_CLASSES, 0 none); when given, a
     # learned class embedding is added to every token's, so a rarely played token starts from its class's motion
     token_classes: tuple[tuple[int, ...], ...] = ()
+    # per entity, per token: the clip length in source frames of a token that ends on its own (an event; the vocab's
+    # clip_length), 0 for one that does not (a loop, token 0); when given, ActionGPT reads each entity's time left
+    # in its event (``time_left``), which is when the next action starts
+    clip_frames: tuple[tuple[float, ...], ...] = ()
+    source_fps: float = 30.0  # the rate clip_frames count at (the corpus's)
 
     def __post_init__(self) -> None:
         n = len(self.entities)
+        if self.clip_frames and (
+            len(self.clip_frames) != n
+            or any(len(t) != v for t, v in zip(self.clip_frames, self.vocab_sizes))
+            or any(not (x >= 1 or x == 0) for t in self.clip_frames for x in t)
+        ):
+            raise ValueError(
+                f"dynamics config: clip_frames must give each of the {n} entities one length (≥ 1, or 0) per token "
+                f"(vocab sizes {self.vocab_sizes})"
+            )
+        if not self.source_fps > 0:
+            raise ValueError(f"dynamics config: source_fps {self.source_fps} must be > 0")
         if self.token_classes and (
             len(self.token_classes) != n
             or any(len(t) != v for t, v in zip(self.token_classes, self.vocab_sizes))
@@ -207,8 +241,10 @@ class DynamicsConfig:
             raise ValueError(f"dynamics config: vocab sizes {self.vocab_sizes} must be ≥ 1 (token 0 = no valid action)")
         if self.window < 1:
             raise ValueError(f"dynamics config: window {self.window} must be ≥ 1 frame")
-        if self.residual and (self.body_anchor or self.rotation_anchor):
-            raise ValueError("dynamics config: residual (both heads, gain 1) excludes body_anchor and rotation_anchor")
+        if self.residual and (self.body_anchor or self.rotation_anchor or self.displacement_gate):
+            raise ValueError(
+                "dynamics config: residual (both heads, gain 1) excludes body_anchor, rotation_anchor and displacement_gate"
+            )
         for name, spec in (("action_gpt", self.action_gpt), ("pose_gpt", self.pose_gpt)):
             if spec.width % spec.heads or spec.head_dim % 2:
                 raise ValueError(
@@ -280,6 +316,8 @@ class DynamicsConfig:
                 v = TransformerSpec(**v)
             elif k == "token_classes" and isinstance(v, list):
                 v = tuple(tuple(int(x) for x in t) for t in v)
+            elif k == "clip_frames" and isinstance(v, list):
+                v = tuple(tuple(float(x) for x in t) for t in v)
             elif isinstance(v, list):
                 v = tuple(bool(x) if k == "terrain" else x for x in v)
             kw[k] = v
@@ -296,7 +334,10 @@ class Frames:
     ``root`` (B, T, root_dim) and ``body`` (B, T, body_dim) float; ``tokens`` (B, T, N) int64;
     ``progress`` (B, T, N) in [0, 1] (ActionGPT only); ``terrain`` (B, T, N, terrain_features), read
     only for entities whose terrain switch is on; ``relative`` (B, T, N, 3), read only when
-    ``relative_position`` is on."""
+    ``relative_position`` is on; ``skip`` (B, T, root_dim), what ActionGPT's displacement gate carries
+    over (a rollout's own proposal before the rules), ``root`` when None; ``changed`` (B, T, N) bool, whether
+    each entity's action starts at the frame (the gate carries nothing there), when None derived from
+    ``tokens`` (a token unlike the frame before; never at the first frame)."""
 
     root: Tensor
     body: Tensor
@@ -304,6 +345,8 @@ class Frames:
     progress: Tensor | None = None
     terrain: Tensor | None = None
     relative: Tensor | None = None
+    skip: Tensor | None = None
+    changed: Tensor | None = None
 
     def time_slice(self, start: int | None = None, stop: int | None = None) -> Frames:
         """The frames [start, stop) of every input."""
@@ -541,6 +584,7 @@ class _FrameGPT(nn.Module, ABC):
         if c.token_classes:
             self.class_embed = nn.ModuleDict({e: nn.Embedding(N_TOKEN_CLASSES + 1, spec.action_embed) for e in c.entities})
         self._class_tables: dict[tuple[int, torch.device], Tensor] = {}  # (entity, device) → token → class, built once
+        self._clip_tables: dict[torch.device, list[Tensor]] = {}  # device → per entity: token → clip length, built once
         on = [e for e, t in zip(c.entities, c.terrain) if t]
         self.terrain_mlp = nn.ModuleDict({e: _terrain_mlp(c.terrain_features, spec.terrain_hidden, spec.terrain_out) for e in on})
         in_dim = own_dims + c.n_entities * spec.action_embed + len(on) * spec.terrain_out
@@ -596,6 +640,9 @@ class _FrameGPT(nn.Module, ABC):
         return self.transformer.cache_empty(batch, p.device, p.dtype)
 
 
+GATE_INIT = 2.0  # the displacement gate's initial logit: g = 0.88, mostly the current displacement
+
+
 class ActionGPT(_FrameGPT):
     """Next root stream and next action of every entity, from the root stream, current actions,
     their progress, the weapon sub-state and optional terrain and relative features.
@@ -604,21 +651,33 @@ class ActionGPT(_FrameGPT):
     learned scalar per entity lets the model hold the current action and spend the head on when it
     changes. It starts at log(99 (vocab − 1)) and the heads at zero, so an untrained model gives the current
     token 0.99 and predicts copy-last exactly. Actions persist for tens of frames, so copy-last is a strong
-    baseline (~0.98 next-token accuracy on the synthetic corpus) that a head alone learns only slowly."""
+    baseline (~0.98 next-token accuracy on the synthetic corpus) that a head alone learns only slowly. With
+    ``adaptive_copy`` the gain is ``copy_gain[i] + stay_head(h)[i]`` (the stay head starts at zero)."""
 
     def __init__(self, config: DynamicsConfig, seed: int | torch.Generator = 0) -> None:
         super().__init__()
         self.config, self.spec = config, config.action_gpt
         c, s = config, config.action_gpt
         with torch.device("meta"):
-            self._build_encoders(s, c, own_dims=c.root_dim + c.n_entities + c.weapon_dim)  # root, progress, weapon
+            # root, progress, weapon, and with clip_frames each entity's time left (2 per entity)
+            own = c.root_dim + c.n_entities + c.weapon_dim + (2 * c.n_entities if c.clip_frames else 0)
+            self._build_encoders(s, c, own_dims=own)
             self.root_head = nn.Linear(s.width, c.root_dim)
             self.action_heads = nn.ModuleDict({e: nn.Linear(s.width, v) for e, v in zip(c.entities, c.vocab_sizes)})
             self.copy_gain = nn.Parameter(torch.empty(c.n_entities))
+            if c.displacement_gate:
+                self.gate_head = nn.Linear(s.width, c.root_dim)
+            if c.adaptive_copy:
+                self.stay_head = nn.Linear(s.width, c.n_entities)
         self._materialize(seed)
         rot6d = [k % ROOT_PER_ENTITY >= 3 for k in range(c.root_dim)]  # per entity: E.root (3) then E.rot6d (6)
         self.register_buffer("rotation_mask", torch.tensor(rot6d, dtype=torch.float32), persistent=False)
         self._zero_heads(self.root_head, *self.action_heads.values())
+        if c.adaptive_copy:
+            self._zero_heads(self.stay_head)
+        if c.displacement_gate:
+            self._zero_heads(self.gate_head)
+            nn.init.constant_(self.gate_head.bias, GATE_INIT)
         with torch.no_grad():  # initial P(next token = current) = 0.99 (the heads start at 0)
             self.copy_gain.copy_(torch.tensor([math.log(99.0 * (v - 1)) if v > 1 else 0.0 for v in c.vocab_sizes]))
 
@@ -627,7 +686,36 @@ class ActionGPT(_FrameGPT):
         if frames.progress is None:
             raise ValueError("ActionGPT reads the actions' progress; frames.progress is None")
         weapon = frames.body[..., c.weapon[0] : c.weapon[1]]
-        return torch.cat([frames.root, frames.progress.to(frames.root.dtype), weapon, *self._shared_features(frames)], dim=-1)
+        progress = frames.progress.to(frames.root.dtype)
+        left = [self.time_left(frames.tokens, progress)] if c.clip_frames else []
+        return torch.cat([frames.root, progress, weapon, *left, *self._shared_features(frames)], dim=-1)
+
+    def time_left(self, tokens: Tensor, progress: Tensor) -> Tensor:
+        """Each entity's time left in its event (B, T, 2N): seconds, (1 − progress) · clip length / source fps capped
+        at 4 s, then the inverse of the source frames left (1 on an event's last frame, ½ on the one before, → 0
+        early on); a token that does not end on its own (clip length 0: a loop, no action) reads 4 s and 0."""
+        c = self.config
+        key = tokens.device
+        if key not in self._clip_tables:  # not per call: a rollout runs this every frame
+            self._clip_tables[key] = [torch.tensor(t, dtype=torch.float64, device=key) for t in c.clip_frames]
+        frames_left = torch.stack(
+            [
+                torch.where(table[tokens[..., i]] > 0, (1 - progress[..., i].double()) * table[tokens[..., i]], math.inf)
+                for i, table in enumerate(self._clip_tables[key])
+            ],
+            -1,
+        )  # (B, T, N) source frames
+        seconds = (frames_left / c.source_fps).clamp(max=4.0)
+        inverse = 1.0 / frames_left.clamp(min=1.0)
+        return torch.cat([seconds, inverse], -1).to(progress.dtype)
+
+    @staticmethod
+    def action_starts(frames: Frames) -> Tensor:
+        """(B, T, N) bool: ``frames.changed``, or a token unlike the frame before (not at the first frame)."""
+        if frames.changed is not None:
+            return frames.changed.bool()
+        tok = frames.tokens
+        return torch.cat([torch.zeros_like(tok[:, :1], dtype=torch.bool), tok[:, 1:] != tok[:, :-1]], dim=1)
 
     def read_out(self, frames: Frames, h: Tensor) -> ActionOutputs:
         root = self.root_head(h)  # (B, T, root_dim)
@@ -635,10 +723,16 @@ class ActionGPT(_FrameGPT):
             root = frames.root + root
         elif self.config.rotation_anchor:
             root = root + self.rotation_mask.to(h.dtype) * frames.root
+        if self.config.displacement_gate:
+            g = torch.sigmoid(self.gate_head(h)) * (1 - self.rotation_mask.to(h.dtype))
+            g = g * (~self.action_starts(frames)).to(h.dtype).repeat_interleave(ROOT_PER_ENTITY, dim=-1)
+            root = root + g * ((frames.root if frames.skip is None else frames.skip) - root)
         logits = []
+        stay = self.stay_head(h) if self.config.adaptive_copy else None  # (B, T, N)
         for i, (e, v) in enumerate(zip(self.config.entities, self.config.vocab_sizes)):
             current = F.one_hot(frames.tokens[..., i], v).to(h.dtype)  # (B, T, v)
-            logits.append(self.action_heads[e](h) + self.copy_gain[i].to(h.dtype) * current)
+            gain = self.copy_gain[i].to(h.dtype) + (0.0 if stay is None else stay[..., i : i + 1])
+            logits.append(self.action_heads[e](h) + gain * current)
         return ActionOutputs(root=root, logits=tuple(logits))
 
 

@@ -110,11 +110,15 @@ class ModelStream:
 def _concat(frames: Sequence[Frames]) -> Frames:
     """Frames joined along time."""
     first = frames[0]
+    skip = None
+    if any(f.skip is not None for f in frames):  # the seed frames have none: their own root
+        skip = torch.cat([f.root if f.skip is None else f.skip for f in frames], dim=1)
     return Frames(
         **{
             k: None if getattr(first, k) is None else torch.cat([getattr(f, k) for f in frames], dim=1)
-            for k in ("root", "body", "tokens", "progress", "terrain", "relative")
-        }
+            for k in ("root", "body", "tokens", "progress", "terrain", "relative", "changed")
+        },
+        skip=skip,
     )
 
 
@@ -215,6 +219,8 @@ class Rollout:
         progress: Sequence | None,
         terrain: Sequence | None,
         relative: Sequence | None,
+        skip: Sequence | None = None,
+        changed: Sequence | None = None,
     ) -> Frames:
         """One frame of B streams (per-stream arrays, or None for an input the model does not read) as Frames (B, 1, ·)."""
 
@@ -224,7 +230,16 @@ class Rollout:
             return torch.as_tensor(np.stack([np.asarray(p, np.float32) for p in parts])).to(self.dtype)[:, None]
 
         toks = torch.as_tensor(np.stack([np.asarray(k, np.int64) for k in tokens]))[:, None]
-        return Frames(root=t(root_n), body=t(body_n), tokens=toks, progress=t(progress), terrain=t(terrain), relative=t(relative))
+        return Frames(
+            root=t(root_n),
+            body=t(body_n),
+            tokens=toks,
+            progress=t(progress),
+            terrain=t(terrain),
+            relative=t(relative),
+            skip=t(skip),
+            changed=None if changed is None else torch.as_tensor(np.stack(changed)).bool()[:, None],
+        )
 
     # -- the stream ------------------------------------------------------------------------------
 
@@ -261,8 +276,13 @@ class Rollout:
         self.action_stream.reset(B)
         self.pose_stream.reset(B)
         col = lambda j, k: [p[j][k] for p in per]  # noqa: E731  field j of frame k, per stream
+        # where each seed action starts, as ActionGPT derives it from a window's tokens in training
+        starts = [np.concatenate([np.zeros((1, len(p[2][0])), bool), p[2][1:] != p[2][:-1]]) for p in per]
         for k in range(n):
-            out = self.action_stream.step(self._frames(col(0, k), col(1, k), col(2, k), col(3, k), col(4, k), col(5, k)))
+            seen = [x[k] for x in starts]
+            out = self.action_stream.step(
+                self._frames(col(0, k), col(1, k), col(2, k), col(3, k), col(4, k), col(5, k), changed=seen)
+            )
             if k + 1 < n:  # PoseGPT step k animates frame k + 1 from body k
                 self.pose_stream.step(self._frames(col(0, k + 1), col(1, k), col(2, k + 1), None, col(4, k + 1), col(5, k + 1)))
         self._out = out
@@ -372,10 +392,11 @@ class Rollout:
         new = join_state(raws, nz.denormalise_body(body_n[:, 0].float().numpy().astype(np.float64)), L)
         # world skeletons, the rules (per stream: they hold state), and the state re-derived from the corrected skeletons
         world = _world_after(L, new, prev_roots)
-        frames, progs = [], []
+        frames, progs, changed = [], [], []
         for b, sc in enumerate(self.scenes):
             tok = toks[b]
             prog = np.zeros(len(tok))
+            changed.append(np.array([tok[i] != sc.tok[i] or i in restart[b] for i in range(len(tok))]))
             for i in range(len(tok)):
                 if tok[i] != 0 and tok[i] == sc.tok[i] and i not in restart[b]:
                     p = sc.progress[i] + self._advance[i][tok[i]]
@@ -403,7 +424,10 @@ class Rollout:
         terrains = self._terrain(joints, geo.quat_to_matrix(quats))
         relatives = [self._relative(r, geo.quat_to_matrix(q)) for r, q in zip(roots_w, quats)]
         # ActionGPT reads the corrected frames
-        self._out = self.action_stream.step(self._frames(roots_c, bodies_c, toks, progs, terrains, relatives))
+        # (its displacement gate carries over the proposed root stream, not the rules' corrections of it, and nothing
+        # where an action starts: a new, forced or replayed token)
+        skip = root_all if c.displacement_gate else None
+        self._out = self.action_stream.step(self._frames(roots_c, bodies_c, toks, progs, terrains, relatives, skip, changed))
         self.t += 1
         return states
 

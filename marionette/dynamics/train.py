@@ -112,12 +112,27 @@ class TrainConfig:
     dropout: float = knob(0.0, "dropout in both transformers", min=0.0, below=1.0)
     # Long rollouts (docs/tradeoffs.md): residual heads integrate their errors and leave the data; a learned gain on
     # the body anchor (it falls below 1 on noised inputs) keeps bones steady over 10,000 frames; on the displacement
-    # it still runs off by kilometres, so displacements are absolute. Untrained, the anchors are the baselines.
+    # it ran off by kilometres, so displacements are absolute unless ``displacement_gate`` blends in the current one (in a
+    # rollout: the model's own proposal, not the rules' correction of it). Untrained, the anchors are the baselines.
+    # time_left, adaptive_copy and displacement_gate each trade controllability for a one-step comparison
+    # (docs/tradeoffs.md, "The time left in an event, adaptive copy and a gated displacement"): off by default.
     residual: bool = knob(False, "both heads add a change to the current frame, gain 1 (DynamicsConfig.residual)")
     token_classes: bool = knob(True, "add a learned embedding of each token's motion class (DynamicsConfig.token_classes)")
+    time_left: bool = knob(False, "ActionGPT reads each event's time left (DynamicsConfig.clip_frames)")
     body_anchor: bool = knob(True, "PoseGPT predicts gain ⊙ current body + a change, a gain per dimension; off with residual")
     rotation_anchor: bool = knob(True, "ActionGPT predicts each root rotation as the current one + a change; off with residual")
-    input_noise: float = knob(0.1, "std (normalised units) of Gaussian noise on the models' root and body inputs", min=0.0)
+    adaptive_copy: bool = knob(False, "ActionGPT's copy gain on the current token gets a learned per-frame term")
+    displacement_gate: bool = knob(
+        False, "ActionGPT predicts each displacement as g · the current one + (1 − g) · a head, g a learned gate in (0, 1)"
+    )
+    input_noise: float = knob(
+        0.1, "std (normalised units) of Gaussian noise on the models' body inputs and PoseGPT's root inputs", min=0.0
+    )
+    root_noise: float | None = knob(
+        None,
+        "std of the Gaussian noise on ActionGPT's root inputs (0 for the gate, which carries them); None: input_noise",
+        min=0.0,
+    )
     w_action: float = knob(1.0, "weight of the next-action cross-entropy", min=0.0)
     label_smoothing: float = knob(0.1, "label smoothing of the next-action cross-entropy", min=0.0, below=1.0)
     w_root: float = knob(1.0, "weight of the next-root MSE", min=0.0)
@@ -283,17 +298,19 @@ def losses(
 ) -> dict[str, Tensor]:
     """The weighted terms and their sum for one batch; ``action``/``pose`` may be DDP wrappers.
 
-    With ``config.input_noise`` > 0 and a ``noise`` generator, the models read root and body inputs
-    with Gaussian noise added and predict the clean next frame (targets are never noised)."""
+    With a ``noise`` generator, the models read their inputs with Gaussian noise added and predict the clean next
+    frame (targets are never noised): std ``config.input_noise`` on the bodies and PoseGPT's roots,
+    ``config.root_noise`` on ActionGPT's roots."""
     a_in, (root_next, tok_next) = action_training_pair(batch.frames)
     p_in, body_next = pose_training_pair(batch.frames)
-    if config.input_noise and noise is not None:
+    root_std = config.input_noise if config.root_noise is None else config.root_noise
+    if (config.input_noise or root_std) and noise is not None:
 
-        def jitter(x: Tensor) -> Tensor:
-            return x + config.input_noise * torch.randn(x.shape, generator=noise).to(x.device, x.dtype)
+        def jitter(x: Tensor, std: float) -> Tensor:
+            return x + std * torch.randn(x.shape, generator=noise).to(x.device, x.dtype)
 
-        a_in = replace(a_in, root=jitter(a_in.root), body=jitter(a_in.body))
-        p_in = replace(p_in, root=jitter(p_in.root), body=jitter(p_in.body))
+        a_in = replace(a_in, root=jitter(a_in.root, root_std), body=jitter(a_in.body, config.input_noise))
+        p_in = replace(p_in, root=jitter(p_in.root, config.input_noise), body=jitter(p_in.body, config.input_noise))
     out = action(a_in)
     body = pose(p_in)
     terms = {
@@ -452,7 +469,11 @@ def train(
         residual=config.residual,
         body_anchor=config.body_anchor and not config.residual,
         rotation_anchor=config.rotation_anchor and not config.residual,
+        displacement_gate=config.displacement_gate and not config.residual,
+        adaptive_copy=config.adaptive_copy,
         token_classes=tokens.class_indices(corpus.vocab) if config.token_classes else (),
+        clip_frames=tokens.event_lengths(corpus.vocab) if config.time_left else (),
+        source_fps=float(corpus.fps),
         **terrain_switch,
     )
     hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None
