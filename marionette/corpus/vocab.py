@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 import pyarrow as pa
@@ -97,31 +97,34 @@ class ActionTokens:
             tuple(clip),
         )
 
+    def token_field(self, vocab: dict, field: str) -> tuple[tuple[Any, ...], ...]:
+        """Per entity, per token: ``field`` of its action in a vocab.json's contents (None for token 0 and where the
+        action lacks it)."""
+        types = vocab.get("entity_types", {})
+        by_token = {key: {int(a["token"]): a for a in t["actions"]} for key, t in types.items()}
+        return tuple(
+            (
+                None,
+                *(by_token[key].get(int(vt), {}).get(field) for key, vt in zip(self.type_keys[i][1:], self.vocab_tokens[i][1:])),
+            )
+            for i in range(len(self.entities))
+        )
+
     def event_lengths(self, vocab: dict) -> tuple[tuple[float, ...], ...]:
         """Per entity, per token: its clip length (source frames) if the vocab's kind is "event", else 0 (a loop,
         token 0): how long an action that ends on its own lasts."""
-        types = vocab.get("entity_types", {})
-        out = []
-        for i in range(len(self.entities)):
-            row = [0.0]
-            for key, vt, n in zip(self.type_keys[i][1:], self.vocab_tokens[i][1:], self.clip_lengths[i][1:]):
-                kind = next((a.get("kind") for a in types[key]["actions"] if a["token"] == int(vt)), None)
-                row.append(float(n) if kind == "event" else 0.0)
-            out.append(tuple(row))
-        return tuple(out)
+        return tuple(
+            tuple(float(n) if k == "event" else 0.0 for k, n in zip(kinds, lengths))
+            for kinds, lengths in zip(self.token_field(vocab, "kind"), self.clip_lengths)
+        )
 
     def class_indices(self, vocab: dict) -> tuple[tuple[int, ...], ...]:
         """Per entity, per token: 1 + the index of its vocab class in ``MOTION_CLASSES`` (0 for token 0 and for a
         class the list lacks)."""
-        types = vocab.get("entity_types", {})
-        out = []
-        for i in range(len(self.entities)):
-            row = [0]
-            for key, vt in zip(self.type_keys[i][1:], self.vocab_tokens[i][1:]):
-                cls = next((a.get("class") for a in types[key]["actions"] if a["token"] == int(vt)), None)
-                row.append(MOTION_CLASSES.index(cls) + 1 if cls in MOTION_CLASSES else 0)
-            out.append(tuple(row))
-        return tuple(out)
+        return tuple(
+            tuple(MOTION_CLASSES.index(c) + 1 if c in MOTION_CLASSES else 0 for c in classes)
+            for classes in self.token_field(vocab, "class")
+        )
 
     @classmethod
     def from_corpus(cls, corpus: Corpus | Path | str) -> ActionTokens:

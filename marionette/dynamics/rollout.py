@@ -276,10 +276,10 @@ class Rollout:
         self.action_stream.reset(B)
         self.pose_stream.reset(B)
         col = lambda j, k: [p[j][k] for p in per]  # noqa: E731  field j of frame k, per stream
-        # where each seed action starts, as ActionGPT derives it from a window's tokens in training
+        # the gate's: where each seed action starts, as ActionGPT derives it from a window's tokens in training
         starts = [np.concatenate([np.zeros((1, len(p[2][0])), bool), p[2][1:] != p[2][:-1]]) for p in per]
         for k in range(n):
-            seen = [x[k] for x in starts]
+            seen = [x[k] for x in starts] if self.config.displacement_gate else None
             out = self.action_stream.step(
                 self._frames(col(0, k), col(1, k), col(2, k), col(3, k), col(4, k), col(5, k), changed=seen)
             )
@@ -396,7 +396,8 @@ class Rollout:
         for b, sc in enumerate(self.scenes):
             tok = toks[b]
             prog = np.zeros(len(tok))
-            changed.append(np.array([tok[i] != sc.tok[i] or i in restart[b] for i in range(len(tok))]))
+            if c.displacement_gate:  # where each action starts: the gate carries nothing there
+                changed.append(np.array([tok[i] != sc.tok[i] or i in restart[b] for i in range(len(tok))]))
             for i in range(len(tok)):
                 if tok[i] != 0 and tok[i] == sc.tok[i] and i not in restart[b]:
                     p = sc.progress[i] + self._advance[i][tok[i]]
@@ -427,7 +428,9 @@ class Rollout:
         # (its displacement gate carries over the proposed root stream, not the rules' corrections of it, and nothing
         # where an action starts: a new, forced or replayed token)
         skip = root_all if c.displacement_gate else None
-        self._out = self.action_stream.step(self._frames(roots_c, bodies_c, toks, progs, terrains, relatives, skip, changed))
+        self._out = self.action_stream.step(
+            self._frames(roots_c, bodies_c, toks, progs, terrains, relatives, skip, changed or None)
+        )
         self.t += 1
         return states
 
