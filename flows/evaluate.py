@@ -6,7 +6,7 @@ tables as artifacts.
     curves, the state layer) → report dir → artifacts
 
 ``protocol`` names the counts and lengths (``marionette.eval.protocol.PROTOCOLS``: "paper", "quick");
-``segments``, ``seed_frames``, ``horizon`` and ``rollouts`` change them when given. The report directory holds
+``segments``, ``seed_frames``, ``horizon``, ``rollouts`` and ``state_rollouts`` change them when given. The report directory holds
 ``report.md``, ``report.json`` and the plots; the flow publishes ``report.md`` as a markdown artifact and the
 headline numbers as a table artifact.
 """
@@ -59,10 +59,12 @@ def evaluate(
     seed_frames: int | None = None,
     horizon: int | None = None,
     rollouts: int | None = None,
+    state_rollouts: int | None = None,
     seed: int = 0,
 ) -> dict:
     """Evaluate a dynamics checkpoint (training directory or checkpoint) on ``corpus``; the report goes to ``out``."""
     given = {"probe_windows": segments, "seed_frames": seed_frames, "horizon": horizon, "rollouts": rollouts}
+    given["state_rollouts"] = state_rollouts
     overrides = {k: v for k, v in given.items() if v is not None}
     summary = run_protocol(dynamics, corpus, out, protocol, observation, baseline, overrides, seed)
     markdown = Path(summary["report_md"]).read_text()

@@ -411,7 +411,8 @@ def cmd_eval(a: argparse.Namespace) -> int:
     from marionette.eval.report import evaluate
 
     bars = None if a.quiet else ProgressBars()
-    fields = ("probe_windows", "seed_frames", "horizon", "rollouts", "rollout_seconds", "fvd_steps")
+    fields = ("probe_windows", "seed_frames", "horizon", "rollouts", "rollout_seconds", "state_rollouts", "state_seconds")
+    fields += ("fvd_steps",)
     overrides = {k: getattr(a, k) for k in fields if getattr(a, k) is not None}
     try:
         options = dict(protocol=a.protocol, observation=a.observation, baseline=a.baseline, seed=a.seed, i3d=a.i3d)
@@ -740,6 +741,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--horizon", type=positive_int, help="predicted frames of each probe window (default: the protocol's)")
     s.add_argument("--rollouts", type=at_least_two, help="long rollouts of Tables 1 and 3 (default: the protocol's)")
     s.add_argument("--rollout-seconds", type=positive_float, help="length of each long rollout, s (default: the protocol's)")
+    s.add_argument(
+        "--state-rollouts",
+        type=at_least_two,
+        help="long rollouts of Table 3's state columns, ≥ --rollouts; the first are painted (default: the protocol's)",
+    )
+    s.add_argument("--state-seconds", type=positive_float, help="their length, s, ≥ --rollout-seconds (default: the protocol's)")
     s.add_argument("--fvd-steps", type=positive_int, help="sampling steps of the observation models (default: the protocol's)")
     s.add_argument("--seed", type=non_negative_int, default=0, help="seed of the window choice and the samplers")
     s.add_argument("--i3d", type=Path, help="Inception-I3D weights (safetensors) for FVD proper (default: the labelled proxy)")

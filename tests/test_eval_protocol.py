@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from marionette.eval.protocol import (
     PROBE_CONDITIONS,
     controllability_probe,
     foot_joints,
+    parse_protocol,
     recorded_rows,
     rule_ablation,
     run_windows,
@@ -80,6 +82,18 @@ def test_windows_longer_than_a_segment_are_a_clear_error(corpus):
     seg = corpus.segment_ids("test")[0]
     with pytest.raises(ValueError, match=f"do not fit in segment '{seg}'"):
         select_windows(corpus, 2, 64, 100_000, segments=[seg])
+
+
+def test_state_rollouts_longer_than_every_segment_are_cut_to_the_painted_length(corpus):
+    frames = max(corpus.dynamics_segment(s).num_rows for s in corpus.segment_ids("test"))
+    proto = parse_protocol("quick", seed_frames=SEED, state_seconds=frames / 20.0)  # seed + this outgrow every segment
+    long, why = R._long_windows(corpus, proto, 60, seed=1, split="test", fps=20.0)
+    assert len(long) == proto.state_count == 8 and {w.horizon for w in long} == {60}
+    assert why.startswith("state rollouts cut to the painted 3 s:") and "longer than every segment" in why
+    long, why = R._long_windows(corpus, replace(proto, state_seconds=4.0), 60, seed=1, split="test", fps=20.0)
+    assert {w.horizon for w in long} == {80} and why == ""
+    long, why = R._long_windows(corpus, proto, frames, seed=1, split="test", fps=20.0)  # not even the painted ones fit
+    assert long == [] and "longer than every segment" in why
 
 
 def test_batched_windows_equal_single_rollouts(ckpt, corpus, windows, free):
@@ -154,19 +168,23 @@ def test_ablation_numbers_for_every_condition(ckpt, corpus, windows):
 def test_report_directory_end_to_end(ckpt, dynamics_corpus, tmp_path):
     out = tmp_path / "report"
     lines = []
-    run = dict(protocol="quick", probe_windows=N, seed_frames=SEED, horizon=HORIZON)
+    run = dict(protocol="quick", probe_windows=N, seed_frames=SEED, horizon=HORIZON, state_rollouts=3, state_seconds=5.0)
     s = evaluate(ckpt, dynamics_corpus, out, **run, log=lines.append)
     assert s["out_dir"] == str(out) and s["windows"] == N and lines
     md = (out / "report.md").read_text()
     assert md.splitlines()[2].startswith(
-        "**Protocol `quick (changed: horizon, probe_windows, seed_frames)` is smaller than the paper's**"
+        "**Protocol `quick (changed: horizon, probe_windows, seed_frames, state_rollouts, state_seconds)` is smaller than"
     )
     for heading in ("Table 1", "Table 2 — Controllability probe", "Table 3", "Long horizon", "State layer", "Not run"):
         assert heading in md
     rep = json.loads((out / "report.json").read_text())
     assert set(rep["probe"]["conditions"]) == set(PROBE_CONDITIONS)
     assert [r["condition"] for r in rep["ablation"]["conditions"]] == ["recorded", "no rule", "+ collider", "+ collider + cap"]
-    assert len(rep["ablation"]["windows"]) == rep["protocol"]["rollouts"] == 2
+    # Table 3's state columns run on the 3 state rollouts of 5 s (the first 2 would be painted, cut to 3 s)
+    assert len(rep["ablation"]["windows"]) == rep["protocol"]["state_rollouts"] == 3 and rep["protocol"]["rollouts"] == 2
+    assert {w["horizon"] for w in rep["ablation"]["windows"]} == {100} and rep["ablation"]["seconds"] == 5.0
+    assert "3 long rollouts of 5 s from" in md and not rep["ablation"]["cut"]
+    assert len(rep["long_horizon"]["drift_m"]["hunter"]) == 100  # the curves run as long as the state rollouts
     assert set(s["plots"]) == {"ablation", "class_ratios", "compliance", "drift"}
     for path in s["plots"].values():
         assert Path(path).read_bytes()[:8] == PNG
@@ -311,10 +329,12 @@ def test_report_scores_the_baseline_in_the_same_table(ckpt, posed, tmp_path):
     train(posed, obs, ObservationTrainConfig(**tiny), log=lambda *_: None)
     train(posed, base, ObservationTrainConfig(**tiny, control="actions"), log=lambda *_: None)
     out = tmp_path / "report"
-    s = evaluate(ckpt, posed, out, protocol="quick", probe_windows=2, observation=obs, baseline=base, log=lambda *_: None)
+    run = dict(protocol="quick", probe_windows=2, state_rollouts=3, state_seconds=4.0)
+    s = evaluate(ckpt, posed, out, **run, observation=obs, baseline=base, log=lambda *_: None)
     rep = json.loads((out / "report.json").read_text())
     v, proto = rep["video"], rep["protocol"]
-    assert v["run"] and v["skipped"] == [] and len(v["windows"]) == proto["rollouts"]
+    assert v["run"] and v["skipped"] == [] and v["windows"] == list(range(proto["rollouts"]))  # the state rollouts' first
+    assert len(rep["ablation"]["windows"]) == 3 and "FVD16: the first 2 of them" in (out / "report.md").read_text()
     T = round(proto["rollout_seconds"] * 30)
     t1 = v["table1"]
     for col in ("marionette", "baseline"):

@@ -139,6 +139,16 @@ def test_protocols_are_typed_and_checked():
     assert PAPER.reduced() == [] and "probe_windows 4 (paper 48)" in quick.reduced()
     assert (PAPER.probe_windows, PAPER.seed_frames, PAPER.horizon, PAPER.temperature) == (48, 64, 120, 0.0)
     assert parse_protocol("quick", rollouts=3).rollouts == 3
+    # Table 3's state rollouts: the paper's are the painted ones; the quick protocol measures the rules on more and longer
+    assert (PAPER.state_count, PAPER.state_length_s) == (PAPER.rollouts, PAPER.rollout_seconds) == (32, 16.0)
+    assert (quick.state_count, quick.state_length_s) == (8, 9.0) and "state_seconds 9 (paper 16)" in quick.reduced()
+    more = parse_protocol("quick", rollouts=12, rollout_seconds=10.0)  # the state rollouts grow with the painted ones
+    assert (more.state_count, more.state_length_s) == (12, 10.0)
+    assert parse_protocol("quick", rollouts=3, state_rollouts=5).state_count == 5
+    with pytest.raises(ValueError, match="state_rollouts is an integer ≥ rollouts"):
+        parse_protocol("quick", rollouts=4, state_rollouts=3)
+    with pytest.raises(ValueError, match="state_seconds ≥ rollout_seconds"):
+        parse_protocol("quick", state_seconds=2.0)
     with pytest.raises(ValueError, match="unknown protocol 'papr'"):
         parse_protocol("papr")
     with pytest.raises(ValueError, match=r"\['segments'\] are not fields"):

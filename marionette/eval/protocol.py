@@ -40,6 +40,9 @@ the controllability probe and the rule ablation. Definitions are DESIGN's "Evalu
   seed's last frame), the bound the cap holds (``beyond_cap``; 0 under the cap by construction).
 - **Protocols** (``EvalProtocol``, ``PROTOCOLS``, ``parse_protocol``): the counts and lengths of one evaluation,
   "paper" (the paper's) and "quick" (the demo's), checked when made; ``reduced`` lists what is smaller than the paper's.
+  Table 3's state columns may run on more and longer rollouts (``state_rollouts`` × ``state_seconds``) than Tables 1
+  and 3 paint: the painted rollouts are the first ``rollouts`` of them, cut to ``rollout_seconds``. The paper's are
+  the same rollouts; the quick protocol paints 2 × 3 s and measures the rules on 8 × 9 s.
 """
 
 from __future__ import annotations
@@ -99,6 +102,11 @@ class EvalProtocol:
     fvd_steps: int = 20  # sampling steps of the observation model
     resamples: int = 200  # clip-bootstrap resamples of every interval
     temperature: float = 0.0  # sampling temperature of every rollout
+    # Table 3's state columns and the long-horizon curves: this many long rollouts of this many seconds (None: as
+    # ``rollouts`` / ``rollout_seconds``); the first ``rollouts`` of them, cut to ``rollout_seconds``, are the painted
+    # ones. State rollouts are cheap and painting is not, so a small protocol can keep Table 3's rules measurable.
+    state_rollouts: int | None = None
+    state_seconds: float | None = None
 
     def __post_init__(self) -> None:
         for f in ("probe_windows", "seed_frames", "horizon", "rollouts", "clip_frames", "clips_per_rollout", "fvd_steps"):
@@ -116,6 +124,30 @@ class EvalProtocol:
             raise ValueError(
                 f"protocol {self.name!r}: rollout_seconds > 0 and temperature ≥ 0, not {self.rollout_seconds}, {self.temperature}"
             )
+        if self.state_rollouts is not None and (
+            not isinstance(self.state_rollouts, int)
+            or isinstance(self.state_rollouts, bool)
+            or self.state_rollouts < self.rollouts
+        ):
+            raise ValueError(
+                f"protocol {self.name!r}: state_rollouts is an integer ≥ rollouts ({self.rollouts}; the painted rollouts are "
+                f"the first of them), not {self.state_rollouts!r}"
+            )
+        if self.state_seconds is not None and not self.state_seconds >= self.rollout_seconds:
+            raise ValueError(
+                f"protocol {self.name!r}: state_seconds ≥ rollout_seconds ({self.rollout_seconds:g} s; the painted rollouts "
+                f"are their beginnings), not {self.state_seconds!r}"
+            )
+
+    @property
+    def state_count(self) -> int:
+        """Long rollouts of Table 3's state columns (``state_rollouts``, else ``rollouts``)."""
+        return self.rollouts if self.state_rollouts is None else self.state_rollouts
+
+    @property
+    def state_length_s(self) -> float:
+        """Seconds of each of those rollouts (``state_seconds``, else ``rollout_seconds``)."""
+        return self.rollout_seconds if self.state_seconds is None else float(self.state_seconds)
 
     def video_frames(self, video_fps: float) -> int:
         """Video frames T of one long rollout at ``video_fps``, checked to hold every FVD clip and the final chunk."""
@@ -135,7 +167,7 @@ class EvalProtocol:
     def reduced(self) -> list[str]:
         """The counts and lengths where this protocol is smaller than the paper's, as "field value (paper value)"."""
         paper = PROTOCOLS["paper"]
-        return [
+        out = [
             f"{f} {getattr(self, f):g} (paper {getattr(paper, f):g})"
             for f in (
                 "probe_windows",
@@ -151,6 +183,13 @@ class EvalProtocol:
             )
             if getattr(self, f) < getattr(paper, f)
         ]
+        for f, mine, theirs in (
+            ("state_rollouts", self.state_count, paper.state_count),
+            ("state_seconds", self.state_length_s, paper.state_length_s),
+        ):
+            if mine < theirs:
+                out.append(f"{f} {mine:g} (paper {theirs:g})")
+        return out
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -170,6 +209,8 @@ PROTOCOLS = {
         final_frames=41,
         fvd_steps=4,
         resamples=100,
+        state_rollouts=8,  # Table 3's rules need more than 2 × 3 s to show: 8 × 9 s of state cost seconds, unpainted
+        state_seconds=9.0,
     ),
 }
 
@@ -186,7 +227,12 @@ def parse_protocol(protocol: EvalProtocol | str, **overrides: Any) -> EvalProtoc
         raise ValueError(f"protocol options {unknown} are not fields of EvalProtocol ({', '.join(sorted(fields))})")
     if not overrides:
         return protocol
-    return replace(protocol, name=f"{protocol.name} (changed: {', '.join(sorted(overrides))})", **overrides)
+    name = f"{protocol.name} (changed: {', '.join(sorted(overrides))})"
+    # more or longer painted rollouts than the named protocol's state rollouts: the state rollouts grow with them
+    for painted, state in (("rollouts", "state_rollouts"), ("rollout_seconds", "state_seconds")):
+        if painted in overrides and state not in overrides and getattr(protocol, state) is not None:
+            overrides[state] = max(getattr(protocol, state), overrides[painted])
+    return replace(protocol, name=name, **overrides)
 
 
 @dataclass(frozen=True)

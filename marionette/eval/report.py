@@ -5,10 +5,12 @@
 - on ``probe_windows`` held-out windows (``seed_frames`` + ``horizon``): the Free rollouts (rules "auto") and their
   state-layer metrics beside the recorded rows, and **Table 2**, the controllability probe (Free / Force-GT /
   Force-Shuf / run-level shuffle, GT < Shuf counts, per-class Shuf/GT ratios, compliance);
-- on ``rollouts`` long held-out windows (``rollout_seconds`` of video): the four driving states (``ablation_rollouts``)
-  and **Table 3** at their final frame, the long-horizon curves (``video.long_horizon_curves``) and, with an
-  observation model (and a pixel-AR baseline), **Table 1** and Table 3's FVD column (``video.video_tables``);
-  a corpus with no segment long enough gets those tables "not run" with the reason, the rest of the report still;
+- on ``state_rollouts`` long held-out windows (``state_seconds``): the four driving states (``ablation_rollouts``)
+  and **Table 3** at their final frame and the long-horizon curves (``video.long_horizon_curves``); on the first
+  ``rollouts`` of them cut to ``rollout_seconds`` of video, with an observation model (and a pixel-AR baseline),
+  **Table 1** and Table 3's FVD column (``video.video_tables``); a corpus with no segment long enough for
+  ``state_seconds`` gets state rollouts as long as the painted ones (the table says so), one with none long enough
+  for those gets the tables "not run" with the reason, the rest of the report still;
 - then writes ``<out>/report.md`` (its first lines say which counts are smaller than the paper's), ``report.json``,
   the PNG plots and the contact sheet. The directory is built beside ``out`` and renamed into place, so a reader
   never sees half a report; an existing ``out`` is replaced only if it holds a previous report (or nothing).
@@ -29,7 +31,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -587,16 +589,23 @@ def _table3_lines(report: dict) -> list[str]:
             ]
         )
     p = report["protocol"]
+    segments = len({w["segment"] for w in ab["windows"]})
+    seconds = ab.get("seconds", p["rollout_seconds"])
+    painted = ""
+    if v.get("run") and (len(v["windows"]) < len(ab["windows"]) or seconds > p["rollout_seconds"]):
+        painted = f"the first {len(v['windows'])} of them (Table 1's painted rollouts, {p['rollout_seconds']:g} s), "
     return [
         "## Table 3 — driving states",
         "",
-        f"{len(ab['windows'])} long rollouts ({p['rollout_seconds']:g} s); CFR, MMP, skate and Sep at the **final frame** "
+        f"{len(ab['windows'])} long rollouts of {seconds:g} s from {segments} held-out segment{'s' * (segments > 1)}; "
+        "CFR, MMP, skate and Sep at the **final frame** "
         "(CFR: share of rollouts with a key joint below H − 0.15 m there; means over the articulated entities, per entity in "
         "report.json; Sep horizontal; beyond cap: share of rollouts ending farther apart than max(6 m, their separation at the "
         "seed's last frame), the bound the cap holds; every rollout starts with the pair within 6 m where its segment "
-        f"allows). FVD{p['clip_frames']}: each state painted by the same observation model "
+        f"allows). FVD{p['clip_frames']}: {painted}each state painted by the same observation model "
         "(bias-corrected 95 % interval); root on ground: share of frames whose root stands over scanned ground.",
         "",
+        *([f"Note: {ab['cut']}.", ""] if ab.get("cut") else []),
         _table(
             [
                 "state",
@@ -910,18 +919,13 @@ def evaluate(
     temp = proto.temperature
     windows = select_windows(c, proto.probe_windows, proto.seed_frames, proto.horizon, seed, split=split, fps=fps)
     horizon_long = long_horizon(proto, float(c.fps), fps, [m.config.frames for m in models.values()])
-    try:
-        engaged = RuleParams().max_separation_m  # long rollouts start in the fight the cap is for
-        long = select_windows(c, proto.rollouts, proto.seed_frames, horizon_long, seed + 1, split=split, fps=fps, engaged=engaged)
-    except ValueError as err:  # a corpus of short segments: Tables 1 and 3 say why they were not run
-        long, why_not = [], str(err)
-    else:
-        why_not = ""
+    long, why_not = _long_windows(c, proto, horizon_long, seed + 1, split, fps)
     names = [e.name for e in c.layout.articulated]
     entity = entity if entity in names else names[-1]
     log(
         f"evaluate: protocol {proto.name!r}; {len(windows)} probe windows of {proto.seed_frames} + {proto.horizon} frames, "
-        f"{len(long)} long rollouts of {horizon_long} frames, split {split!r}"
+        f"{len(long)} long rollouts of {long[0].horizon if long else 0} frames (the first {min(len(long), proto.rollouts)} "
+        f"painted over {horizon_long}), split {split!r}"
     )
     free, ran = run_windows(
         dynamics_dir, c, windows, rules="auto", temperature=temp, seed=seed, progress=progress, phase="Free rollouts"
@@ -932,7 +936,8 @@ def evaluate(
     probe = controllability_probe(
         dynamics_dir, c, windows, entity=entity, temperature=temp, seed=seed, free=free, progress=progress
     )
-    ablation, curves, video = _long_tables(dynamics_dir, c, long, why_not, proto, models, extractor, seed, log, progress)
+    painted = (horizon_long, models, extractor)
+    ablation, curves, video = _long_tables(dynamics_dir, c, long, why_not, proto, painted, seed, log, progress)
     sheet = video.pop("sheet", None)
     video.update({k: str(v) for k, v in (("observation", observation), ("baseline", baseline)) if v is not None})
     report = {
@@ -967,21 +972,40 @@ def evaluate(
     }
 
 
+def _long_windows(c: Corpus, proto: EvalProtocol, painted: int, seed: int, split: str, fps: float) -> tuple[list[Window], str]:
+    """The long rollouts' windows: ``proto.state_count`` of ``proto.state_length_s`` (at least ``painted`` predicted
+    frames), started in the fight the cap is for; when no held-out segment holds that length, of ``painted`` frames
+    instead. Returns (windows, why): no windows and the reason when not even ``painted`` fits, else why they were cut."""
+    engaged = RuleParams().max_separation_m
+    want = max(painted, math.ceil(proto.state_length_s * fps))
+    why = ""
+    for horizon in dict.fromkeys((want, painted)):
+        try:
+            got = select_windows(c, proto.state_count, proto.seed_frames, horizon, seed, split=split, fps=fps, engaged=engaged)
+        except ValueError as err:  # a corpus of short segments: Table 3's rollouts are cut, or Tables 1 and 3 not run
+            why = why or str(err)
+            continue
+        cut = f"state rollouts cut to the painted {painted / fps:g} s: {why}" if why else ""
+        return got, cut
+    return [], why
+
+
 def _long_tables(
     dynamics_dir: Path | str,
     c: Corpus,
     long: Sequence[Window],
     why_not: str,
     proto: EvalProtocol,
-    models: dict[str, Any],
-    extractor: Any,
+    painted: tuple[int, dict[str, Any], Any],
     seed: int,
     log: Callable[[str], Any],
     progress: Progress | None,
 ) -> tuple[dict, dict, dict]:
-    """Table 3's state columns, the long-horizon curves and the video tables over the long rollouts (``why_not``
-    in each, marked not run, when there are none)."""
+    """Table 3's state columns and the long-horizon curves over the long rollouts, the video tables over the first
+    ``proto.rollouts`` of them cut to the ``painted`` = (predicted frames, models, extractor) the observation layer
+    paints; with no long rollouts each is marked not run with ``why_not``, with some it says why they were cut."""
     fps = model_fps(dynamics_dir)
+    horizon, models, extractor = painted
     if not long:
         log(f"evaluate: Tables 1 and 3 not run: {why_not}")
         return (
@@ -991,12 +1015,14 @@ def _long_tables(
         )
     log("evaluate: the driving states on the long rollouts (Table 3)")
     states = ablation_rollouts(dynamics_dir, c, long, temperature=proto.temperature, seed=seed, progress=progress)
-    ablation = rule_ablation(dynamics_dir, c, long, rollouts=states)
+    ablation = rule_ablation(dynamics_dir, c, long, rollouts=states) | {"seconds": long[0].horizon / fps, "cut": why_not}
     tables = {k: v["tables"] for k, v in states.items()}
     curves = long_horizon_curves(c, long, tables, proto, fps)
     log("evaluate: the observation layer (Tables 1 and 3)" if models else "evaluate: no observation model: no FVD")
     obs, base = models.get("observation"), models.get("baseline")
-    video = video_tables(c, long, tables, proto, obs, base, extractor=extractor, seed=seed, progress=progress)
+    windows = [replace(w, horizon=horizon) for w in long[: proto.rollouts]]
+    cut = {k: [t.slice(0, w.length) for t, w in zip(v, windows)] for k, v in tables.items()}
+    video = video_tables(c, windows, cut, proto, obs, base, extractor=extractor, seed=seed, progress=progress)
     return ablation, curves, video
 
 
