@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -92,6 +93,7 @@ def protocol(a: argparse.Namespace) -> None:
         select_windows,
         state_layer,
     )
+    from marionette.eval.report import long_windows
     from marionette.eval.video import long_horizon, paint_frames, score_videos, video_tables
 
     print(preamble("Evaluation protocol: minutes per table (quick and paper) and confidence against windows"))
@@ -116,12 +118,14 @@ def protocol(a: argparse.Namespace) -> None:
         )
         if name == "quick":
             H = long_horizon(p, vfps, fps, [m.config.frames for m in models])
-            long = select_windows(c, p.rollouts, p.seed_frames, H, 1, fps=fps)
-            states, t_roll = _timed(ablation_rollouts, a.dynamics, c, long, temperature=p.temperature)
-            _, t_rows = _timed(rule_ablation, a.dynamics, c, long, rollouts=states)
-            tables = {k: v["tables"] for k, v in states.items()}
+            split = "test" if c.segment_ids("test") else "train"
+            states_at, _ = long_windows(c, p, H, 1, split, fps)  # Table 3's state rollouts, as evaluate takes them
+            states, t_roll = _timed(ablation_rollouts, a.dynamics, c, states_at, temperature=p.temperature)
+            _, t_rows = _timed(rule_ablation, a.dynamics, c, states_at, rollouts=states)
+            long = [replace(w, horizon=H) for w in states_at[: p.rollouts]]  # the painted ones
+            tables = {k: [t.slice(0, w.length) for t, w in zip(v["tables"], long)] for k, v in states.items()}
             video, t_video = _timed(video_tables, c, long, tables, p, obs, base)
-            roll_rate = t_roll / (3 * len(long) * H)
+            roll_rate = t_roll / (3 * sum(w.horizon for w in states_at))
             per = {id(m): (paint_frames(p.video_frames(vfps), m.config.frames) - 1) // (m.config.frames - 1) for m in models}
             chunks = len(tables) * per[id(obs)] + (per[id(base)] if base is not None else 0)  # model chunks per rollout
             paint_rate = t_video / (len(long) * chunks * p.fvd_steps)  # s per model chunk and sampling step (incl. render, score)
@@ -133,7 +137,7 @@ def protocol(a: argparse.Namespace) -> None:
             )
         else:
             H = long_horizon(p, vfps, fps, [m.config.frames for m in models])
-            cost[name]["Table 3 (3 rolled-out states)"] = per_frame * 3 * p.rollouts * H
+            cost[name]["Table 3 (3 rolled-out states)"] = per_frame * 3 * p.state_count * H
             T = p.video_frames(vfps)
             n_chunks = 4 * (paint_frames(T, obs.config.frames) - 1) // (obs.config.frames - 1)
             if base is not None:

@@ -87,12 +87,12 @@ def test_windows_longer_than_a_segment_are_a_clear_error(corpus):
 def test_state_rollouts_longer_than_every_segment_are_cut_to_the_painted_length(corpus):
     frames = max(corpus.dynamics_segment(s).num_rows for s in corpus.segment_ids("test"))
     proto = parse_protocol("quick", seed_frames=SEED, state_seconds=frames / 20.0)  # seed + this outgrow every segment
-    long, why = R._long_windows(corpus, proto, 60, seed=1, split="test", fps=20.0)
+    long, why = R.long_windows(corpus, proto, 60, seed=1, split="test", fps=20.0)
     assert len(long) == proto.state_count == 8 and {w.horizon for w in long} == {60}
     assert why.startswith("state rollouts cut to the painted 3 s:") and "longer than every segment" in why
-    long, why = R._long_windows(corpus, replace(proto, state_seconds=4.0), 60, seed=1, split="test", fps=20.0)
+    long, why = R.long_windows(corpus, replace(proto, state_seconds=4.0), 60, seed=1, split="test", fps=20.0)
     assert {w.horizon for w in long} == {80} and why == ""
-    long, why = R._long_windows(corpus, proto, frames, seed=1, split="test", fps=20.0)  # not even the painted ones fit
+    long, why = R.long_windows(corpus, proto, frames, seed=1, split="test", fps=20.0)  # not even the painted ones fit
     assert long == [] and "longer than every segment" in why
 
 

@@ -919,7 +919,7 @@ def evaluate(
     temp = proto.temperature
     windows = select_windows(c, proto.probe_windows, proto.seed_frames, proto.horizon, seed, split=split, fps=fps)
     horizon_long = long_horizon(proto, float(c.fps), fps, [m.config.frames for m in models.values()])
-    long, why_not = _long_windows(c, proto, horizon_long, seed + 1, split, fps)
+    long, why_not = long_windows(c, proto, horizon_long, seed + 1, split, fps)
     names = [e.name for e in c.layout.articulated]
     entity = entity if entity in names else names[-1]
     log(
@@ -972,7 +972,7 @@ def evaluate(
     }
 
 
-def _long_windows(c: Corpus, proto: EvalProtocol, painted: int, seed: int, split: str, fps: float) -> tuple[list[Window], str]:
+def long_windows(c: Corpus, proto: EvalProtocol, painted: int, seed: int, split: str, fps: float) -> tuple[list[Window], str]:
     """The long rollouts' windows: ``proto.state_count`` of ``proto.state_length_s`` (at least ``painted`` predicted
     frames), started in the fight the cap is for; when no held-out segment holds that length, of ``painted`` frames
     instead. Returns (windows, why): no windows and the reason when not even ``painted`` fits, else why they were cut."""
