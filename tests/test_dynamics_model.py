@@ -387,9 +387,39 @@ def test_displacement_gate_blends_the_carried_displacement_and_the_head(tiny):
         assert torch.allclose(derived[..., ~rot], g0 * frames.root[..., ~rot])  # constant tokens: no start
         model.action.gate_head.bias.fill_(0.0)  # g = 0.5
         model.action.root_head.bias.fill_(0.25)
-        half = model.action(frames).root
-        assert torch.allclose(half[..., ~rot], 0.5 * frames.root[..., ~rot] + 0.5 * 0.25)
+        half = model.action(frames)
+        assert torch.allclose(half.root[..., ~rot], 0.5 * frames.root[..., ~rot] + 0.5 * 0.25)
+        assert torch.allclose(half.proposal[..., ~rot], torch.full_like(half.proposal[..., ~rot], 0.25))  # the head's
+    # the blend holds the head fixed: its loss trains the gate (and the trunk through it), the proposal's the head
+    out = model.action(frames)
+    out.root.square().sum().backward()
+    assert model.action.root_head.weight.grad is None or not model.action.root_head.weight.grad.any()
+    assert model.action.gate_head.weight.grad.abs().sum() > 0
+    model.zero_grad()
+    model.action(frames).proposal.square().sum().backward()
+    assert model.action.root_head.weight.grad.abs().sum() > 0
+    assert model.action.gate_head.weight.grad is None or not model.action.gate_head.weight.grad.any()
+    assert DynamicsModel(tiny).action(frames).proposal is None
     assert not hasattr(DynamicsModel(tiny).action, "gate_head")  # off in the preset: old checkpoints load
+
+
+def test_pose_progress_is_read_by_posegpt_only_when_on(tiny):
+    """With ``pose_progress``, PoseGPT reads each entity's progress at the frame it animates (n more inputs): its body
+    moves with the progress; without it, progress changes nothing PoseGPT predicts and a window needs none."""
+    cfg = replace(tiny, pose_progress=True)
+    assert DynamicsConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    model, plain = with_heads(DynamicsModel(cfg)).eval(), with_heads(DynamicsModel(tiny)).eval()
+    assert model.pose.input.in_features == plain.pose.input.in_features + cfg.n_entities
+    assert model.action.input.in_features == plain.action.input.in_features
+    frames = random_frames(cfg, 2, 6, seed=8)
+    later = replace(frames, progress=(frames.progress + 0.3) % 1.0)
+    with torch.no_grad():
+        assert (model.pose(later) - model.pose(frames)).abs().max() > 1e-4
+        assert torch.equal(plain.pose(later), plain.pose(frames))
+        assert torch.equal(plain.pose(replace(frames, progress=None)), plain.pose(frames))
+    with pytest.raises(ValueError, match="pose_progress"):
+        model.pose(replace(frames, progress=None))
+    assert not DynamicsModel(tiny).config.pose_progress  # off in the preset: old checkpoints load
 
 
 def test_adaptive_copy_starts_at_the_copy_gain_and_can_let_go(tiny):

@@ -369,15 +369,18 @@ def test_a_batch_of_streams_equals_the_streams_run_alone(ckpt, scanned):
 
 
 def test_the_optional_action_heads_train_and_roll_out_cached_as_recomputed(scanned, segment, tmp_path):
-    """``time_left``, ``adaptive_copy`` and ``displacement_gate`` (off by default): a few steps train, the checkpoint
-    records them, and a rollout with the rules on is finite and the same through the KV cache as recomputed; the gate
-    reads the rollout's own proposal (``Frames.skip``) and where each action starts (``Frames.changed``)."""
+    """``time_left`` and ``adaptive_copy`` (off by default) beside ``displacement_gate`` and ``pose_progress`` (on): a few
+    steps train, the checkpoint records them, and a rollout with the rules on is finite and the same through the KV cache as
+    recomputed; the gate reads the rollout's own proposal (``Frames.skip``) and where each action starts
+    (``Frames.changed``), PoseGPT the progress of the frame it animates, restarted where a token is forced."""
     runs = tmp_path / "heads"
-    cfg = TrainConfig(steps=3, batch_size=4, window=16, warmup=1, time_left=True, adaptive_copy=True, displacement_gate=True)
-    train(scanned, runs, cfg, log=lambda *_: None)
+    heads = dict(time_left=True, adaptive_copy=True, displacement_gate=True, pose_progress=True)
+    cfg = TrainConfig(steps=3, batch_size=4, window=16, warmup=1, **heads)
+    s = train(scanned, runs, cfg, log=lambda *_: None)
+    assert s["first"]["proposal"] > 0  # the gate's head learns from its own loss term
     c = Corpus(scanned)
     ro = Rollout(runs, c, rules="auto")
-    assert ro.config.clip_frames and ro.config.adaptive_copy and ro.config.displacement_gate
+    assert ro.config.clip_frames and ro.config.adaptive_copy and ro.config.displacement_gate and ro.config.pose_progress
     events = [k for k, n in enumerate(ro.config.clip_frames[0]) if n > 0]
     assert events and len(events) < len(ro.config.clip_frames[0]) - 1  # loops and token 0 read "not ending"
     seen = []
@@ -387,7 +390,14 @@ def test_the_optional_action_heads_train_and_roll_out_cached_as_recomputed(scann
     b = rollout(runs, scanned, segment, seed_frames=8, horizon=12, rules="auto", cached=False)
     sa, sb = (fixed_rows(t["state"], c.layout.dim) for t in (a, b))
     assert np.isfinite(sa).all() and np.abs(sa - sb).max() < 1e-4
+    posed = []
+    animate = ro.pose_stream.model.read_out
+    ro.pose_stream.model.read_out = lambda frames, h: posed.append(frames) or animate(frames, h)
     ro.start(c.dynamics_segment(segment).slice(0, 8))
+    assert len(posed) == 7 and all(f.progress is not None for f in posed)  # the seed's frames, with their progress
     seen.clear()
     ro.step()
     assert seen[-1].skip is not None and seen[-1].changed is not None and seen[-1].changed.shape == (1, 1, 2)
+    other = next(k for k in events if k != int(ro.scenes[0].tok[0]))
+    ro.step(force_tokens={0: other})
+    assert posed[-1].progress[0, 0, 0] == 0 and int(posed[-1].tokens[0, 0, 0]) == other  # a forced token starts at 0

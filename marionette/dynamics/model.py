@@ -22,8 +22,9 @@ Alignment, for training on a window of frames x[0..T] (``action_training_pair``,
   signal of the frame an event ends, which progress alone, 1.5/clip length per model frame, is not);
   it predicts root[t+1] and the logits of tokens[t+1].
 - PoseGPT step t reads body[t] and the conditions of the frame being animated: tokens[t+1] (the
-  caller's, possibly overridden), root[t+1] (likewise), terrain[t+1] and relative[t+1]; it predicts
-  body[t+1].
+  caller's, possibly overridden), root[t+1] (likewise), terrain[t+1] and relative[t+1], and with
+  ``pose_progress`` the progress[t+1] of each token there (a rollout's: it restarts at 0 where a token is
+  forced); it predicts body[t+1].
 
 Heads. ActionGPT's root head predicts the next displacements outright and, with ``rotation_anchor``
 on, each next rotation as rot6d[t] + Δ (the rollout re-orthonormalises it). With ``displacement_gate``
@@ -32,8 +33,9 @@ dimension, carried = ``frames.skip`` when given, else root[t]: a rollout passes 
 root[t], before the rules corrected it (the separation cap moves both bodies by half the excess, and a
 carried correction became a common motion that grew to 50 m/s; the transformer still reads the corrected
 root), and g is 0 where an action starts (``ActionGPT.action_starts``): a new action's first displacement
-is the head's. Off by default in training: it beats constant velocity one step ahead but weakened what a
-forced token does (docs/tradeoffs.md). PoseGPT's body head, with ``body_anchor`` on, predicts
+is the head's. The head learns on its own (its proposal, ``ActionOutputs.proposal``, has its own loss) and the
+blend holds it fixed, so the blend's loss trains the gate. On by default in training (``TrainConfig``): over four
+seeds it beat constant velocity one step ahead on every one (docs/tradeoffs.md, "Seed to seed"). PoseGPT's body head, with ``body_anchor`` on, predicts
 body[t+1] = g ⊙ body[t] + Δ with g one learned gain per body dimension (starting at 1); with either
 off, that part is predicted outright. With
 ``residual`` on (for comparison; it excludes the anchors and the gate) both heads add Δ to the current
@@ -200,6 +202,9 @@ class DynamicsConfig:
     displacement_gate: bool = False
     # ActionGPT's copy gain on the current token gets a learned, frame-dependent term (``stay_head``, from 0)
     adaptive_copy: bool = False
+    # PoseGPT reads each entity's progress in its action at the frame being animated (beyond the paper, whose PoseGPT
+    # reads the tokens alone): where in its clip a forced or recorded token is
+    pose_progress: bool = False
     dropout: float = 0.0
     # per entity, per token: its motion class (1 + index in corpus.vocab.MOTION_CLASSES, 0 none); when given, a
     # learned class embedding is added to every token's, so a rarely played token starts from its class's motion
@@ -360,10 +365,12 @@ class Frames:
 @dataclass
 class ActionOutputs:
     """ActionGPT's predictions per frame: the next root stream (B, T, root_dim) and per entity the
-    logits (B, T, vocab) of its next action token."""
+    logits (B, T, vocab) of its next action token; with the displacement gate, ``proposal`` is the root head's own
+    prediction (B, T, root_dim) before the gate blends the carried displacement in (None without the gate)."""
 
     root: Tensor
     logits: tuple[Tensor, ...]
+    proposal: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -398,9 +405,9 @@ def action_training_pair(frames: Frames) -> tuple[Frames, tuple[Tensor, Tensor]]
 
 def pose_training_pair(frames: Frames) -> tuple[Frames, Tensor]:
     """PoseGPT inputs and target body[1..T] from a window x[0..T]: step t reads body[t] and the
-    tokens, root, terrain and relative features of frame t+1."""
+    tokens, progress (read with ``pose_progress``), root, terrain and relative features of frame t+1."""
     nxt = frames.time_slice(1, None)
-    return replace(nxt, body=frames.body[:, :-1], progress=None), frames.body[:, 1:]
+    return replace(nxt, body=frames.body[:, :-1]), frames.body[:, 1:]
 
 
 # -- the transformer ---------------------------------------------------------------------------------
@@ -723,17 +730,23 @@ class ActionGPT(_FrameGPT):
             root = frames.root + root
         elif self.config.rotation_anchor:
             root = root + self.rotation_mask.to(h.dtype) * frames.root
+        proposal = None
         if self.config.displacement_gate:
+            # The head is trained on its own (train.losses' "proposal" term) and blended in fixed: the blend's loss
+            # trains the gate. Through the blend alone the head learnt with (1 − g) ≈ 0.12 of the gradient on the
+            # frames that carry, and was poor where it stands alone, where an action starts (docs/tradeoffs.md).
+            proposal = root
             g = torch.sigmoid(self.gate_head(h)) * (1 - self.rotation_mask.to(h.dtype))
             g = g * (~self.action_starts(frames)).to(h.dtype).repeat_interleave(ROOT_PER_ENTITY, dim=-1)
-            root = root + g * ((frames.root if frames.skip is None else frames.skip) - root)
+            fixed = root.detach()
+            root = fixed + g * ((frames.root if frames.skip is None else frames.skip) - fixed)
         logits = []
         stay = self.stay_head(h) if self.config.adaptive_copy else None  # (B, T, N)
         for i, (e, v) in enumerate(zip(self.config.entities, self.config.vocab_sizes)):
             current = F.one_hot(frames.tokens[..., i], v).to(h.dtype)  # (B, T, v)
             gain = self.copy_gain[i].to(h.dtype) + (0.0 if stay is None else stay[..., i : i + 1])
             logits.append(self.action_heads[e](h) + gain * current)
-        return ActionOutputs(root=root, logits=tuple(logits))
+        return ActionOutputs(root=root, logits=tuple(logits), proposal=proposal)
 
 
 class PoseGPT(_FrameGPT):
@@ -745,7 +758,7 @@ class PoseGPT(_FrameGPT):
         self.config, self.spec = config, config.pose_gpt
         c, s = config, config.pose_gpt
         with torch.device("meta"):
-            self._build_encoders(s, c, own_dims=c.body_dim + c.root_dim)
+            self._build_encoders(s, c, own_dims=c.body_dim + c.root_dim + (c.n_entities if c.pose_progress else 0))
             self.body_head = nn.Linear(s.width, c.body_dim)
             if c.body_anchor:
                 self.body_gain = nn.Parameter(torch.empty(c.body_dim))
@@ -755,7 +768,12 @@ class PoseGPT(_FrameGPT):
             nn.init.ones_(self.body_gain)
 
     def features(self, frames: Frames) -> Tensor:
-        return torch.cat([frames.body, frames.root, *self._shared_features(frames)], dim=-1)
+        own = [frames.body, frames.root]
+        if self.config.pose_progress:
+            if frames.progress is None:
+                raise ValueError("PoseGPT reads the progress of the frame it animates (pose_progress); frames.progress is None")
+            own.append(frames.progress.to(frames.root.dtype))
+        return torch.cat([*own, *self._shared_features(frames)], dim=-1)
 
     def read_out(self, frames: Frames, h: Tensor) -> Tensor:
         body = self.body_head(h)  # (B, T, body_dim)

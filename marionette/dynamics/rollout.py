@@ -284,7 +284,8 @@ class Rollout:
                 self._frames(col(0, k), col(1, k), col(2, k), col(3, k), col(4, k), col(5, k), changed=seen)
             )
             if k + 1 < n:  # PoseGPT step k animates frame k + 1 from body k
-                self.pose_stream.step(self._frames(col(0, k + 1), col(1, k), col(2, k + 1), None, col(4, k + 1), col(5, k + 1)))
+                prog = col(3, k + 1) if self.config.pose_progress else None
+                self.pose_stream.step(self._frames(col(0, k + 1), col(1, k), col(2, k + 1), prog, col(4, k + 1), col(5, k + 1)))
         self._out = out
         self.scenes = []
         for b, (rows, p) in enumerate(zip(seeds, per)):
@@ -387,24 +388,27 @@ class Rollout:
             R_g = np.stack([gw[n]["R"] for n in names], axis=1)  # (B, N, 3, 3)
             terrains = self._terrain({n: gw[n]["joints"] for n in names}, R_g)
             relatives = [self._relative(r, R) for r, R in zip(roots_g, R_g)]
-        # PoseGPT animates the new frames from the current bodies
-        body_n = self.pose_stream.step(self._frames(root_all, bodies, toks, None, terrains, relatives))
+        progs = []  # each stream's progress at the new frame: a new, forced or replayed token restarts at 0
+        for b, sc in enumerate(self.scenes):
+            prog = np.zeros(len(toks[b]))
+            for i, tok in enumerate(toks[b]):
+                if tok != 0 and tok == sc.tok[i] and i not in restart[b]:
+                    p = sc.progress[i] + self._advance[i][tok]
+                    prog[i] = p % 1.0 if self._wraps[i][tok] else min(p, 1.0)
+            progs.append(prog)
+        # PoseGPT animates the new frames from the current bodies (and, with pose_progress, where in its clip each is)
+        pose_in = self._frames(root_all, bodies, toks, progs if c.pose_progress else None, terrains, relatives)
+        body_n = self.pose_stream.step(pose_in)
         new = join_state(raws, nz.denormalise_body(body_n[:, 0].float().numpy().astype(np.float64)), L)
         # world skeletons, the rules (per stream: they hold state), and the state re-derived from the corrected skeletons
         world = _world_after(L, new, prev_roots)
-        frames, progs, changed = [], [], []
+        frames, changed = [], []
         for b, sc in enumerate(self.scenes):
             tok = toks[b]
-            prog = np.zeros(len(tok))
             if c.displacement_gate:  # where each action starts: the gate carries nothing there
                 changed.append(np.array([tok[i] != sc.tok[i] or i in restart[b] for i in range(len(tok))]))
-            for i in range(len(tok)):
-                if tok[i] != 0 and tok[i] == sc.tok[i] and i not in restart[b]:
-                    p = sc.progress[i] + self._advance[i][tok[i]]
-                    prog[i] = p % 1.0 if self._wraps[i][tok[i]] else min(p, 1.0)
             frame = {name: w["joints"][b] for name, w in world.items()}
             frames.append(sc.rules.step(frame) if sc.rules is not None else frame)
-            progs.append(prog)
         R_new = np.stack([world[n]["R"] for n in names], axis=1)  # (B, N, 3, 3)
         q_prev = np.stack([sc.quats for sc in self.scenes])  # (B, N, 4)
         quats = geo.matrix_to_quat(R_new)
