@@ -1,8 +1,8 @@
 """The dynamics model: rollout speed at the paper's sizes, training speed, and what the window, the dtype and
 the relative feature buy in accuracy.
 
-    .venv/bin/python benchmarks/bench_dynamics.py [--part all|rollout|train|window|relative|heads]
-        [--corpus DIR] [--scanned-corpus DIR] [--steps 1500] [--horizon 448]
+    .venv/bin/python benchmarks/bench_dynamics.py [--part all|rollout|train|window|relative|heads|seeds]
+        [--corpus DIR] [--scanned-corpus DIR] [--steps N] [--horizon 448] [--seeds 0 1 2 3] [--set KNOB=VALUE ...]
 
 Inputs (made in a temp dir unless given): the *dynamics corpus* of the tests (ten 45 s synthetic
 recordings, seed 11, one recording held out; ``tests/conftest.py``), and a *scanned corpus* (two 20 s
@@ -37,6 +37,13 @@ input_noise=0``) and with absolute heads on noised inputs (the defaults); one 2,
 the first held-out segment, temperature 0, rules on: how far the roots wander (largest extent of the
 root path over the three axes) and the bone-length CV over the rollout (median and max over bones, both
 entities), beside the recorded train split's.
+
+seeds. The tests' tiny recipe (``TINY_DYNAMICS``: 1,000 steps, batch 8, window 64, lr 2e-3, one torch thread) with
+the ``--set`` knobs, trained at each of ``--seeds``: per seed the held-out next-action accuracy, root and body MSE
+(beside copy-last and constant velocity), the forcing test's rate (``eval.control.swing_rates``: the hunter's
+swinging attack tokens forced for 10 frames from every held-out seed, tip > 5 m/s) and the probe's counts (48
+windows of 64 + 120, Force-GT < Force-Shuf and < the run-level shuffle), and their means: a control figure from one
+checkpoint moves by more between seeds than most options move it (docs/tradeoffs.md, "Seed to seed").
 """
 
 from __future__ import annotations
@@ -57,6 +64,7 @@ from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, Windo
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, parameter_counts
 from marionette.dynamics.rollout import ModelStream, Rollout, force_windows, open_terrain_field, rollout
 from marionette.dynamics.train import TrainConfig, batches_from, losses, make_optimizer, train
+from marionette.eval.control import held_out_seeds, recorded_swingers, swing_rates
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
 
 SEED = 32
@@ -278,14 +286,6 @@ def part_train(corpus: Path) -> None:
 # -- accuracy knobs ----------------------------------------------------------------------------------
 
 
-def held_out_seeds(c: Corpus, horizon: int, stride: int) -> list[tuple[str, int]]:
-    out = []
-    for s in c.segment_ids("test"):
-        n = c.dynamics_segment(s).num_rows
-        out += [(s, k) for k in range(0, n - SEED - horizon + 1, stride)]
-    return out
-
-
 def force_gt(c: Corpus, ckpt: Path, seeds, horizon: int, dtype: torch.dtype) -> tuple[float, float]:
     """Mean hunter RA-MPJPE (m) of Force-GT rollouts over ``seeds``, and predicted frames/s."""
     tokens = ActionTokens.from_corpus(c)
@@ -306,7 +306,7 @@ def force_gt(c: Corpus, ckpt: Path, seeds, horizon: int, dtype: torch.dtype) -> 
 
 def part_window(corpus: Path, steps: int, work: Path) -> None:
     c = Corpus(corpus)
-    seeds = held_out_seeds(c, 40, 20)
+    seeds = held_out_seeds(c, SEED, 40, 20)
     rows = []
     for window in (16, 32, 64):
         out = work / f"tiny-w{window}"
@@ -427,14 +427,90 @@ def part_heads(corpus: Path, steps: int, work: Path) -> None:
     print(table(["model", "root path extent (m)", "finite", "bone-length CV median", "max"], rows))
 
 
+def part_seeds(corpus: Path, steps: int, work: Path, seeds: list[int], sets: dict) -> None:
+    """The tests' tiny recipe (``TINY_DYNAMICS``, one torch thread) with ``sets`` overriding its knobs, trained at each
+    seed: held-out one-step figures against the baselines, the forcing test's swing rate and the probe's counts."""
+    from marionette.eval.protocol import PROTOCOLS, controllability_probe, select_windows
+
+    c = Corpus(corpus)
+    paper = PROTOCOLS["paper"]
+    attacks = recorded_swingers(c, "hunter", 10, 4)
+    starts = held_out_seeds(c, SEED, 10)
+    windows = select_windows(c, paper.probe_windows, paper.seed_frames, paper.horizon, seed=0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the tests train it: the tiny model is overhead-bound
+    rows, cols = [], []
+    try:
+        for seed in seeds:
+            cfg = TrainConfig(
+                **{"preset": "tiny", "steps": steps, "batch_size": 8, "window": 64, "lr": 2e-3, "warmup": 50, "seed": seed} | sets
+            )
+            out = work / f"seed{seed}"
+            t0 = time.perf_counter()
+            s = train(c, out, cfg, log=lambda *_: None)
+            ev, base = s["eval"], s["baselines"]
+            rates = swing_rates(out, c, "hunter", attacks, starts, SEED, frames=10)
+            probe = controllability_probe(out, c, windows, temperature=paper.temperature)
+            forced = float(np.mean([rates[t] for t in attacks]))
+            vals = [
+                ev["action_accuracy"],
+                ev["root_mse"],
+                ev["body_mse"],
+                forced,
+                probe["force_gt_beats_shuf"],
+                probe["force_gt_beats_shuf_runs"],
+            ]
+            cols.append(vals)
+            rows.append(
+                [str(seed), f"{vals[0]:.4f}", f"{vals[1]:.4f}", f"{vals[2]:.4f}", f"{forced:.2f} (free {rates[None]:.2f})"]
+                + [f"{vals[4]} ({vals[5]})"]
+            )
+            print(f"seed {seed}: {rows[-1][1:]} in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    finally:
+        torch.set_num_threads(threads)
+    m = np.mean(np.asarray(cols, np.float64), axis=0)
+    rows.append(["mean", f"{m[0]:.4f}", f"{m[1]:.4f}", f"{m[2]:.4f}", f"{m[3]:.2f}", f"{m[4]:.1f} ({m[5]:.1f})"])
+    knobs = ", ".join(f"{k}={v}" for k, v in sets.items()) or "the defaults"
+    print(f"\n### Seed to seed: the tests' tiny recipe ({steps} steps) with {knobs}\n")
+    print(
+        f"Baselines: copy-last action {base['copy_last_action_accuracy']:.4f}, constant-velocity root "
+        f"{base['constant_velocity_root_mse']:.4f}, copy-last body {base['copy_last_body_mse']:.4f}; forcing: attack "
+        f"tokens {attacks} over {len(starts)} held-out seeds; probe: {len(windows)} windows of {paper.seed_frames} + "
+        f"{paper.horizon}.\n"
+    )
+    heads = ["seed", "action acc.", "root MSE", "body MSE", "forced attacks swing", "GT < Shuf (GT < run-shuffle)"]
+    print(table(heads, rows))
+
+
+def knob_value(text: str) -> tuple[str, object]:
+    """``key=value`` of a TrainConfig knob, the value read as JSON (true, 0.1, null) or else as a string."""
+    import json
+
+    key, sep, raw = text.partition("=")
+    if not sep or key not in TrainConfig.__dataclass_fields__:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected KNOB=VALUE with KNOB a TrainConfig field")
+    try:
+        return key, json.loads(raw)
+    except json.JSONDecodeError:
+        return key, raw
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative", "heads"])
+    ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative", "heads", "seeds"])
     ap.add_argument("--corpus", type=Path, default=None, help="the dynamics corpus (default: made in a temp dir)")
     ap.add_argument("--scanned-corpus", type=Path, default=None, help="a corpus with scanned terrain (default: made)")
-    ap.add_argument("--steps", type=int, default=1500, help="training steps of the tiny models")
+    ap.add_argument("--steps", type=int, default=None, help="training steps of the tiny models (1500; seeds: 1000)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="seeds of the seeds part")
+    ap.add_argument("--set", type=knob_value, action="append", default=[], metavar="KNOB=VALUE", help="seeds: a knob")
     ap.add_argument("--horizon", type=int, default=448, help="predicted frames of the paper-preset rollouts")
     a = ap.parse_args()
+    sets = dict(a.set)
+    try:
+        TrainConfig(**sets)  # every knob validated where it is parsed
+    except (TypeError, ValueError) as err:
+        ap.error(f"--set: {err}")
+    steps = a.steps or 1500
     print(preamble("Dynamics: rollout and training speed, window / dtype / relative feature against accuracy"))
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads\n")
     with tempfile.TemporaryDirectory(prefix="bench_dynamics_") as tmp:
@@ -443,16 +519,18 @@ def main() -> None:
             scanned = a.scanned_corpus or make_corpus(work / "scanned", 2, 20.0, 3, scan=True)
             part_rollout(scanned, a.horizon, work)
         corpus = None
-        if a.part in ("all", "train", "window", "relative", "heads"):
+        if a.part in ("all", "train", "window", "relative", "heads", "seeds"):
             corpus = a.corpus or make_corpus(work / "dynamics", 10, 45.0, 11, scan=False)
         if a.part in ("all", "train"):
             part_train(corpus)
         if a.part in ("all", "window"):
-            part_window(corpus, a.steps, work)
+            part_window(corpus, steps, work)
         if a.part in ("all", "relative"):
-            part_relative(corpus, a.steps, work)
+            part_relative(corpus, steps, work)
         if a.part in ("all", "heads"):
-            part_heads(corpus, a.steps, work)
+            part_heads(corpus, steps, work)
+        if a.part in ("all", "seeds"):
+            part_seeds(corpus, a.steps or 1000, work, a.seeds, sets)
 
 
 if __name__ == "__main__":

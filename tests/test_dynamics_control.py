@@ -14,9 +14,9 @@ from marionette import geometry as geo
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.data import ActionTokens
 from marionette.dynamics.rollout import Rollout, force_windows, rollout
+from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swingers, swing_rates
 
 SEED = 32  # seed frames
-FAST_TIP_MPS = 5.0  # the train split's non-attack frames never move the weapon tip faster than 3.1 m/s (root frame)
 
 
 @pytest.fixture(scope="module")
@@ -27,22 +27,6 @@ def corpus(dynamics_corpus):
 @pytest.fixture(scope="module")
 def ckpt(tiny_dynamics):
     return tiny_dynamics[0]
-
-
-def held_out_seeds(c: Corpus, horizon: int, stride: int = 16) -> list[tuple[str, int]]:
-    """(segment, first seed frame) every ``stride`` frames of every held-out segment."""
-    out = []
-    for s in c.segment_ids("test"):
-        n = c.dynamics_segment(s).num_rows
-        out += [(s, k) for k in range(0, n - SEED - horizon + 1, stride)]
-    return out
-
-
-def tip_speed(c: Corpus, table) -> np.ndarray:
-    """Weapon-tip speed (m/s) in its owner's root frame of each predicted frame (from the last seed frame)."""
-    state = fixed_rows(table["state"], c.layout.dim)[SEED - 1 :]
-    tip = state[:, c.layout.slice("weapon.points")].reshape(len(state), -1, 3)[:, -1]
-    return np.linalg.norm(np.diff(tip, axis=0), axis=1) * 20.0
 
 
 def bone_cv(joints: np.ndarray, rig) -> np.ndarray:
@@ -92,27 +76,6 @@ def test_learning_beats_every_baseline(tiny_dynamics):
     assert ev["root_mse"] < base["constant_velocity_root_mse"]
 
 
-def recorded_swingers(c: Corpus, entity: str, frames: int, k: int) -> list[int]:
-    """Up to ``k`` attack tokens of ``entity`` whose train-split plays (runs of one token, ≥ 3 of them) bring the
-    weapon tip above ``FAST_TIP_MPS`` within ``frames`` frames of their start on ≥ 80 % of plays, most played first."""
-    tokens = ActionTokens.from_corpus(c)
-    i = tokens.entities.index(entity)
-    classes = {a["composite"]: a.get("class") for a in c.vocab["entity_types"][tokens.type_keys[i][1]]["actions"]}
-    plays: dict[int, list[bool]] = {}
-    for seg in c.segment_ids("train"):
-        rows = c.dynamics_segment(seg)
-        stream = tokens.encode(c.layout, rows)[0][:, i]
-        state = fixed_rows(rows["state"], c.layout.dim)
-        tip = state[:, c.layout.slice("weapon.points")].reshape(len(state), -1, 3)[:, -1]
-        speed = np.linalg.norm(np.diff(tip, axis=0), axis=1) * 20.0  # speed[f]: from frame f to f + 1
-        for f in np.flatnonzero(np.r_[True, stream[1:] != stream[:-1]]):
-            t = int(stream[f])
-            if classes.get(int(tokens.composites[i][t])) == "attack" and f + frames <= len(speed):
-                plays.setdefault(t, []).append(bool(speed[f : f + frames].max() > FAST_TIP_MPS))
-    good = [t for t, v in plays.items() if len(v) >= 3 and np.mean(v) >= 0.8]
-    return sorted(good, key=lambda t: (-len(plays[t]), t))[:k]
-
-
 def test_forcing_an_attack_swings_the_weapon_within_10_frames(corpus, ckpt):
     """Forcing the hunter's attack tokens whose recorded plays swing within 10 frames (on ≥ 80 % of plays) brings a
     fast weapon tip within 10 frames on ≥ 60 % of the held-out seeds, 0.3 more often than the unforced rollouts of
@@ -124,16 +87,10 @@ def test_forcing_an_attack_swings_the_weapon_within_10_frames(corpus, ckpt):
     hi = tokens.entities.index("hunter")
     attacks = recorded_swingers(corpus, "hunter", 10, 4)
     assert len(attacks) >= 2, f"only {attacks} of the hunter's attack tokens swing within 10 frames in the train split"
-    seeds = held_out_seeds(corpus, 10)
+    seeds = held_out_seeds(corpus, SEED, 10)
     assert len(seeds) >= 20
-    fast: dict[int | None, list[bool]] = {t: [] for t in [None, *attacks]}
-    for token in fast:
-        for seg, start in seeds:
-            force = [] if token is None else [("hunter", 0, 10, token)]
-            table = rollout(ckpt, corpus, seg, SEED, 10, force=force, rules="none", start=start)
-            fast[token].append(bool(tip_speed(corpus, table).max() > FAST_TIP_MPS))
-    rates = {t: float(np.mean(v)) for t, v in fast.items()}
-    forced = float(np.mean([x for t in attacks for x in fast[t]]))
+    rates = swing_rates(ckpt, corpus, "hunter", attacks, seeds, SEED, frames=10)
+    forced = float(np.mean([rates[t] for t in attacks]))
     print(
         f"\n{len(seeds)} held-out seeds; tip > {FAST_TIP_MPS} m/s within 10 frames: free {rates[None]:.2f}, "
         + ", ".join(f"forced token {t} (composite {int(tokens.composites[hi][t])}) {rates[t]:.2f}" for t in attacks)
@@ -149,7 +106,7 @@ def test_forcing_the_recorded_stream_beats_a_shuffled_one(corpus, ckpt):
     H = 40
     tokens = ActionTokens.from_corpus(corpus)
     hi = tokens.entities.index("hunter")
-    seeds = held_out_seeds(corpus, H, stride=20)
+    seeds = held_out_seeds(corpus, SEED, H, stride=20)
     gt, shuf = [], []
     for seg, start in seeds:
         recorded = corpus.dynamics_segment(seg).slice(start + SEED, H)
