@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -93,7 +92,7 @@ def protocol(a: argparse.Namespace) -> None:
         select_windows,
         state_layer,
     )
-    from marionette.eval.report import long_windows
+    from marionette.eval.report import long_windows, painted_rollouts
     from marionette.eval.video import long_horizon, paint_frames, score_videos, video_tables
 
     print(preamble("Evaluation protocol: minutes per table (quick and paper) and confidence against windows"))
@@ -122,8 +121,7 @@ def protocol(a: argparse.Namespace) -> None:
             states_at, _ = long_windows(c, p, H, 1, split, fps)  # Table 3's state rollouts, as evaluate takes them
             states, t_roll = _timed(ablation_rollouts, a.dynamics, c, states_at, temperature=p.temperature)
             _, t_rows = _timed(rule_ablation, a.dynamics, c, states_at, rollouts=states)
-            long = [replace(w, horizon=H) for w in states_at[: p.rollouts]]  # the painted ones
-            tables = {k: [t.slice(0, w.length) for t, w in zip(v["tables"], long)] for k, v in states.items()}
+            long, tables = painted_rollouts(states_at, {k: v["tables"] for k, v in states.items()}, p.rollouts, H)
             video, t_video = _timed(video_tables, c, long, tables, p, obs, base)
             roll_rate = t_roll / (3 * sum(w.horizon for w in states_at))
             per = {id(m): (paint_frames(p.video_frames(vfps), m.config.frames) - 1) // (m.config.frames - 1) for m in models}

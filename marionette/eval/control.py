@@ -36,12 +36,16 @@ def held_out_seeds(c: Corpus, seed_frames: int, horizon: int, stride: int = 16, 
     return out
 
 
+def _tip_speeds(c: Corpus, state: np.ndarray, fps: float) -> np.ndarray:
+    """speed[f] (m/s) of the weapon's tip (its last point, in its owner's root frame) from state row f to f + 1."""
+    tip = state[:, c.layout.slice("weapon.points")].reshape(len(state), -1, 3)[:, -1]
+    return np.linalg.norm(np.diff(tip, axis=0), axis=1) * fps
+
+
 def tip_speed(c: Corpus, table, seed_frames: int, fps: float = 20.0) -> np.ndarray:
     """Weapon-tip speed (m/s) in its owner's root frame of each predicted frame of a rollout table (from the last seed
     row on; the weapon's last point is its tip)."""
-    state = fixed_rows(table["state"], c.layout.dim)[seed_frames - 1 :]
-    tip = state[:, c.layout.slice("weapon.points")].reshape(len(state), -1, 3)[:, -1]
-    return np.linalg.norm(np.diff(tip, axis=0), axis=1) * fps
+    return _tip_speeds(c, fixed_rows(table["state"], c.layout.dim)[seed_frames - 1 :], fps)
 
 
 def recorded_swingers(
@@ -56,9 +60,7 @@ def recorded_swingers(
     for seg in c.segment_ids("train"):
         rows = c.dynamics_segment(seg, fps)
         stream = tokens.encode(c.layout, rows)[0][:, i]
-        state = fixed_rows(rows["state"], c.layout.dim)
-        tip = state[:, c.layout.slice("weapon.points")].reshape(len(state), -1, 3)[:, -1]
-        speed = np.linalg.norm(np.diff(tip, axis=0), axis=1) * fps  # speed[f]: from frame f to f + 1
+        speed = _tip_speeds(c, fixed_rows(rows["state"], c.layout.dim), fps)
         for f in np.flatnonzero(np.r_[True, stream[1:] != stream[:-1]]):
             t = int(stream[f])
             if classes.get(int(tokens.composites[i][t])) == "attack" and f + frames <= len(speed):

@@ -990,6 +990,15 @@ def long_windows(c: Corpus, proto: EvalProtocol, painted: int, seed: int, split:
     return [], why
 
 
+def painted_rollouts(
+    long: Sequence[Window], tables: dict[str, list[pa.Table]], rollouts: int, horizon: int
+) -> tuple[list[Window], dict[str, list[pa.Table]]]:
+    """The painted rollouts of the state rollouts: the first ``rollouts`` windows cut to ``horizon`` predicted frames,
+    and each driving state's tables cut to match."""
+    windows = [replace(w, horizon=horizon) for w in long[:rollouts]]
+    return windows, {k: [t.slice(0, w.length) for t, w in zip(v, windows)] for k, v in tables.items()}
+
+
 def _long_tables(
     dynamics_dir: Path | str,
     c: Corpus,
@@ -1020,8 +1029,7 @@ def _long_tables(
     curves = long_horizon_curves(c, long, tables, proto, fps)
     log("evaluate: the observation layer (Tables 1 and 3)" if models else "evaluate: no observation model: no FVD")
     obs, base = models.get("observation"), models.get("baseline")
-    windows = [replace(w, horizon=horizon) for w in long[: proto.rollouts]]
-    cut = {k: [t.slice(0, w.length) for t, w in zip(v, windows)] for k, v in tables.items()}
+    windows, cut = painted_rollouts(long, tables, proto.rollouts, horizon)
     video = video_tables(c, windows, cut, proto, obs, base, extractor=extractor, seed=seed, progress=progress)
     return ablation, curves, video
 
