@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_terrain.py [--points 1000000] [--repeats 3] [--seconds 10]
         [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--max-depths 10,20,30] [--image-normal-ys 0,0.8] [--edge-ms 0,0.1]
-        [--part all|queries|scan]
+        [--part all|queries|scan|fanout] [--recordings 4] [--workers 1,2]
 
 Input: one seeded synthetic recording (``marionette.synth.generate``, 320×180, ``--seconds`` long),
 made in a temp dir; every figure is per core (BLAS/OpenMP pools and torch at one thread).
@@ -32,12 +32,19 @@ all observed cells, and those away from the vertical steps (cell centre more tha
 inside the wall's, the deck's and the terraces' edges). The edges lie on integer metres, so no cell
 straddles one: a layer of a cell touching an edge that reads the level across it is a leak, and
 counts in "RMSE all" and "max all".
+
+Fan-out (``--part fanout``, not in "all"). ``--recordings`` seeded recordings of ``--seconds`` at
+320×180 ingested into a corpus (video 72×128; not timed), then a full scan of its stage
+(``scan_stages(incremental=False)``, defaults) on each of ``--workers`` local processes
+(``pool_mapper``): wall time of the whole scan (jobs, the in-order commit and the chunk rebuild),
+depth frames/s, and whether the stage's files are byte-identical to the one-worker scan's.
 """
 
 from __future__ import annotations
 
 import argparse
 import inspect
+import shutil
 import sys
 import tempfile
 import time
@@ -217,6 +224,42 @@ def scan_row(ref, layout, decoder, label: str, **kw) -> tuple[list[object], obje
     return row, res
 
 
+def bench_fanout(args) -> None:
+    from marionette.ingest import IngestOptions, VideoSettings, build_corpus
+    from terrain_scan.scan import scan_stages
+
+    def stage_files(corpus: Path) -> dict[str, bytes]:
+        root = corpus / "terrain"
+        return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    with tempfile.TemporaryDirectory(prefix="bench_terrain_fanout_") as tmp:
+        tmp = Path(tmp)
+        t0 = time.perf_counter()
+        synth.generate(tmp / "src", recordings=args.recordings, seconds=args.seconds, seed=args.seed, width=320, height=180)
+        options = IngestOptions(video=VideoSettings(height=72, width=128, chunk_frames=81, crf=28))
+        build_corpus(tmp / "src", tmp / "base", options, workers=2, progress=False)
+        setup_s = time.perf_counter() - t0
+        frames = args.recordings * round(args.seconds * 30)
+        rows, reference = [], None
+        for k in args.workers:
+            corpus = tmp / f"corpus-{k}"
+            shutil.copytree(tmp / "base", corpus)
+            t = time.perf_counter()
+            report = scan_stages(corpus, incremental=False, log=lambda *_: None, workers=k)
+            wall = time.perf_counter() - t
+            files = stage_files(corpus)
+            reference = reference or files
+            used = sum(r["frames_used"] for st in report.values() for r in st["scanned"])
+            rows.append([k, f"{wall:.1f}", f"{frames / wall:.1f}", used, "yes" if files == reference else "NO"])
+            shutil.rmtree(corpus)
+    print(preamble("Terrain: the scan fanned out over local processes"))
+    print(
+        f"{args.recordings} × {args.seconds:g} s synthetic recordings at 320×180 (seed {args.seed}), ingested in "
+        f"{setup_s:.0f} s (not timed); a full scan of the stage ({frames} depth frames), defaults.\n"
+    )
+    print(table(["workers", "wall s", "depth frames/s", "frames used", "bytes = 1st row"], rows))
+
+
 def floats(s: str) -> list[float]:
     return [float(v) for v in s.split(",")]
 
@@ -231,9 +274,14 @@ def main() -> None:
     ap.add_argument("--max-depths", type=floats, default=[10.0, 20.0, 30.0])
     ap.add_argument("--image-normal-ys", type=floats, default=[0.0, 0.8])
     ap.add_argument("--edge-ms", type=floats, default=[0.0, 0.1])
-    ap.add_argument("--part", choices=("all", "queries", "scan"), default="all")
+    ap.add_argument("--part", choices=("all", "queries", "scan", "fanout"), default="all")
+    ap.add_argument("--recordings", type=int, default=4, help="recordings in the fan-out corpus")
+    ap.add_argument("--workers", type=lambda s: [int(v) for v in s.split(",")], default=[1, 2], help="fan-out worker counts")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    if args.part == "fanout":
+        bench_fanout(args)
+        return
     rng = np.random.default_rng(args.seed)
     layout, decoder = load_scene("duel"), DepthDecoder.synthetic()
     with tempfile.TemporaryDirectory(prefix="bench_terrain_") as tmp:

@@ -209,7 +209,7 @@ def build_corpus(
     The fan-out runs on a local Dask cluster of ``n_workers`` processes, or on the existing scheduler
     at ``dask_address`` (its workers must be able to import ``marionette`` and ``flows`` and see both
     paths). After finalize, each stage's terrain is scanned incrementally (the ``rescan-stage``
-    subflow) unless ``scan_terrain`` is false. Returns the build report, also written to
+    subflow, its recordings fanned out on the same cluster) unless ``scan_terrain`` is false. Returns the build report, also written to
     ``<corpus>/meta/builds/<flow-run-id>.json``.
     """
     options = IngestOptions(
@@ -230,7 +230,9 @@ def build_corpus(
         if scan_terrain and info["total_ingested"]:
             from flows.rescan_stage import rescan_stage
 
-            terrain = rescan_stage(corpus, incremental=True, frame_stride=terrain_frame_stride)
+            terrain = rescan_stage(
+                corpus, incremental=True, frame_stride=terrain_frame_stride, dask_address=dask_address, n_workers=n_workers
+            )
         report = build_report(str(flow_run.id), source, corpus, options, results, info)
         report["terrain"] = terrain
         report["failures"] = {

@@ -279,7 +279,7 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
     options = ScanOptions(decoder=decoder.to_json(), frame_stride=a.frame_stride, voxel_m=a.voxel)
     if a.stage is not None:
         check_stage(a.corpus, a.stage)
-    report = refresh(a.corpus, a.stage, incremental=a.incremental, scan_options=options, pose=a.pose, progress=not a.quiet)
+    report = refresh(a.corpus, a.stage, a.incremental, options, pose=a.pose, progress=not a.quiet, workers=a.workers)
     for line in report.lines():
         print(line)
     failed = report.failures()
@@ -636,7 +636,9 @@ def build_parser() -> argparse.ArgumentParser:
     species_help = "ingest only recordings whose monster has this species id (default: every species the rig declares)"
     s.add_argument("--monster-species", type=non_negative_int, help=species_help)
     s.add_argument("--weapon", type=non_negative_int, help="ingest only recordings whose hunter has this weapon (default: any)")
-    s.add_argument("--workers", type=positive_int, default=1, help="samples ingested in parallel processes")
+    s.add_argument(
+        "--workers", type=positive_int, default=1, help="samples ingested (then recordings scanned) in parallel processes"
+    )
     s.add_argument("--min-segment-frames", type=positive_int, default=30, help="shortest segment kept, frames")
     s.add_argument("--video-size", type=even_size_hxw, default=(176, 320), metavar="HxW", help="video chunks' size, HxW (even)")
     s.add_argument("--chunk-frames", type=chunk_frames, default=81, help="frames per video chunk (4k + 1, at least 5)")
@@ -677,6 +679,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frame-stride", type=positive_int, default=1, help="use every Nth depth frame")
     s.add_argument("--voxel", type=positive_float, default=0.25, help="voxel size of the point down-sampling, metres")
     s.add_argument("--depth-decoder", type=Path, default=None, help="8-bit depth mapping JSON (default: the synthetic game's)")
+    s.add_argument("--workers", type=positive_int, default=1, help="recordings scanned in parallel processes")
     s.add_argument("--no-pose", dest="pose", action="store_false", help="do not bring the pose-control targets up to date")
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.add_argument("--strict", action="store_true", help="exit 1 when any recording's scan or any pose target fails")

@@ -56,10 +56,14 @@ def refresh(
     pose: bool = True,
     progress: bool = False,
     log=lambda *_: None,
+    workers: int = 1,
+    scan_mapper=None,
 ) -> RefreshReport:
     """Scan the terrain of one stage (or all), then bring every pose target up to date, under the corpus lock.
 
-    ``scan_options`` is a ``terrain_scan.scan.ScanOptions`` (default: the synthetic game's depth decoder).
+    ``scan_options`` is a ``terrain_scan.scan.ScanOptions`` (default: the synthetic game's depth decoder). The
+    recordings are scanned on ``workers`` local processes, or by ``scan_mapper`` (``terrain_scan.scan.Mapper``:
+    the flows' runs them on Dask).
     """
     from marionette.bridge.targets import render_pose_targets
     from terrain_scan.scan import scan_stages
@@ -67,7 +71,9 @@ def refresh(
     report = RefreshReport()
     with corpus_lock(corpus, "terrain scan and pose targets", share=True):
         if terrain:
-            report.terrain = scan_stages(corpus, stage, incremental=incremental, options=scan_options, log=log, progress=progress)
+            report.terrain = scan_stages(
+                corpus, stage, incremental, scan_options, log=log, progress=progress, workers=workers, mapper=scan_mapper
+            )
         if pose:
             report.pose = asdict(render_pose_targets(corpus, progress=progress))
     return report
@@ -85,7 +91,7 @@ def build(
     log=lambda *_: None,
 ) -> dict:
     """Ingest every sample under ``source`` (``marionette.ingest.build_corpus``), then ``refresh`` the corpus
-    (``scan_options`` as there); returns the build report with "refresh" (a RefreshReport) and "failures" (counts
+    (``scan_options`` as there; both fan out over ``workers`` processes); returns the build report with "refresh" (a RefreshReport) and "failures" (counts
     by kind) added."""
     from marionette.ingest import build_corpus
 
@@ -93,7 +99,9 @@ def build(
         report = build_corpus(source, corpus, options, workers=workers, progress=progress)
         done = RefreshReport()
         if report["info"]["total_ingested"] and (terrain or pose):
-            done = refresh(corpus, terrain=terrain, pose=pose, progress=progress, scan_options=scan_options, log=log)
+            done = refresh(
+                corpus, terrain=terrain, pose=pose, progress=progress, scan_options=scan_options, log=log, workers=workers
+            )
     report["refresh"] = done
     failed = done.failures()
     report["failures"] = {

@@ -10,13 +10,15 @@ recording of the stage; both give identical chunk files.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 from marionette.corpus import paths
 from marionette.ingest.wildworld import SampleError, SampleRef
 from marionette.io import file_sha256, text_sha256
-from terrain_scan.accumulate import scan_recording
+from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.store import Stage
 
@@ -54,6 +56,79 @@ def _ref(source: str) -> SampleRef:
     return SampleRef(p.parent.parent, p.parent.name, p.name)
 
 
+@dataclass(frozen=True)
+class ScanJob:
+    """One recording of one stage to scan: all a worker needs (small and picklable; the work reads the files)."""
+
+    stage: str
+    sample: str
+    source: str  # the recording's directory
+    ingest_hash: str  # the ingest input hash of its files and options
+    stored_hash: str | None  # the contribution's hash the stage holds now (None: none, or a full scan)
+
+
+@dataclass
+class ScanOutcome:
+    """A job's end: its contribution's hash, and the scan (None when unchanged or failed, ``reason`` saying why)."""
+
+    job: ScanJob
+    input_hash: str = ""
+    result: ScanResult | None = None
+    reason: str | None = None
+    worker: str = ""
+
+    @property
+    def unchanged(self) -> bool:
+        return self.result is None and self.reason is None
+
+
+def scan_job(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
+    """Hash a recording's scan inputs (ingest input, depth.mkv, scan settings) and scan it unless the stage
+    already holds that hash. Never raises: a failure is the outcome's ``reason``, naming the file."""
+    import os
+    import socket
+
+    out = ScanOutcome(job, worker=f"{socket.gethostname()}/pid-{os.getpid()}")
+    ref = _ref(job.source)
+    depth = ref.path / "depth.mkv"
+    try:
+        out.input_hash = text_sha256(job.ingest_hash, file_sha256(depth) if depth.exists() else "missing", options.key())[:32]
+        if job.stored_hash == out.input_hash:
+            return out
+        decoder = DepthDecoder.from_json(options.decoder)
+        out.result = scan_recording(ref, layout, decoder, frame_stride=options.frame_stride, voxel_m=options.voxel_m)
+    except Exception as exc:  # one recording's failure never stops the others
+        out.reason = _reason(exc, ref)
+    return out
+
+
+# How scan jobs run: ``mapper(jobs, layout, options)`` yields one ``ScanOutcome`` per job, in any order.
+Mapper = Callable[[list[ScanJob], Any, ScanOptions], Iterable[ScanOutcome]]
+
+
+def serial_mapper(jobs: list[ScanJob], layout, options: ScanOptions) -> Iterator[ScanOutcome]:
+    for j in jobs:
+        yield scan_job(j, layout, options)
+
+
+def pool_mapper(workers: int) -> Mapper:
+    """Jobs on ``workers`` local processes (serial for one worker or one job)."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+
+    def run(jobs: list[ScanJob], layout, options: ScanOptions) -> Iterator[ScanOutcome]:
+        if workers == 1 or len(jobs) <= 1:
+            yield from serial_mapper(jobs, layout, options)
+            return
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
+            for fut in as_completed([pool.submit(scan_job, j, layout, options) for j in jobs]):
+                yield fut.result()
+
+    return run
+
+
 def scan_stages(
     corpus: Path,
     stage: str | None = None,
@@ -61,85 +136,102 @@ def scan_stages(
     options: ScanOptions | None = None,
     log=print,
     progress: bool = False,
+    workers: int = 1,
+    mapper: Mapper | None = None,
 ) -> dict:
     """Scan one stage (or all) of a corpus; returns per stage what was scanned, what failed and which chunks changed.
 
-    A recording that cannot be scanned (its depth.mkv or any other input unreadable, or any other
-    error) is listed under ``failed`` with the reason and the other recordings are scanned.
-    ``progress`` shows a bar over the recordings.
+    The recordings are scanned as independent jobs by ``mapper`` (default: ``pool_mapper(workers)``; the
+    ``rescan-stage`` flow passes one that runs them on Dask) and committed to their stage in the stage's
+    recording order, whatever order they finish in, so any number of workers writes the bytes a serial scan
+    writes. A recording that cannot be scanned (its depth.mkv or any other input unreadable, or any other
+    error) is listed under ``failed`` with the reason and the other recordings are scanned. ``progress``
+    shows a bar over the recordings.
     """
     from marionette.corpus.lock import corpus_lock
 
     with corpus_lock(corpus, "terrain scan"):
-        return _scan_stages(corpus, stage, incremental, options or ScanOptions(), log, progress)
+        run = mapper or pool_mapper(workers)
+        return _scan_stages(corpus, stage, incremental, options or ScanOptions(), log, progress, run)
 
 
-def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: ScanOptions, log, progress: bool) -> dict:
+def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: ScanOptions, log, progress: bool, mapper) -> dict:
     from marionette.corpus import Corpus
 
-    decoder = DepthDecoder.from_json(options.decoder)
+    DepthDecoder.from_json(options.decoder)  # a bad decoder is one error here, not one per recording
     c = Corpus(corpus)
     stages = corpus_stages(corpus)
     if stage is not None:
         if stage not in stages:
             raise ValueError(f"{corpus}: no ingested recording on stage {stage!r}; stages: {sorted(stages)}")
         stages = {stage: stages[stage]}
+    held = {st: Stage(paths.stage_dir(corpus, st)) for st in stages}
+    jobs: list[ScanJob] = []
+    for st, recs in stages.items():
+        S = held[st]
+        for gone in sorted(set(S.recordings()) - {r["sample"] for r in recs}):  # no longer in the corpus
+            S.remove(gone)
+        jobs += [
+            ScanJob(st, r["sample"], r["source"], r["input_hash"], S.input_hash(r["sample"]) if incremental else None)
+            for r in recs
+        ]
+    reports = {st: {"scanned": [], "unchanged": [], "failed": {}} for st in stages}
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=sum(len(v) for v in stages.values()), desc="terrain scan", unit="recording")
+        bar = tqdm(total=len(jobs), desc="terrain scan", unit="recording")
         if log is print:
             log = bar.write  # keeps the bar on its own line
-    report: dict = {}
+    order = {(j.stage, j.sample): k for k, j in enumerate(jobs)}
+    waiting: dict[int, ScanOutcome] = {}
+    done = 0
     try:
-        for st, recs in stages.items():
-            report[st] = _scan_stage(corpus, c.layout, st, recs, incremental, options, decoder, log, bar)
+        for out in mapper(jobs, c.layout, options):
+            if bar is not None:
+                bar.update(1)
+            waiting[order[(out.job.stage, out.job.sample)]] = out
+            while done in waiting:  # commit in job order: the stage's manifest and files as a serial scan writes them
+                _commit(held[jobs[done].stage], waiting.pop(done), reports[jobs[done].stage], log)
+                done += 1
     finally:
         if bar is not None:
             bar.close()
+    if done != len(jobs):
+        missing = [j.sample for j in jobs[done:]]
+        raise RuntimeError(f"{corpus}: the scan's workers returned no outcome for {missing}")
+    report: dict = {}
+    for st in stages:
+        rb = held[st].rebuild()
+        report[st] = {
+            "dir": str(held[st].dir),
+            **reports[st],
+            "chunks_written": [list(c) for c in rb.written],  # [cx, cz] pairs (JSON-shaped)
+            "chunks_unchanged": [list(c) for c in rb.unchanged],
+            "chunks_removed": [list(c) for c in rb.removed],
+            "layers": rb.layers,
+            "filled": rb.filled,
+        }
     return report
 
 
-def _scan_stage(
-    corpus: Path, layout, st: str, recs: list[dict], incremental: bool, options: ScanOptions, decoder: DepthDecoder, log, bar
-) -> dict:
-    """Scan the recordings ``recs`` of stage ``st`` and rebuild its chunks."""
-    S = Stage(paths.stage_dir(corpus, st))
-    names = {r["sample"] for r in recs}
-    for gone in sorted(set(S.recordings()) - names):  # no longer in the corpus
-        S.remove(gone)
-    scanned, skipped, failed = [], [], {}
-    for r in recs:
-        if bar is not None:
-            bar.update(1)
-        ref = _ref(r["source"])
-        depth = ref.path / "depth.mkv"
-        try:
-            h = text_sha256(r["input_hash"], file_sha256(depth) if depth.exists() else "missing", options.key())[:32]
-            if incremental and S.input_hash(r["sample"]) == h:
-                skipped.append(r["sample"])
-                continue
-            res = scan_recording(ref, layout, decoder, frame_stride=options.frame_stride, voxel_m=options.voxel_m)
-        except Exception as exc:  # one recording's failure never stops the others
-            failed[r["sample"]] = _reason(exc, ref)
-            log(f"terrain {st}: {r['sample']}: not scanned: {failed[r['sample']]}")
-            continue
-        S.put(r["sample"], res.observations, h, res.recording_ts)
-        scanned.append({"sample": r["sample"], **res.counters(), "observations": len(res.observations)})
-        log(f"terrain {st}: scanned {r['sample']}: {res.frames_used} frames, {len(res.observations)} cell observations")
-    rb = S.rebuild()
-    return {
-        "dir": str(S.dir),
-        "scanned": scanned,
-        "unchanged": skipped,
-        "failed": failed,
-        "chunks_written": [list(c) for c in rb.written],  # [cx, cz] pairs (JSON-shaped)
-        "chunks_unchanged": [list(c) for c in rb.unchanged],
-        "chunks_removed": [list(c) for c in rb.removed],
-        "layers": rb.layers,
-        "filled": rb.filled,
-    }
+def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
+    """One outcome into its stage (a scanned contribution stored) and its report."""
+    st, sample = out.job.stage, out.job.sample
+    if out.reason is not None:
+        report["failed"][sample] = out.reason
+        log(f"terrain {st}: {sample}: not scanned: {out.reason}")
+    elif out.result is None:
+        report["unchanged"].append(sample)
+    else:
+        res = out.result
+        S.put(sample, res.observations, out.input_hash, res.recording_ts)
+        report["scanned"].append(
+            {"sample": sample, **res.counters(), "observations": len(res.observations), "worker": out.worker}
+        )
+        log(
+            f"terrain {st}: scanned {sample} on {out.worker}: {res.frames_used} frames, {len(res.observations)} cell observations"
+        )
 
 
 def _reason(exc: Exception, ref: SampleRef) -> str:

@@ -93,3 +93,50 @@ def tiny_dynamics(dynamics_corpus, tmp_path_factory) -> tuple[Path, dict]:
     finally:
         torch.set_num_threads(threads)
     return out, summary
+
+
+# The observation model's quality runs, shared by test_observation and test_observation_follow: 18×32 (the 36×64
+# chunks halved), 5-frame clips; a fifth of the pose model's clips are given another chunk's first frame, none of
+# the baseline's. Both train on the dynamics corpus with its terrain scanned and pose targets rendered.
+OBS_SIZE = (18, 32)
+OBS_SCAN_STRIDE = 4  # the stage's terrain from every 4th depth frame (3,400 of 13,500): a quarter of the scan's time
+
+
+def obs_config():
+    from marionette.observation.train import ObservationTrainConfig
+
+    return ObservationTrainConfig(preset="tiny", steps=300, batch_size=4, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
+
+
+@pytest.fixture(scope="session")
+def follow_corpus(dynamics_corpus, tmp_path_factory) -> Path:
+    """A copy of the dynamics corpus with its terrain scanned (the background behind moved bodies) and pose targets
+    rendered."""
+    from marionette.bridge.targets import render_pose_targets
+    from terrain_scan.scan import ScanOptions, scan_stages
+
+    out = tmp_path_factory.mktemp("follow") / "corpus"
+    shutil.copytree(dynamics_corpus, out)
+    scan_stages(out, incremental=True, options=ScanOptions(frame_stride=OBS_SCAN_STRIDE), log=lambda *_: None)
+    render_pose_targets(out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def pose_run(follow_corpus, tmp_path_factory) -> tuple[Path, dict]:
+    """The pose-controlled observation model trained on ``follow_corpus``: (run directory, training summary)."""
+    from marionette.observation.train import train
+
+    out = tmp_path_factory.mktemp("follow-pose")
+    return out, train(follow_corpus, out, obs_config(), log=lambda *_: None)
+
+
+@pytest.fixture(scope="session")
+def baseline_run(follow_corpus, tmp_path_factory) -> tuple[Path, dict]:
+    """The pixel-AR baseline (action schedules, no pose video) trained on ``follow_corpus`` with the same recipe."""
+    from dataclasses import replace
+
+    from marionette.observation.train import train
+
+    out = tmp_path_factory.mktemp("follow-baseline")
+    return out, train(follow_corpus, out, replace(obs_config(), control="actions"), log=lambda *_: None)

@@ -18,6 +18,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+from terrain_scan.scan import scan_stages
+
 REPO = Path(__file__).resolve().parents[1]
 PREFECT = str(Path(sys.executable).with_name("prefect"))
 POOL = "marionette-local"
@@ -149,6 +151,12 @@ def shard_files(corpus: Path) -> dict[str, tuple[bytes, int]]:
     return {str(p.relative_to(corpus)): (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(corpus.glob("*/shard-*"))}
 
 
+def stage_bytes(corpus: Path) -> dict[str, bytes]:
+    """Every file of every stage (manifest, contributions, chunks) by its path under ``terrain/``."""
+    root = corpus / "terrain"
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
 def terrain_files(corpus: Path) -> dict[str, tuple[int, bytes]]:
     return {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in sorted((corpus / "terrain").rglob("*.trn2"))}
 
@@ -173,6 +181,14 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     ]
     chunks = terrain_files(corpus)
     assert chunks
+    # each recording was scanned by a task on a Dask worker; committed in order, the stage holds the bytes of a
+    # serial scan in one process
+    scanned_on = {s["worker"].split("/pid-")[0] for s in report["terrain"]["default"]["scanned"]}
+    assert all(a.startswith("tcp://127.0.0.1:") for a in scanned_on), scanned_on
+    serial = tmp_path / "serial"
+    shutil.copytree(corpus, serial, ignore=shutil.ignore_patterns("terrain"))
+    scan_stages(serial, incremental=False, log=lambda *_: None)
+    assert stage_bytes(serial) == stage_bytes(corpus)
     # then every video chunk's pose-control target was rendered into the video shards
     pose = report["terrain"]["_pose_targets"]
     assert pose["chunks"] > 0 and len(pose["rendered"]) == pose["chunks"]

@@ -3,43 +3,25 @@ pose targets rendered: trained for a fixed budget it paints held-out chunks clos
 pixel-AR baseline and than its initialisation, and under a swapped pose video it draws the bodies where the
 pose says, not where the first frame had them.
 
-Budgets: every fixture and test stays under a quarter of the per-test timeout on a slow 2-core machine. Tests run
-in file order, so the corpus is set up for the swap-pair test, the pose model for the following test and the
-baseline for the relay test, each in its own test's setup."""
+The corpus and both trained models are session fixtures (conftest) that test_observation shares: each is set up
+once, in the first test that asks for it. Budgets: every fixture and test stays under a quarter of the per-test
+timeout on a slow 2-core machine."""
 
 from __future__ import annotations
-
-import shutil
-from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
+from conftest import OBS_SIZE, obs_config
 
 from marionette.observation.data import Clip, ClipSource
 from marionette.observation.model import ObservationConfig, VideoDiT
 from marionette.observation.quality import Segmenter, bodies, copy_error, follow_scores, iou, relay_error, swap_pairs
-from marionette.observation.train import ObservationTrainConfig, _batch, load_model, train
+from marionette.observation.train import ObservationTrainConfig, _batch, load_model
 
-# 18×32 (the 36×64 chunks halved), 5-frame clips; by default a fifth of the pose model's clips are given another
-# chunk's first frame, none of the baseline's
-CONFIG = ObservationTrainConfig(preset="tiny", steps=300, batch_size=4, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
-SIZE = (18, 32)
-SCAN_STRIDE = 4  # the stage's terrain from every 4th depth frame (3,400 of 13,500): a quarter of the scan's time
+CONFIG = obs_config()
+SIZE = OBS_SIZE
 SEGMENTER = {"steps": 750, "batch": 32}  # held-out IoU 0.74, as at 1,500 steps of 64 frames, in a quarter of the time
-
-
-@pytest.fixture(scope="module")
-def follow_corpus(dynamics_corpus, tmp_path_factory):
-    from marionette.bridge.targets import render_pose_targets
-    from terrain_scan.scan import ScanOptions, scan_stages
-
-    out = tmp_path_factory.mktemp("follow") / "corpus"
-    shutil.copytree(dynamics_corpus, out)
-    # pose frames with terrain: the background behind moved bodies
-    scan_stages(out, incremental=True, options=ScanOptions(frame_stride=SCAN_STRIDE), log=lambda *_: None)
-    render_pose_targets(out)
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -50,17 +32,13 @@ def held(follow_corpus) -> list[Clip]:
 
 
 @pytest.fixture(scope="module")
-def pose_model(follow_corpus, tmp_path_factory) -> VideoDiT:
-    out = tmp_path_factory.mktemp("follow-pose")
-    train(follow_corpus, out, CONFIG, log=lambda *_: None)
-    return load_model(out)
+def pose_model(pose_run) -> VideoDiT:
+    return load_model(pose_run[0])
 
 
 @pytest.fixture(scope="module")
-def baseline_model(follow_corpus, tmp_path_factory) -> VideoDiT:
-    out = tmp_path_factory.mktemp("follow-baseline")
-    train(follow_corpus, out, replace(CONFIG, control="actions"), log=lambda *_: None)
-    return load_model(out)
+def baseline_model(baseline_run) -> VideoDiT:
+    return load_model(baseline_run[0])
 
 
 def test_reference_swap_draws_first_frames_from_other_chunks():
