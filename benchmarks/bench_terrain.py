@@ -34,10 +34,14 @@ straddles one: a layer of a cell touching an edge that reads the level across it
 counts in "RMSE all" and "max all".
 
 Fan-out (``--part fanout``, not in "all"). ``--recordings`` seeded recordings of ``--seconds`` at
-320×180 ingested into a corpus (video 72×128; not timed), then a full scan of its stage
-(``scan_stages(incremental=False)``, defaults) on each of ``--workers`` local processes
-(``pool_mapper``): wall time of the whole scan (jobs, the in-order commit and the chunk rebuild),
-depth frames/s, and whether the stage's files are byte-identical to the one-worker scan's.
+320×180 ingested into a corpus (ingest defaults, video 176×320; not timed), then for each of
+``--workers``: a full scan of its stage (``scan_stages(incremental=False)``, defaults, a recording a
+job on forked processes): wall time of the whole scan (jobs, the in-order commit, the chunk rebuild),
+depth frames/s, whether the stage's files are byte-identical to the first row's; and the pose pass
+over the scanned corpus (``render_pose_targets``, a shard a job on spawned processes; one worker: the
+one-process pass): wall time (process start-up included), frames rendered per second, and whether the
+video shards are byte-identical to the first row's. BLAS/OpenMP pools are at one thread (inherited by
+the workers); llvmpipe and the encoders use what the library gives them.
 """
 
 from __future__ import annotations
@@ -225,39 +229,53 @@ def scan_row(ref, layout, decoder, label: str, **kw) -> tuple[list[object], obje
 
 
 def bench_fanout(args) -> None:
-    from marionette.ingest import IngestOptions, VideoSettings, build_corpus
+    from marionette.bridge.targets import render_pose_targets
+    from marionette.ingest import IngestOptions, build_corpus
     from terrain_scan.scan import scan_stages
 
-    def stage_files(corpus: Path) -> dict[str, bytes]:
-        root = corpus / "terrain"
-        return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    def files(corpus: Path, sub: str, pattern: str = "*") -> dict[str, bytes]:
+        root = corpus / sub
+        return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob(pattern)) if p.is_file()}
 
+    scan_rows, pose_rows = [], []
     with tempfile.TemporaryDirectory(prefix="bench_terrain_fanout_") as tmp:
         tmp = Path(tmp)
         t0 = time.perf_counter()
         synth.generate(tmp / "src", recordings=args.recordings, seconds=args.seconds, seed=args.seed, width=320, height=180)
-        options = IngestOptions(video=VideoSettings(height=72, width=128, chunk_frames=81, crf=28))
-        build_corpus(tmp / "src", tmp / "base", options, workers=2, progress=False)
+        build_corpus(tmp / "src", tmp / "base", IngestOptions(), workers=2, progress=False)
         setup_s = time.perf_counter() - t0
         frames = args.recordings * round(args.seconds * 30)
-        rows, reference = [], None
+        reference = None
         for k in args.workers:
-            corpus = tmp / f"corpus-{k}"
+            corpus = tmp / f"scan-{k}"
             shutil.copytree(tmp / "base", corpus)
             t = time.perf_counter()
             report = scan_stages(corpus, incremental=False, log=lambda *_: None, workers=k)
             wall = time.perf_counter() - t
-            files = stage_files(corpus)
-            reference = reference or files
+            got = files(corpus, "terrain")
+            reference = reference or got
             used = sum(r["frames_used"] for st in report.values() for r in st["scanned"])
-            rows.append([k, f"{wall:.1f}", f"{frames / wall:.1f}", used, "yes" if files == reference else "NO"])
-            shutil.rmtree(corpus)
-    print(preamble("Terrain: the scan fanned out over local processes"))
+            scan_rows.append([k, f"{wall:.1f}", f"{frames / wall:.1f}", used, "yes" if got == reference else "NO"])
+        scanned, reference = tmp / f"scan-{args.workers[0]}", None
+        for k in args.workers:
+            corpus = tmp / f"pose-{k}"
+            shutil.copytree(scanned, corpus)
+            t = time.perf_counter()
+            r = render_pose_targets(corpus, workers=k)
+            wall = time.perf_counter() - t
+            got = files(corpus, "video", "*.tar")
+            reference = reference or got
+            row = [k, f"{wall:.1f}", f"{r.frames_rendered / wall:.1f}", r.frames_rendered, len(r.failed)]
+            pose_rows.append(row + ["yes" if got == reference else "NO"])
+    print(preamble("Terrain scan and pose targets fanned out over local processes"))
     print(
-        f"{args.recordings} × {args.seconds:g} s synthetic recordings at 320×180 (seed {args.seed}), ingested in "
-        f"{setup_s:.0f} s (not timed); a full scan of the stage ({frames} depth frames), defaults.\n"
+        f"{args.recordings} × {args.seconds:g} s synthetic recordings at 320×180 (seed {args.seed}), ingested with the "
+        f"defaults (video 176×320) in {setup_s:.0f} s (not timed).\n"
     )
-    print(table(["workers", "wall s", "depth frames/s", "frames used", "bytes = 1st row"], rows))
+    print(f"### Full scan of the stage ({frames} depth frames), defaults\n")
+    print(table(["workers", "wall s", "depth frames/s", "frames used", "bytes = 1st row"], scan_rows))
+    print("\n### Pose pass: every chunk's target rendered (176×320), a shard a job, fresh (spawned) processes\n")
+    print(table(["workers", "wall s", "frames/s", "frames", "failed", "shards = 1st row"], pose_rows))
 
 
 def floats(s: str) -> list[float]:

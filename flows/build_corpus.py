@@ -15,8 +15,6 @@ the corpus already holds that input hash.
 
 from __future__ import annotations
 
-import os
-import socket
 from dataclasses import asdict
 from pathlib import Path
 
@@ -26,26 +24,16 @@ from prefect.cache_policies import NO_CACHE
 from prefect.context import TaskRunContext
 from prefect.futures import as_completed
 from prefect.runtime import flow_run
-from prefect_dask import DaskTaskRunner
 
+from flows.fanout import dask_runner
 from marionette import ingest
 from marionette.corpus.lock import corpus_lock
+from marionette.fanout import worker_identity
 from marionette.ingest import IngestOptions, SampleRef, VideoSettings
 from marionette.io import write_json
 
 CACHE_DIR = Path("meta") / "builds" / "cache"  # Prefect cache records, inside the corpus
 REPORT_DIR = Path("meta") / "builds"  # one build report per flow run
-
-
-def worker_identity() -> str:
-    """``<dask worker address>/pid-<pid>`` on a Dask worker, ``<host>/pid-<pid>`` elsewhere."""
-    try:
-        from distributed import get_worker
-
-        where = get_worker().address
-    except (ImportError, ValueError):
-        where = socket.gethostname()
-    return f"{where}/pid-{os.getpid()}"
 
 
 def sample_cache_key(context: TaskRunContext, parameters: dict) -> str | None:
@@ -128,15 +116,6 @@ def ingest_samples(source: str, corpus: str, options: dict) -> list[dict]:
         results.append(r)
         logger.info("[%d/%d] %s: %s %s", len(results), len(refs), r["sample"], r["status"], r["worker"] or r["reason"])
     return sorted(results, key=lambda r: r["sample"])
-
-
-def dask_runner(dask_address: str | None, n_workers: int) -> DaskTaskRunner:
-    """An existing Dask scheduler by address, else a local cluster of single-threaded processes."""
-    if dask_address:
-        return DaskTaskRunner(address=dask_address)
-    return DaskTaskRunner(
-        cluster_kwargs={"n_workers": n_workers, "threads_per_worker": 1, "processes": True, "dashboard_address": ":0"}
-    )
 
 
 def build_report(run_id: str, source: str, corpus: str, options: IngestOptions, results: list[dict], info: dict) -> dict:

@@ -1,13 +1,15 @@
 """The ``rescan-stage`` flow: scan new or changed recordings of a stage, then bring the pose targets up to date.
 
     refresh (``marionette.pipeline.refresh``, the call ``marionette terrain scan`` makes)
-        scan-recordings (subflow: one ``scan`` task per recording, on Dask) → commit in order, rebuild → pose targets
+        scan-recordings (subflow: one ``scan-<stage>-<sample>`` task per recording, on Dask) → commit in order,
+        rebuild → render-pose-targets (subflow: one ``pose-shard-<n>`` task per video shard, on Dask)
     → report artifact
 
 The scan fans out like ingest: a local Dask cluster of ``n_workers`` processes, or the scheduler at
 ``dask_address``. Each task hashes its recording's inputs and scans it unless the stage already holds that
 hash; the flow's process commits the contributions in recording order and rebuilds the chunks, so the
-stage's files are the bytes of a serial scan.
+stage's files are the bytes of a serial scan. The pose pass then fans out the same way, one task per
+video shard (a shard's targets depend only on its own chunks).
 
 Incremental by default: recordings whose inputs and scan settings are unchanged are not read, and
 only chunk files whose bytes change are rewritten. The pose-control targets of the video chunks
@@ -20,40 +22,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from prefect import flow, get_run_logger, task, unmapped
+from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
-from prefect.cache_policies import NO_CACHE
 
-from flows.build_corpus import dask_runner, worker_identity
+from flows.fanout import dask_mapper
 from marionette import pipeline
 from terrain_scan.depth import DepthDecoder
-from terrain_scan.scan import Mapper, ScanJob, ScanOptions, ScanOutcome, scan_job
-
-
-@task(cache_policy=NO_CACHE, task_run_name="scan-{job.stage}-{job.sample}")
-def scan_one(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
-    """One recording's scan (``terrain_scan.scan.scan_job``); a failure is in the outcome, not raised."""
-    out = scan_job(job, layout, options)
-    out.worker = worker_identity()
-    return out
-
-
-@flow(name="scan-recordings")
-def scan_recordings(jobs: list[ScanJob], layout, options: ScanOptions) -> list[ScanOutcome]:
-    """Fan ``scan_one`` out over this flow's task runner; one outcome per job."""
-    futures = scan_one.map(jobs, layout=unmapped(layout), options=unmapped(options))
-    return [f.result() for f in futures]
-
-
-def dask_mapper(dask_address: str | None, n_workers: int) -> Mapper:
-    """A ``terrain_scan.scan.Mapper`` that runs the jobs in the ``scan-recordings`` subflow on Dask."""
-
-    def run(jobs: list[ScanJob], layout, options: ScanOptions) -> list[ScanOutcome]:
-        if not jobs:
-            return []
-        return scan_recordings.with_options(task_runner=dask_runner(dask_address, n_workers))(jobs, layout, options)
-
-    return run
+from terrain_scan.scan import ScanOptions
 
 
 def report_markdown(corpus: str, report: dict) -> str:
@@ -109,7 +84,8 @@ def rescan_stage(
         scan_options=options,
         pose=render_targets,
         log=logger.info,
-        scan_mapper=dask_mapper(dask_address, n_workers),
+        scan_mapper=dask_mapper("scan-recordings", dask_address, n_workers),
+        pose_mapper=dask_mapper("render-pose-targets", dask_address, n_workers),
     )
     for line in done.lines():
         logger.info(line)

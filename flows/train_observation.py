@@ -15,17 +15,8 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
+from flows.fanout import dask_mapper
 from marionette.observation.train import ObservationTrainConfig, run
-
-
-@task(cache_policy=NO_CACHE, task_run_name="pose-targets")
-def pose_targets(corpus: str) -> dict:
-    """Render the pose targets of video chunks that lack an up-to-date one."""
-    from marionette.bridge.targets import render_pose_targets
-
-    r = render_pose_targets(Path(corpus))
-    get_run_logger().info("pose targets: %d of %d chunks rendered", len(r.rendered), r.chunks)
-    return {"chunks": r.chunks, "rendered": len(r.rendered)}
 
 
 @task(cache_policy=NO_CACHE, task_run_name="train-observation-{config.control}")
@@ -69,9 +60,13 @@ def train_observation(
     checkpoint_every: int = 250,
     reference_swap: float | None = None,
     nproc: int = 1,
+    dask_address: str | None = None,
+    n_workers: int = 2,
 ) -> dict:
-    """Pose targets up to date, then train the observation model (or the pixel-AR baseline, control="actions");
-    ``reference_swap`` None: the trainer's default (0.2 under pose control, 0 for the baseline)."""
+    """Pose targets up to date (the ``render-pose-targets`` subflow: a task per video shard on Dask, the
+    scheduler at ``dask_address`` or ``n_workers`` local processes), then train the observation model (or the
+    pixel-AR baseline, control="actions"); ``reference_swap`` None: the trainer's default (0.2 under pose
+    control, 0 for the baseline)."""
     config = ObservationTrainConfig(
         preset=preset,
         steps=steps,
@@ -85,7 +80,10 @@ def train_observation(
         checkpoint_every=checkpoint_every,
         reference_swap=reference_swap,
     )
-    pose_targets(corpus)
+    from marionette.bridge.targets import render_pose_targets
+
+    r = render_pose_targets(Path(corpus), mapper=dask_mapper("render-pose-targets", dask_address, n_workers))
+    get_run_logger().info("pose targets: %d of %d chunks rendered, %d failed", len(r.rendered), r.chunks, len(r.failed))
     summary = train_model(corpus, out, config, nproc)
     create_markdown_artifact(key="train-observation-report", markdown=report_markdown(corpus, summary))
     return summary

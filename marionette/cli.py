@@ -679,7 +679,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--frame-stride", type=positive_int, default=1, help="use every Nth depth frame")
     s.add_argument("--voxel", type=positive_float, default=0.25, help="voxel size of the point down-sampling, metres")
     s.add_argument("--depth-decoder", type=Path, default=None, help="8-bit depth mapping JSON (default: the synthetic game's)")
-    s.add_argument("--workers", type=positive_int, default=1, help="recordings scanned in parallel processes")
+    s.add_argument(
+        "--workers", type=positive_int, default=1, help="parallel processes: recordings scanned, video shards rendered"
+    )
     s.add_argument("--no-pose", dest="pose", action="store_false", help="do not bring the pose-control targets up to date")
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.add_argument("--strict", action="store_true", help="exit 1 when any recording's scan or any pose target fails")

@@ -58,12 +58,13 @@ def refresh(
     log=lambda *_: None,
     workers: int = 1,
     scan_mapper=None,
+    pose_mapper=None,
 ) -> RefreshReport:
     """Scan the terrain of one stage (or all), then bring every pose target up to date, under the corpus lock.
 
     ``scan_options`` is a ``terrain_scan.scan.ScanOptions`` (default: the synthetic game's depth decoder). The
     recordings are scanned on ``workers`` local processes, or by ``scan_mapper`` (``terrain_scan.scan.Mapper``:
-    the flows' runs them on Dask).
+    the flows' run them on Dask); the pose targets likewise, a shard a job (``pose_mapper``).
     """
     from marionette.bridge.targets import render_pose_targets
     from terrain_scan.scan import scan_stages
@@ -75,7 +76,7 @@ def refresh(
                 corpus, stage, incremental, scan_options, log=log, progress=progress, workers=workers, mapper=scan_mapper
             )
         if pose:
-            report.pose = asdict(render_pose_targets(corpus, progress=progress))
+            report.pose = asdict(render_pose_targets(corpus, progress=progress, workers=workers, mapper=pose_mapper))
     return report
 
 

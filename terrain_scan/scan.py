@@ -10,12 +10,11 @@ recording of the stage; both give identical chunk files.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 from marionette.corpus import paths
+from marionette.fanout import Mapper, pool_mapper, worker_identity
 from marionette.ingest.wildworld import SampleError, SampleRef
 from marionette.io import file_sha256, text_sha256
 from terrain_scan.accumulate import ScanResult, scan_recording
@@ -66,6 +65,10 @@ class ScanJob:
     ingest_hash: str  # the ingest input hash of its files and options
     stored_hash: str | None  # the contribution's hash the stage holds now (None: none, or a full scan)
 
+    @property
+    def name(self) -> str:
+        return f"scan-{self.stage}-{self.sample}"
+
 
 @dataclass
 class ScanOutcome:
@@ -85,10 +88,7 @@ class ScanOutcome:
 def scan_job(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
     """Hash a recording's scan inputs (ingest input, depth.mkv, scan settings) and scan it unless the stage
     already holds that hash. Never raises: a failure is the outcome's ``reason``, naming the file."""
-    import os
-    import socket
-
-    out = ScanOutcome(job, worker=f"{socket.gethostname()}/pid-{os.getpid()}")
+    out = ScanOutcome(job, worker=worker_identity())
     ref = _ref(job.source)
     depth = ref.path / "depth.mkv"
     try:
@@ -100,33 +100,6 @@ def scan_job(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
     except Exception as exc:  # one recording's failure never stops the others
         out.reason = _reason(exc, ref)
     return out
-
-
-# How scan jobs run: ``mapper(jobs, layout, options)`` yields one ``ScanOutcome`` per job, in any order.
-Mapper = Callable[[list[ScanJob], Any, ScanOptions], Iterable[ScanOutcome]]
-
-
-def serial_mapper(jobs: list[ScanJob], layout, options: ScanOptions) -> Iterator[ScanOutcome]:
-    for j in jobs:
-        yield scan_job(j, layout, options)
-
-
-def pool_mapper(workers: int) -> Mapper:
-    """Jobs on ``workers`` local processes (serial for one worker or one job)."""
-    if workers < 1:
-        raise ValueError(f"workers must be at least 1, got {workers}")
-
-    def run(jobs: list[ScanJob], layout, options: ScanOptions) -> Iterator[ScanOutcome]:
-        if workers == 1 or len(jobs) <= 1:
-            yield from serial_mapper(jobs, layout, options)
-            return
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
-        with ProcessPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
-            for fut in as_completed([pool.submit(scan_job, j, layout, options) for j in jobs]):
-                yield fut.result()
-
-    return run
 
 
 def scan_stages(
@@ -141,9 +114,9 @@ def scan_stages(
 ) -> dict:
     """Scan one stage (or all) of a corpus; returns per stage what was scanned, what failed and which chunks changed.
 
-    The recordings are scanned as independent jobs by ``mapper`` (default: ``pool_mapper(workers)``; the
-    ``rescan-stage`` flow passes one that runs them on Dask) and committed to their stage in the stage's
-    recording order, whatever order they finish in, so any number of workers writes the bytes a serial scan
+    The recordings are scanned as independent jobs (``scan_job``) by ``mapper`` (``marionette.fanout``;
+    default: ``pool_mapper(workers)``; the ``rescan-stage`` flow passes one that runs them on Dask) and
+    committed to their stage in the stage's recording order, whatever order they finish in, so any number of workers writes the bytes a serial scan
     writes. A recording that cannot be scanned (its depth.mkv or any other input unreadable, or any other
     error) is listed under ``failed`` with the reason and the other recordings are scanned. ``progress``
     shows a bar over the recordings.
@@ -187,7 +160,7 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
     waiting: dict[int, ScanOutcome] = {}
     done = 0
     try:
-        for out in mapper(jobs, c.layout, options):
+        for out in mapper(scan_job, jobs, {"layout": c.layout, "options": options}):
             if bar is not None:
                 bar.update(1)
             waiting[order[(out.job.stage, out.job.sample)]] = out

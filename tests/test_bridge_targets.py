@@ -87,7 +87,8 @@ def test_a_rescan_rerenders_only_the_chunks_that_see_the_change(scanned):
     rebuilt = stage.rebuild()
     assert rebuilt.written == [(-11, 8)]
     before = {p.name: p.read_bytes() for p in (scanned / "video").glob("*.tar")}
-    report = render_pose_targets(scanned)
+    # fanned out: a shard a job on two fresh processes, merged in shard order
+    report = render_pose_targets(scanned, workers=2)
     seeing, all_chunks = set(), set()
     for t in sorted((scanned / "video").glob("*.tar")):
         for name, data in members(t).items():
@@ -102,12 +103,20 @@ def test_a_rescan_rerenders_only_the_chunks_that_see_the_change(scanned):
     for name, data in before.items():  # shards without a re-rendered chunk keep their bytes
         assert (name in rewritten) == ((scanned / "video" / name).read_bytes() != data)
     assert len(rewritten) < len(before)
-    # and removing the contribution brings back the first renders (the cache key is the content)
+    # and removing the contribution brings back the first renders (the cache key is the content): the two
+    # workers write the bytes the one-process pass wrote, and drop the derived files no chunk uses any more
     stage.remove("extra/west")
     stage.rebuild()
-    again = render_pose_targets(scanned)
-    assert set(again.rendered) == seeing
+    again = render_pose_targets(scanned, workers=2)
+    assert set(again.rendered) == seeing and again.failed == {}
     assert {p.name: p.read_bytes() for p in (scanned / "video").glob("*.tar")} == before
+    used = {
+        f"{name[: -len('.json')]}-{json.loads(data)['pose']['key']}.mkv"
+        for t in sorted((scanned / "video").glob("*.tar"))
+        for name, data in members(t).items()
+        if name.endswith(".json")
+    }
+    assert {p.name for p in (scanned / "derived" / "pose").glob("*.mkv")} == used
 
 
 def test_the_follow_camera_frames_both_fighters_on_recorded_state(scanned_corpus):

@@ -192,6 +192,7 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     # then every video chunk's pose-control target was rendered into the video shards
     pose = report["terrain"]["_pose_targets"]
     assert pose["chunks"] > 0 and len(pose["rendered"]) == pose["chunks"]
+    assert pose["workers"] and all(w.startswith("tcp://127.0.0.1:") for w in pose["workers"]), pose["workers"]  # on Dask
     for tar_path in sorted((corpus / "video").glob("*.tar")):
         with tarfile.open(tar_path) as tar:
             names = tar.getnames()

@@ -181,6 +181,7 @@ class TargetsReport:
     shards_rewritten: list[int] = field(default_factory=list)
     frames_rendered: int = 0
     failed: dict[str, str] = field(default_factory=dict)  # chunk key or shard → why it has no target
+    workers: list[str] = field(default_factory=list)  # where the shards were rendered (``marionette.fanout``)
 
 
 class _Pass:
@@ -286,42 +287,137 @@ class _Pass:
             r.release()
 
 
-def render_pose_targets(corpus_path: Path, settings: RenderSettings | None = None, progress: bool = False) -> TargetsReport:
+@dataclass(frozen=True)
+class RenderJob:
+    """One video shard's pose targets, for a worker: the corpus and the shard number."""
+
+    corpus: str
+    shard: int
+
+    @property
+    def name(self) -> str:
+        return f"pose-{paths.shard_name(self.shard)}"
+
+
+@dataclass
+class ShardOutcome:
+    """What a worker did to one shard: its pass's report, the derived files its chunks use, whether it rewrote
+    the shard, and where it ran."""
+
+    job: RenderJob
+    report: TargetsReport
+    keep: set[str]
+    rewritten: bool
+    worker: str
+
+
+def render_shard(job: RenderJob, settings: RenderSettings) -> ShardOutcome:
+    """Bring one shard's pose targets up to date in a pass of its own (its own rasterizer and terrain)."""
+    from marionette.fanout import worker_identity
+
+    corpus = Corpus(Path(job.corpus))
+    report = TargetsReport()
+    run = _Pass(corpus, settings, report)
+    try:
+        rewritten = _render_shard(run, corpus, job.shard, lambda n: None)
+    finally:
+        run.release()
+    return ShardOutcome(job, report, run.keep, rewritten, worker_identity())
+
+
+def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> bool:
+    """One shard through ``run``; True when its members changed and it was rewritten (atomically)."""
+    vpath = corpus.video_path(shard)
+    if not vpath.exists():
+        return False
+    try:
+        members = video_shards.read_members(vpath)
+        new_members = run.shard(vpath, members, progress)
+    except (ValueError, OSError) as exc:  # an unreadable or untrusted shard: named, left untouched
+        run.report.failed[paths.shard_name(shard)] = str(exc)
+        return False
+    if new_members == members:
+        return False
+    video_shards.write_members(vpath, new_members)
+    run.report.shards_rewritten.append(shard)
+    return True
+
+
+def render_pose_targets(
+    corpus_path: Path, settings: RenderSettings | None = None, progress: bool = False, workers: int = 1, mapper=None
+) -> TargetsReport:
     """Bring every video chunk's pose target up to date (module docstring), holding the corpus lock; a chunk
-    or shard that fails is recorded in ``failed`` and the pass goes on. ``progress`` shows a bar over chunks."""
+    or shard that fails is recorded in ``failed`` and the pass goes on. ``progress`` shows a bar over chunks.
+
+    One worker renders every shard in this process, in one pass (one rasterizer, each stage's terrain loaded
+    once). Otherwise each shard is a job (``render_shard``) for ``mapper`` (``marionette.fanout``; default: a
+    pool of ``workers`` fresh processes, none inheriting this one's GL context; the flows pass one that runs
+    on Dask) and the outcomes are merged in shard order: a shard's bytes depend only on its own chunks, so
+    every worker count writes the same files and the same report.
+    """
+    from marionette.fanout import pool_mapper
+
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
     corpus = Corpus(Path(corpus_path))
+    settings = settings or RenderSettings()
     report = TargetsReport()
     out_dir = corpus.path / "derived" / "pose"
     with corpus_lock(corpus.path, "pose targets"):
-        run = _Pass(corpus, settings or RenderSettings(), report)
         bar = None
         if progress:
             from tqdm import tqdm
 
             bar = tqdm(total=corpus.info.total_chunks, desc="pose targets", unit="chunk")
         try:
-            for shard in corpus.shard_ids():
-                vpath = corpus.video_path(shard)
-                if not vpath.exists():
-                    continue
-                try:
-                    members = video_shards.read_members(vpath)
-                    new_members = run.shard(vpath, members, bar.update if bar else lambda n: None)
-                except (ValueError, OSError) as exc:  # an unreadable or untrusted shard: named, left untouched
-                    report.failed[paths.shard_name(shard)] = str(exc)
-                    continue
-                if new_members != members:
-                    video_shards.write_members(vpath, new_members)
-                    report.shards_rewritten.append(shard)
+            if mapper is None and workers == 1:
+                keep = _render_serial(corpus, settings, report, bar)
+            else:
+                keep = _render_fanned_out(corpus, settings, report, bar, mapper or pool_mapper(workers, start_method="spawn"))
         finally:
-            run.release()
             if bar:
                 bar.close()
         if out_dir.exists():
             for old in out_dir.glob("*.mkv"):
-                if old.name not in run.keep:
+                if old.name not in keep:
                     old.unlink(missing_ok=True)
     return report
+
+
+def _render_serial(corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar) -> set[str]:
+    from marionette.fanout import worker_identity
+
+    report.workers = [worker_identity()]
+    run = _Pass(corpus, settings, report)
+    try:
+        for shard in corpus.shard_ids():
+            _render_shard(run, corpus, shard, bar.update if bar else lambda n: None)
+    finally:
+        run.release()
+    return run.keep
+
+
+def _render_fanned_out(corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar, mapper) -> set[str]:
+    jobs = [RenderJob(str(corpus.path), s) for s in corpus.shard_ids()]
+    outcomes: dict[int, ShardOutcome] = {}
+    for out in mapper(render_shard, jobs, {"settings": settings}):
+        outcomes[out.job.shard] = out
+        if bar:
+            bar.update(out.report.chunks)
+    missing = [j.shard for j in jobs if j.shard not in outcomes]
+    if missing:
+        raise RuntimeError(f"{corpus.path}: the pose pass's workers returned no outcome for shards {missing}")
+    keep: set[str] = set()
+    for j in jobs:  # in shard order, as one pass would have listed them
+        r = outcomes[j.shard].report
+        report.chunks += r.chunks
+        report.rendered += r.rendered
+        report.shards_rewritten += r.shards_rewritten
+        report.frames_rendered += r.frames_rendered
+        report.failed.update(r.failed)
+        keep |= outcomes[j.shard].keep
+    report.workers = sorted({o.worker for o in outcomes.values()})
+    return keep
 
 
 def _rows_hash(layout: Layout, rows: pa.Table) -> str:
