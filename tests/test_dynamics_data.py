@@ -21,6 +21,7 @@ from marionette.dynamics.data import (
     Normaliser,
     WindowData,
     WindowSampler,
+    shard_windows_dir,
     terrain_feature_path,
     terrain_feature_shard,
     vocab_sizes,
@@ -347,3 +348,39 @@ def test_an_unscanned_stage_gives_zero_features_marked_unknown(corpus, tmp_path)
     feats, known = terrain_feature_shard(plain, 2)
     assert feats.shape[0] == Corpus(plain).dynamics_shard(2).num_rows
     assert not known.any() and np.all(feats == 0)
+
+
+def test_window_arrays_are_memory_mapped_from_a_checked_cache(scanned):
+    """WindowData holds read-only maps of per-shard .npy files under derived/windows/, equal to the shard's own
+    computation; a damaged file (wrong dtype and shape, or a broken header) is recomputed, never trusted."""
+    c = Corpus(scanned)
+    a = WindowData(c, "train", terrain=True, relative=True)
+    assert all(isinstance(x, np.memmap) and not x.flags.writeable for x in a.root + a.body + a.action + a.features + a.rel)
+    shard = int(c.segment_row(a.segments[0])["shard"])
+    view = c.dynamics_shard(shard)
+    rows = np.flatnonzero(view["segment"].to_numpy(zero_copy_only=False) == a.segments[0])
+    state = fixed_rows(view["state"], c.layout.dim)[rows]
+    root, body = a.normaliser.normalise(*split_state(state, c.layout))
+    assert np.array_equal(a.root[0], root.astype(np.float32)) and np.array_equal(a.body[0], body.astype(np.float32))
+    feats, known = terrain_feature_shard(c, shard)
+    assert np.array_equal(a.features[0], feats[rows]) and np.array_equal(a.known[0], known[rows])
+    d = shard_windows_dir(c, shard, a.normaliser, a.tokens, terrain=True, relative=True, fps=20.0, method="linear")
+    names = ["action", "body", "features", "known", "progress", "rel", "root"]
+    assert sorted(p.name for p in d.iterdir()) == sorted([f"{k}.npy" for k in names] + ["segments.json"])
+    expect = {k: [np.array(x) for x in getattr(a, k)] for k in ("root", "body", "action", "progress", "features", "known", "rel")}
+    batch = a.batch([(0, 3), (1, 0)], 17).frames
+    del a  # its maps read the files damaged below
+    (d / "root.npy").unlink()
+    np.save(d / "root.npy", np.zeros((3, 2)))  # float64, 3 rows: disagrees with the layout and the other arrays
+    b = WindowData(c, "train", terrain=True, relative=True)
+    assert all(np.array_equal(x, y) for k, v in expect.items() for x, y in zip(getattr(b, k), v))
+    del b
+    (d / "body.npy").unlink()
+    (d / "body.npy").write_bytes(b"\x93NUMPY\x01\x00garbage")
+    again = WindowData(c, "train", terrain=True, relative=True)
+    assert all(np.array_equal(x, y) for k, v in expect.items() for x, y in zip(getattr(again, k), v))
+    assert torch.equal(again.batch([(0, 3), (1, 0)], 17).frames.root, batch.root)
+    # the arrays without terrain or the relative feature live beside, under their own key
+    plain = WindowData(c, "train")
+    assert plain.features[0] is None and plain.rel[0] is None and np.array_equal(plain.root[0], expect["root"][0])
+    assert d.is_dir() and len(list(d.parent.glob(f"shard-{shard:06d}-*"))) == 2
