@@ -25,7 +25,7 @@ from prefect.context import TaskRunContext
 from prefect.futures import as_completed
 from prefect.runtime import flow_run
 
-from flows.fanout import dask_runner
+from flows.fanout import dask_cluster, dask_runner
 from marionette import ingest
 from marionette.corpus.lock import corpus_lock
 from marionette.fanout import worker_identity
@@ -185,7 +185,8 @@ def build_corpus(
 ) -> dict:
     """Ingest every WildWorld sample under ``source`` into ``corpus`` and finalize it.
 
-    The fan-out runs on a local Dask cluster of ``n_workers`` processes, or on the existing scheduler
+    The fan-out runs on a local Dask cluster of ``n_workers`` processes (one for the whole run: ingest,
+    scan and render), or on the existing scheduler
     at ``dask_address`` (its workers must be able to import ``marionette`` and ``flows`` and see both
     paths). After finalize, each stage's terrain is scanned incrementally (the ``rescan-stage``
     subflow, its recordings fanned out on the same cluster) unless ``scan_terrain`` is false. Returns the build report, also written to
@@ -200,9 +201,9 @@ def build_corpus(
         compression=compression,
     )
     # held by this flow-run process, shared with the writers it calls here; one build per corpus at a time
-    with corpus_lock(Path(corpus), "build-corpus flow", share=True):
+    with corpus_lock(Path(corpus), "build-corpus flow", share=True), dask_cluster(dask_address, n_workers) as address:
         check_corpus(corpus, options)
-        fan_out = ingest_samples.with_options(task_runner=dask_runner(dask_address, n_workers))
+        fan_out = ingest_samples.with_options(task_runner=dask_runner(address, n_workers))
         results = fan_out(source, corpus, options.to_json())
         info = finalize_corpus(source, corpus, options)
         terrain = {}
@@ -210,7 +211,7 @@ def build_corpus(
             from flows.rescan_stage import rescan_stage
 
             terrain = rescan_stage(
-                corpus, incremental=True, frame_stride=terrain_frame_stride, dask_address=dask_address, n_workers=n_workers
+                corpus, incremental=True, frame_stride=terrain_frame_stride, dask_address=address, n_workers=n_workers
             )
         report = build_report(str(flow_run.id), source, corpus, options, results, info)
         report["terrain"] = terrain

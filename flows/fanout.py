@@ -5,6 +5,8 @@ results in job order, as it does for a local pool."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from prefect import flow, task, unmapped
@@ -21,6 +23,19 @@ def dask_runner(dask_address: str | None, n_workers: int) -> DaskTaskRunner:
     return DaskTaskRunner(
         cluster_kwargs={"n_workers": n_workers, "threads_per_worker": 1, "processes": True, "dashboard_address": ":0"}
     )
+
+
+@contextmanager
+def dask_cluster(dask_address: str | None, n_workers: int) -> Iterator[str]:
+    """The scheduler address a flow's fan-outs share: ``dask_address``, else that of a local cluster of
+    ``n_workers`` single-threaded processes started for the block (one start-up for every stage of a run)."""
+    if dask_address:
+        yield dask_address
+        return
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        yield cluster.scheduler_address
 
 
 @task(cache_policy=NO_CACHE, task_run_name="{name}")

@@ -25,7 +25,7 @@ from pathlib import Path
 from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 
-from flows.fanout import dask_mapper
+from flows.fanout import dask_cluster, dask_mapper
 from marionette import pipeline
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.scan import ScanOptions
@@ -77,16 +77,17 @@ def rescan_stage(
     logger = get_run_logger()
     decoder = DepthDecoder.synthetic() if depth_decoder is None else DepthDecoder.from_json(depth_decoder)
     options = ScanOptions(decoder=decoder.to_json(), frame_stride=frame_stride, voxel_m=voxel_m)
-    done = pipeline.refresh(
-        Path(corpus),
-        stage,
-        incremental=incremental,
-        scan_options=options,
-        pose=render_targets,
-        log=logger.info,
-        scan_mapper=dask_mapper("scan-recordings", dask_address, n_workers),
-        pose_mapper=dask_mapper("render-pose-targets", dask_address, n_workers),
-    )
+    with dask_cluster(dask_address, n_workers) as address:  # one cluster for the scan and the render
+        done = pipeline.refresh(
+            Path(corpus),
+            stage,
+            incremental=incremental,
+            scan_options=options,
+            pose=render_targets,
+            log=logger.info,
+            scan_mapper=dask_mapper("scan-recordings", address, n_workers),
+            pose_mapper=dask_mapper("render-pose-targets", address, n_workers),
+        )
     for line in done.lines():
         logger.info(line)
     report = {**done.terrain, **({"_pose_targets": done.pose} if done.pose is not None else {})}

@@ -18,8 +18,6 @@ from pathlib import Path
 import httpx
 import pytest
 
-from terrain_scan.scan import scan_stages
-
 REPO = Path(__file__).resolve().parents[1]
 PREFECT = str(Path(sys.executable).with_name("prefect"))
 POOL = "marionette-local"
@@ -151,6 +149,10 @@ def shard_files(corpus: Path) -> dict[str, tuple[bytes, int]]:
     return {str(p.relative_to(corpus)): (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(corpus.glob("*/shard-*"))}
 
 
+def shard_files_bytes(corpus: Path) -> dict[str, bytes]:
+    return {k: v[0] for k, v in shard_files(corpus).items()}
+
+
 def stage_bytes(corpus: Path) -> dict[str, bytes]:
     """Every file of every stage (manifest, contributions, chunks) by its path under ``terrain/``."""
     root = corpus / "terrain"
@@ -181,18 +183,24 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     ]
     chunks = terrain_files(corpus)
     assert chunks
-    # each recording was scanned by a task on a Dask worker; committed in order, the stage holds the bytes of a
-    # serial scan in one process
+    # each recording was scanned by a task on a Dask worker
     scanned_on = {s["worker"].split("/pid-")[0] for s in report["terrain"]["default"]["scanned"]}
     assert all(a.startswith("tcp://127.0.0.1:") for a in scanned_on), scanned_on
-    serial = tmp_path / "serial"
-    shutil.copytree(corpus, serial, ignore=shutil.ignore_patterns("terrain"))
-    scan_stages(serial, incremental=False, log=lambda *_: None)
-    assert stage_bytes(serial) == stage_bytes(corpus)
     # then every video chunk's pose-control target was rendered into the video shards
     pose = report["terrain"]["_pose_targets"]
     assert pose["chunks"] > 0 and len(pose["rendered"]) == pose["chunks"]
     assert pose["workers"] and all(w.startswith("tcp://127.0.0.1:") for w in pose["workers"]), pose["workers"]  # on Dask
+    # the whole build, ingest, scan and render fanned out on Dask, equals a serial build in one process byte for byte
+    from marionette.ingest import IngestOptions, VideoSettings
+    from marionette.pipeline import build
+
+    serial = tmp_path / "serial"
+    small = VideoSettings(
+        height=SMALL_VIDEO["video_height"], width=SMALL_VIDEO["video_width"], chunk_frames=SMALL_VIDEO["chunk_frames"]
+    )
+    done = build(synth_small, serial, IngestOptions(video=small), workers=1, progress=False)
+    assert done["refresh"].pose["workers"] == [f"{socket.gethostname()}/pid-{os.getpid()}"]  # the one-process pass
+    assert stage_bytes(serial) == stage_bytes(corpus) and shard_files_bytes(serial) == shard_files_bytes(corpus)
     for tar_path in sorted((corpus / "video").glob("*.tar")):
         with tarfile.open(tar_path) as tar:
             names = tar.getnames()
