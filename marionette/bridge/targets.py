@@ -301,13 +301,11 @@ class RenderJob:
 
 @dataclass
 class ShardOutcome:
-    """What a worker did to one shard: its pass's report, the derived files its chunks use, whether it rewrote
-    the shard, and where it ran."""
+    """What a worker did to one shard: its pass's report, the derived files its chunks use, and where it ran."""
 
     job: RenderJob
     report: TargetsReport
     keep: set[str]
-    rewritten: bool
     worker: str
 
 
@@ -319,28 +317,26 @@ def render_shard(job: RenderJob, settings: RenderSettings) -> ShardOutcome:
     report = TargetsReport()
     run = _Pass(corpus, settings, report)
     try:
-        rewritten = _render_shard(run, corpus, job.shard, lambda n: None)
+        _render_shard(run, corpus, job.shard, lambda n: None)
     finally:
         run.release()
-    return ShardOutcome(job, report, run.keep, rewritten, worker_identity())
+    return ShardOutcome(job, report, run.keep, worker_identity())
 
 
-def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> bool:
-    """One shard through ``run``; True when its members changed and it was rewritten (atomically)."""
+def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> None:
+    """One shard through ``run``, rewritten (atomically) when its members change (``report.shards_rewritten``)."""
     vpath = corpus.video_path(shard)
     if not vpath.exists():
-        return False
+        return
     try:
         members = video_shards.read_members(vpath)
         new_members = run.shard(vpath, members, progress)
     except (ValueError, OSError) as exc:  # an unreadable or untrusted shard: named, left untouched
         run.report.failed[paths.shard_name(shard)] = str(exc)
-        return False
-    if new_members == members:
-        return False
-    video_shards.write_members(vpath, new_members)
-    run.report.shards_rewritten.append(shard)
-    return True
+        return
+    if new_members != members:
+        video_shards.write_members(vpath, new_members)
+        run.report.shards_rewritten.append(shard)
 
 
 def render_pose_targets(
