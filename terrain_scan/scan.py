@@ -116,8 +116,8 @@ def scan_stages(
 
     The recordings are scanned as independent jobs (``scan_job``) by ``mapper`` (``marionette.fanout``;
     default: ``pool_mapper(workers)``; the ``rescan-stage`` flow passes one that runs them on Dask) and
-    committed to their stage in the stage's recording order, whatever order they finish in, so any number of workers writes the bytes a serial scan
-    writes. A recording that cannot be scanned (its depth.mkv or any other input unreadable, or any other
+    committed to their stage in the stage's recording order, whatever order they finish in, so any number of
+    workers writes the bytes a serial scan writes. A recording that cannot be scanned (its depth.mkv or any other input unreadable, or any other
     error) is listed under ``failed`` with the reason and the other recordings are scanned. ``progress``
     shows a bar over the recordings.
     """
@@ -194,7 +194,7 @@ def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
     if out.reason is not None:
         report["failed"][sample] = out.reason
         log(f"terrain {st}: {sample}: not scanned: {out.reason}")
-    elif out.result is None:
+    elif out.unchanged:
         report["unchanged"].append(sample)
     else:
         res = out.result
