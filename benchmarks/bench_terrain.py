@@ -263,7 +263,7 @@ def bench_fanout(args) -> None:
             t = time.perf_counter()
             r = render_pose_targets(corpus, workers=k)
             wall = time.perf_counter() - t
-            got = files(corpus, "video", "*.tar")
+            got = files(corpus, "pose", "*.tar")
             reference = reference or got
             row = [k, f"{wall:.1f}", f"{r.frames_rendered / wall:.1f}", r.frames_rendered, len(r.failed)]
             pose_rows.append(row + ["yes" if got == reference else "NO"])

@@ -52,7 +52,7 @@ def report_markdown(corpus: str, report: dict) -> str:
     if pose is not None:
         lines += [
             "",
-            f"pose targets: {len(pose['rendered'])} of {pose['chunks']} video chunks rendered, shards rewritten: "
+            f"pose targets: {len(pose['rendered'])} of {pose['chunks']} video chunks rendered, pose shards written: "
             f"{pose['shards_rewritten']}, failed: {len(pose['failed'])}",
         ]
         failed += [f"- pose `{k}`: {why}" for k, why in sorted(pose["failed"].items())]

@@ -190,14 +190,17 @@ def cmd_inspect(a: argparse.Namespace) -> int:
 
 
 def segment_chunks(c, segment: str, kinds: tuple[str, ...]) -> tuple[Path, dict[int, dict[str, bytes]]]:
-    """The video shard holding ``segment`` and the segment's chunks there: chunk number → {kind → bytes} of ``kinds``."""
+    """The video shard holding ``segment`` and the segment's chunks there, joined with their current pose targets
+    (``video_shards.read_joined``): chunk number → {kind → bytes} of ``kinds``."""
     from marionette.corpus.paths import parse_chunk_key
-    from marionette.corpus.video_shards import read_chunks
+    from marionette.corpus.video_shards import read_joined
 
-    shard = c.video_path(segment_row(c, segment)["shard"])
+    n = segment_row(c, segment)["shard"]
+    shard = c.video_path(n)
     if not shard.exists():
         raise FileNotFoundError(f"{shard}: the video shard of segment {segment!r} is missing")
-    chunks = {parse_chunk_key(k)[1]: v for k, v in read_chunks(shard, segment, kinds).items()}
+    joined = read_joined(shard, c.pose_path(n), c.shard_hash(n), segment, kinds)
+    chunks = {parse_chunk_key(k)[1]: v for k, v in joined.items()}
     return shard, dict(sorted(chunks.items()))
 
 

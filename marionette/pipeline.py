@@ -40,7 +40,7 @@ class RefreshReport:
             p = self.pose
             out.append(
                 f"pose targets: {len(p['rendered'])} of {p['chunks']} video chunks rendered ({p['frames_rendered']} frames), "
-                f"{len(p['shards_rewritten'])} video shards rewritten, {len(p['failed'])} failed"
+                f"{len(p['shards_rewritten'])} pose shards written, {len(p['failed'])} failed"
             )
         for kind, failed in self.failures().items():
             out += [f"{kind} failed: {name}: {why}" for name, why in sorted(failed.items())]

@@ -1,7 +1,6 @@
 """`marionette render`: one corpus segment or a rollout table, any size, rate and camera."""
 
 import json
-import tarfile
 
 import numpy as np
 import pytest
@@ -10,6 +9,7 @@ from marionette.bridge.gbuffer import decode_gbuffer
 from marionette.bridge.targets import render_pose_targets
 from marionette.cli import main
 from marionette.corpus import Corpus
+from marionette.corpus.video_shards import read_joined
 from marionette.io import write_ipc
 
 
@@ -20,10 +20,12 @@ def scanned(scanned_copy):
 
 
 def first_chunk(corpus):
-    with tarfile.open(sorted((corpus / "video").glob("*.tar"))[0]) as tar:
-        m = {x.name: tar.extractfile(x).read() for x in tar if x.isfile()}
-    name = sorted(n for n in m if n.endswith(".json"))[0]
-    return json.loads(m[name]), m[name.replace(".json", ".pose.mkv")]
+    """(video json record, pose.mkv bytes) of the first chunk of the first shard."""
+    c = Corpus(corpus)
+    n = c.shard_ids()[0]
+    joined = read_joined(c.video_path(n), c.pose_path(n), c.shard_hash(n))
+    m = joined[sorted(joined)[0]]
+    return json.loads(m["json"]), m["pose.mkv"]
 
 
 def test_recorded_camera_render_matches_the_pose_target(scanned, tmp_path):

@@ -1,5 +1,5 @@
-"""Pose-control targets in the corpus: rendered per video chunk beside rgb.mp4, cached, re-rendered only
-where the terrain they see changed."""
+"""Pose-control targets in the corpus: rendered per video chunk into pose shards keyed like the video
+shards, cached, re-rendered only where the terrain they see changed, never rewriting an RGB byte."""
 
 import io
 import json
@@ -11,7 +11,9 @@ import pytest
 
 from marionette.bridge.gbuffer import decode_gbuffer
 from marionette.bridge.targets import render_pose_targets
+from marionette.corpus import Corpus
 from marionette.corpus.paths import stage_dir
+from marionette.corpus.video_shards import pose_matches
 from terrain_scan.layers import Observations
 from terrain_scan.store import Stage
 
@@ -31,28 +33,46 @@ def frame_count(data: bytes) -> int:
         return sum(1 for _ in c.decode(video=0))
 
 
+def pose_records(corpus):
+    """Chunk key → pose.json record, over every pose shard."""
+    return {
+        name[: -len(".pose.json")]: json.loads(data)
+        for t in sorted((corpus / "pose").glob("*.tar"))
+        for name, data in members(t).items()
+        if name.endswith(".pose.json")
+    }
+
+
+def snapshot(corpus, kind):
+    """Name → (bytes, mtime_ns, inode) of a corpus's video or pose shards."""
+    return {p.name: (p.read_bytes(), p.stat().st_mtime_ns, p.stat().st_ino) for p in (corpus / kind).glob("*.tar")}
+
+
 def test_every_chunk_gets_a_pose_target_of_equal_length(scanned, tmp_path):
+    videos = snapshot(scanned, "video")
     report = render_pose_targets(scanned)
     assert report.chunks >= 8 and len(report.rendered) == report.chunks
-    tars = sorted((scanned / "video").glob("*.tar"))
+    assert snapshot(scanned, "video") == videos  # the pass only reads the video shards
+    c = Corpus(scanned)
     seen_bones = 0
-    for t in tars:
-        m = members(t)
-        names = list(m)
-        chunks = [n[: -len(".json")] for n in names if n.endswith(".json")]
+    for shard in c.shard_ids():
+        video, pose = members(c.video_path(shard)), members(c.pose_path(shard))
+        assert all(n.endswith((".rgb.mp4", ".json")) for n in video)
+        chunks = [n[: -len(".json")] for n in video if n.endswith(".json")]
         assert chunks
-        for c in chunks:
-            rec = json.loads(m[f"{c}.json"])
-            # webdataset groups a sample's members by adjacency: rgb, json, pose of one chunk together
-            i = names.index(f"{c}.rgb.mp4")
-            assert names[i : i + 3] == [f"{c}.rgb.mp4", f"{c}.json", f"{c}.pose.mkv"]
+        # keyed like the video chunks, in their order, each target's record first (webdataset joins by key)
+        assert list(pose) == [f"{k}.{kind}" for k in chunks for kind in ("pose.json", "pose.mkv")]
+        for k in chunks:
+            rec, pose_rec = json.loads(video[f"{k}.json"]), json.loads(pose[f"{k}.pose.json"])
+            assert pose_matches(pose_rec, video[f"{k}.json"], c.shard_hash(shard))
             n = rec["frames"][1] - rec["frames"][0]
-            assert frame_count(m[f"{c}.rgb.mp4"]) == frame_count(m[f"{c}.pose.mkv"]) == n == rec["pose"]["frames"]
-            assert rec["pose"]["terrain_chunks"]  # the scanned stage is in view
+            assert frame_count(video[f"{k}.rgb.mp4"]) == frame_count(pose[f"{k}.pose.mkv"]) == n == pose_rec["frames"]
+            assert pose_rec["terrain_chunks"]  # the scanned stage is in view
         p = tmp_path / "pose.mkv"
-        p.write_bytes(m[f"{chunks[0]}.pose.mkv"])
+        p.write_bytes(pose[f"{chunks[0]}.pose.mkv"])
         frames, meta = decode_gbuffer(p)  # decoding needs only the file
-        h, w = json.loads(m[f"{chunks[0]}.json"])["resize"]
+        h, w = json.loads(video[f"{chunks[0]}.json"])["resize"]
+        n = json.loads(pose[f"{chunks[0]}.pose.json"])["frames"]
         assert (meta.height, meta.width) == (h, w) and len(frames) == n
         ids = np.stack([f.id for f in frames])
         assert (ids == 0).mean() > 0.2  # terrain
@@ -64,13 +84,14 @@ def test_every_chunk_gets_a_pose_target_of_equal_length(scanned, tmp_path):
 
 def test_a_second_pass_does_nothing(scanned):
     render_pose_targets(scanned)
-    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in (scanned / "video").glob("*.tar")}
+    before = {kind: snapshot(scanned, kind) for kind in ("video", "pose")}
     report = render_pose_targets(scanned)
     assert report.rendered == [] and report.shards_rewritten == [] and report.frames_rendered == 0
-    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in (scanned / "video").glob("*.tar")} == before
+    assert {kind: snapshot(scanned, kind) for kind in ("video", "pose")} == before
 
 
-def test_a_rescan_rerenders_only_the_chunks_that_see_the_change(scanned):
+def test_a_rescan_rerenders_only_the_chunks_that_see_the_change_and_no_rgb_byte(scanned):
+    """Issue 16: a pose re-render after a terrain change rewrites no video shard (bytes, mtime and inode kept)."""
     render_pose_targets(scanned)
     stage = Stage(stage_dir(scanned, "default"))
     # new ground west of the arena, in a chunk of its own (x in [-1100, -1000)): some cameras look that way
@@ -86,37 +107,55 @@ def test_a_rescan_rerenders_only_the_chunks_that_see_the_change(scanned):
     stage.put("extra/west", obs, "test", 0)
     rebuilt = stage.rebuild()
     assert rebuilt.written == [(-11, 8)]
-    before = {p.name: p.read_bytes() for p in (scanned / "video").glob("*.tar")}
+    videos = snapshot(scanned, "video")
+    before = {p.name: p.read_bytes() for p in (scanned / "pose").glob("*.tar")}
     # fanned out: a shard a job on two fresh processes, merged in shard order
     report = render_pose_targets(scanned, workers=2)
-    seeing, all_chunks = set(), set()
-    for t in sorted((scanned / "video").glob("*.tar")):
-        for name, data in members(t).items():
-            if name.endswith(".json"):
-                chunk = name[: -len(".json")]
-                all_chunks.add(chunk)
-                if "-11_8" in json.loads(data)["pose"]["terrain_chunks"]:
-                    seeing.add(chunk)
-    assert 0 < len(seeing) < len(all_chunks)  # the test needs both kinds
+    records = pose_records(scanned)
+    seeing = {k for k, r in records.items() if "-11_8" in r["terrain_chunks"]}
+    assert 0 < len(seeing) < len(records)  # the test needs both kinds
     assert set(report.rendered) == seeing
+    assert snapshot(scanned, "video") == videos
     rewritten = {f"shard-{s:06d}.tar" for s in report.shards_rewritten}
-    for name, data in before.items():  # shards without a re-rendered chunk keep their bytes
-        assert (name in rewritten) == ((scanned / "video" / name).read_bytes() != data)
-    assert len(rewritten) < len(before)
+    for name, data in before.items():  # pose shards without a re-rendered chunk keep their bytes
+        assert (name in rewritten) == ((scanned / "pose" / name).read_bytes() != data)
+    assert 0 < len(rewritten) < len(before)
     # and removing the contribution brings back the first renders (the cache key is the content): the two
     # workers write the bytes the one-process pass wrote, and drop the derived files no chunk uses any more
     stage.remove("extra/west")
     stage.rebuild()
     again = render_pose_targets(scanned, workers=2)
     assert set(again.rendered) == seeing and again.failed == {}
-    assert {p.name: p.read_bytes() for p in (scanned / "video").glob("*.tar")} == before
-    used = {
-        f"{name[: -len('.json')]}-{json.loads(data)['pose']['key']}.mkv"
-        for t in sorted((scanned / "video").glob("*.tar"))
-        for name, data in members(t).items()
-        if name.endswith(".json")
-    }
+    assert {p.name: p.read_bytes() for p in (scanned / "pose").glob("*.tar")} == before
+    assert snapshot(scanned, "video") == videos
+    used = {f"{k}-{r['key']}.mkv" for k, r in pose_records(scanned).items()}
     assert {p.name for p in (scanned / "derived" / "pose").glob("*.mkv")} == used
+
+
+def test_stale_damaged_and_orphan_pose_shards(scanned):
+    """A target rendered for another recording is never joined; a damaged pose shard is written again; the pose
+    shard of a shard number the corpus no longer holds is removed."""
+    from marionette.corpus.video_shards import PoseShard, read_joined
+
+    render_pose_targets(scanned)
+    c = Corpus(scanned)
+    shard = c.shard_ids()[0]
+    seg = next(s for s in c.segment_ids() if c.segment_row(s)["shard"] == shard and c.segment_row(s)["chunks"])
+    joined = read_joined(c.video_path(shard), c.pose_path(shard), c.shard_hash(shard), seg)
+    assert joined and all("pose.mkv" in m for m in joined.values())
+    # another state shard hash: the pose shard is stale for it, nothing is joined
+    assert all("pose.mkv" not in m for m in read_joined(c.video_path(shard), c.pose_path(shard), "0" * 64, seg).values())
+    key, m = next(iter(joined.items()))
+    with PoseShard(c.pose_path(shard)) as ps:
+        assert ps.get(key, m["json"], c.shard_hash(shard))[1] == m["pose.mkv"]
+        assert ps.get(key, m["json"] + b" ", c.shard_hash(shard)) is None  # another chunk record
+    good = c.pose_path(shard).read_bytes()
+    c.pose_path(shard).write_bytes(good[: len(good) // 3])  # truncated
+    orphan = c.pose_path(999_999)
+    orphan.write_bytes(good)
+    report = render_pose_targets(scanned)
+    assert report.shards_rewritten == [shard] and report.rendered == [] and report.failed == {}
+    assert c.pose_path(shard).read_bytes() == good and not orphan.exists()
 
 
 def test_the_follow_camera_frames_both_fighters_on_recorded_state(scanned_corpus):

@@ -16,7 +16,7 @@ from marionette.bridge.targets import render_pose_targets
 from marionette.cli import build_parser, error_message, main
 from marionette.corpus import Corpus
 from marionette.corpus.paths import chunk_key
-from marionette.corpus.video_shards import read_chunks, read_members, write_members
+from marionette.corpus.video_shards import read_joined
 from marionette.ingest.video import decode_frames
 from marionette.observation.generate import load_inputs, read_image
 
@@ -32,11 +32,10 @@ def posed(corpus, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def unposed(posed, tmp_path_factory):
-    """A copy of ``posed`` whose video shards hold no pose target (as before any was rendered)."""
+    """A copy of ``posed`` without its pose shards (as before any target was rendered)."""
     out = tmp_path_factory.mktemp("cli-unposed") / "corpus"
     shutil.copytree(posed, out)
-    for shard in (out / "video").glob("shard-*.tar"):
-        write_members(shard, [(n, b) for n, b in read_members(shard) if not n.endswith(".pose.mkv")])
+    shutil.rmtree(out / "pose")
     return out
 
 
@@ -172,7 +171,8 @@ def test_export_chunk_writes_what_generate_reads(posed, tmp_path, capsys):
     out = tmp_path / "chunk"
     assert main(["export-chunk", str(posed), "--segment", seg, "--chunk", str(k), "--out", str(out)]) == 0
     assert f"--pose {out / 'pose.mkv'} --first-frame {out / 'first.png'}" in capsys.readouterr().out
-    member = read_chunks(c.video_path(c.segment_row(seg)["shard"]), seg)[chunk_key(seg, k)]
+    n = c.segment_row(seg)["shard"]
+    member = read_joined(c.video_path(n), c.pose_path(n), c.shard_hash(n), seg)[chunk_key(seg, k)]
     assert (out / "pose.mkv").read_bytes() == member["pose.mkv"] and (out / "rgb.mp4").read_bytes() == member["rgb.mp4"]
     frames, meta = decode_gbuffer(out / "pose.mkv")
     video = c.info.video

@@ -176,7 +176,7 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     addresses = {s["worker"].split("/pid-")[0] for s in report["samples"]}
     assert len(addresses) >= 2 and all(a.startswith("tcp://127.0.0.1:") for a in addresses), addresses
     shards = shard_files(corpus)
-    assert len(shards) == 6  # a state and a video shard per sample
+    assert len(shards) == 9  # a state, a video and a pose shard per sample
     # the stage's terrain was scanned after finalize
     assert sorted(report["terrain"]["default"]["scanned"][i]["sample"] for i in range(3)) == [
         s["sample"] for s in report["samples"]
@@ -202,9 +202,11 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     assert done["refresh"].pose["workers"] == [f"{socket.gethostname()}/pid-{os.getpid()}"]  # the one-process pass
     assert stage_bytes(serial) == stage_bytes(corpus) and shard_files_bytes(serial) == shard_files_bytes(corpus)
     for tar_path in sorted((corpus / "video").glob("*.tar")):
-        with tarfile.open(tar_path) as tar:
-            names = tar.getnames()
-        assert sum(n.endswith(".pose.mkv") for n in names) == sum(n.endswith(".rgb.mp4") for n in names) > 0
+        with tarfile.open(tar_path) as tar, tarfile.open(corpus / "pose" / tar_path.name) as pose:
+            names, posed = tar.getnames(), pose.getnames()
+        assert [n.replace(".pose.mkv", "") for n in posed if n.endswith(".pose.mkv")] == [
+            n.replace(".rgb.mp4", "") for n in names if n.endswith(".rgb.mp4")
+        ]
     shards = shard_files(corpus)
 
     run_id2 = run_deployment(local_prefect, source=synth_small, corpus=corpus, **SMALL_VIDEO)
@@ -317,7 +319,7 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
 
     ckpt = latest_checkpoint(out)
     assert ckpt is not None and ckpt.name == "step-00000004"
-    with tarfile.open(sorted((copy / "video").glob("*.tar"))[0]) as tar:
+    with tarfile.open(sorted((copy / "pose").glob("*.tar"))[0]) as tar:
         assert any(n.endswith(".pose.mkv") for n in tar.getnames())  # the flow rendered the targets first
     artifacts = httpx.post(
         f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-observation-report"]}}}

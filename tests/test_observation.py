@@ -5,7 +5,8 @@ chunks, input checks before compute, and the train/generate commands."""
 from __future__ import annotations
 
 import shutil
-import tarfile
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -14,7 +15,9 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from marionette.observation.data import ClipSource, reduce_codes
+from marionette.corpus import Corpus
+from marionette.corpus.video_shards import read_joined
+from marionette.observation.data import ChunkStore, ClipSource, _clip_bytes, reduce_codes
 from marionette.observation.generate import write_image
 from marionette.observation.model import ObservationConfig, VideoDiT, check_inputs, generate
 from marionette.observation.train import ObservationTrainConfig, load_model, train
@@ -60,6 +63,41 @@ def test_clips_are_the_chunks_reduced(obs_corpus):
         ClipSource(obs_corpus, "train", 6, (18, 32))
     bad = ClipSource(obs_corpus, "train", 5, (20, 32))  # 72×128 does not reduce to 20×32
     assert not list(bad.clips()) and all("reduce" in r for r in bad.skipped.values())
+
+
+def test_chunks_are_indexed_then_decoded_on_demand_in_bounded_memory(obs_corpus, tmp_path):
+    """Issue 16: training reads chunks through an index of the shards (offsets, no decoding) and a cache with a byte
+    budget; what it reads equals the chunks decoded whole, at any budget, and memory held stays within the budget."""
+    src = ClipSource(obs_corpus, "train", 5, (18, 32), actions=True)
+    whole = list(src.chunks())
+    refs = src.index()
+    assert [r.key for r in refs] == [c.key for c in whole] and len(refs) >= 4
+    one = _clip_bytes(whole[0])
+    for budget in (0, 2 * one, 1 << 30):
+        store = ChunkStore(src, refs, budget_bytes=budget)
+        order = [0, 1, 0, 1, 2, 0, len(refs) - 1, len(refs) - 1]
+        for i in order:
+            got, want = store[i], whole[i]
+            assert torch.equal(got.rgb, want.rgb) and torch.equal(got.pose, want.pose) and torch.equal(got.actions, want.actions)
+            assert store.held_bytes <= budget
+        # two chunks fit: 0 1 miss, 0 1 hit, 2 evicts 0, 0 evicts 1, the last evicts 2, then hits
+        assert store.decoded == {0: len(order), 2 * one: 5, 1 << 30: 4}[budget]
+    # a shard rewritten after it was indexed is named, not misread
+    copy = tmp_path / "corpus"
+    shutil.copytree(obs_corpus, copy)
+    moved = ClipSource(copy, "train", 5, (18, 32))
+    ref = moved.index()[0]
+    Path(ref.pose).write_bytes(Path(ref.pose).read_bytes() + bytes(512))
+    with pytest.raises(ValueError, match="changed since it was indexed"):
+        moved.chunk(ref)
+
+
+def test_training_reads_the_same_batches_at_any_cache_size(obs_corpus, tmp_path):
+    """A cache too small to hold one chunk decodes every clip again and trains to the same losses, bit for bit."""
+    config = replace(CONFIG, steps=3, warmup=1)
+    a = train(obs_corpus, tmp_path / "a", config, log=lambda *_: None)
+    b = train(obs_corpus, tmp_path / "b", replace(config, cache_mb=0), log=lambda *_: None)
+    assert [r["loss"] for r in a["losses"]] == [r["loss"] for r in b["losses"]] and len(a["losses"]) == 3
 
 
 def test_pose_reduction_keeps_one_pixel_bones():
@@ -176,11 +214,11 @@ def test_train_and_generate_commands(obs_corpus, tmp_path):
         )
         == 0
     )
-    with tarfile.open(sorted((obs_corpus / "video").glob("*.tar"))[0]) as tar:
-        names = tar.getnames()
-        key = next(n for n in names if n.endswith(".pose.mkv"))[: -len(".pose.mkv")]
-        (tmp_path / "pose.mkv").write_bytes(tar.extractfile(f"{key}.pose.mkv").read())
-        rgb = decode_frames(tar.extractfile(f"{key}.rgb.mp4").read())
+    c = Corpus(obs_corpus)
+    n = c.shard_ids()[0]
+    m = next(m for m in read_joined(c.video_path(n), c.pose_path(n), c.shard_hash(n)).values() if "pose.mkv" in m)
+    (tmp_path / "pose.mkv").write_bytes(m["pose.mkv"])
+    rgb = decode_frames(m["rgb.mp4"])
     write_image(tmp_path / "first.png", rgb[0])
     out = tmp_path / "gen.mp4"
     args = [

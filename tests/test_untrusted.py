@@ -82,6 +82,35 @@ def test_video_shard_member_outside_the_corpus_is_refused(corpus_copy, tmp_path,
     assert report.chunks > 0 and not any(k.startswith("shard-") for k in report.failed if k != "shard-000000")
 
 
+@pytest.mark.parametrize("evil", ["../../../outside/evil.pose.mkv", "x__c00000.rgb.mp4"])
+def test_pose_shard_member_outside_its_kinds_is_refused(corpus_copy, tmp_path, evil):
+    """A pose shard holds ``<key>.pose.json`` and ``<key>.pose.mkv`` only: anything else refuses the shard (readers
+    skip its chunks, naming it) and the next pose pass writes it again."""
+    from marionette.bridge.targets import render_pose_targets
+    from marionette.corpus import Corpus
+    from marionette.observation.data import ClipSource
+
+    render_pose_targets(corpus_copy)
+    c = Corpus(corpus_copy)
+    pose = c.pose_path(0)
+    good = pose.read_bytes()
+    members = video_shards.read_members(pose)
+    with tarfile.open(pose, "w", format=tarfile.GNU_FORMAT) as tar:
+        for n, data in members:
+            _raw_member(tar, n, data)
+        _raw_member(tar, evil, b"x")
+    with pytest.raises(paths.CorpusPathError, match="member"):
+        video_shards.PoseShard(pose)
+    src = ClipSource(c, None, 1, (c.info.video["height"], c.info.video["width"]))
+    keys = [s["__key__"] for s in src._samples()]
+    assert "shard-000000.tar" in src.skipped and "member" in src.skipped["shard-000000.tar"]
+    shard0 = {s for s in c.segment_ids() if c.segment_row(s)["shard"] == 0}
+    assert not any(paths.parse_chunk_key(k)[0] in shard0 for k in keys)
+    report = render_pose_targets(corpus_copy)
+    assert report.shards_rewritten == [0] and pose.read_bytes() == good
+    assert not (tmp_path / "outside").exists() or not any((tmp_path / "outside").iterdir())
+
+
 def test_video_shard_member_must_name_its_own_chunk(corpus_copy):
     shard = corpus_copy / "video" / "shard-000000.tar"
     key, _ = video_shards.parse_member(video_shards.read_members(shard)[0][0])

@@ -1,15 +1,16 @@
 """Pose-control targets: every video chunk's ``pose.mkv``, rendered from recorded state with the recorded
-camera, cached as a derived product and placed beside ``rgb.mp4`` in the video shards.
+camera, cached as a derived product and gathered into the pose shards beside the video shards.
 
 A chunk's target is keyed by what it is computed from (DESIGN "The corpus"): the chunk's state rows
 (their content hash), the sha256 of every terrain chunk its cameras can see (frustum against the
 chunk's bounding box, over all the chunk's frames), the stage's height range, ``BRIDGE_VERSION`` and
 the render settings. Rendered files live in ``<corpus>/derived/pose/<segment>__c<chunk>-<key>.mkv``;
-a pass renders only the chunks whose key has no file yet, then rewrites (atomically) only the video
-shards whose members change: a member ``<segment>__c<chunk>.pose.mkv`` right after the chunk's
-``rgb.mp4`` and ``json``, whose record gains ``"pose": {"key", "terrain_chunks", "frames"}``. So a
-terrain re-scan that changes one chunk re-renders only the video chunks that see it, and a pass with
-nothing new writes nothing.
+a pass renders only the chunks whose key has no file yet, then rewrites (atomically) only the pose
+shards (``pose/shard-NNNNNN.tar``, ``video_shards``: ``<key>.pose.json`` and ``<key>.pose.mkv`` per
+chunk, in the video shard's order) whose members change. A pass reads the video shards' ``json``
+members only and never writes a video shard: a terrain re-scan that changes one chunk re-renders only
+the video chunks that see it, rewrites only their pose shards, and leaves every RGB byte where it was;
+a pass with nothing new writes nothing.
 """
 
 from __future__ import annotations
@@ -178,7 +179,7 @@ def render_frames(rast: Rasterizer, layout: Layout, skel, cams: Cameras, h: tupl
 class TargetsReport:
     chunks: int = 0
     rendered: list[str] = field(default_factory=list)  # chunk names rendered in this pass
-    shards_rewritten: list[int] = field(default_factory=list)
+    shards_rewritten: list[int] = field(default_factory=list)  # pose shards written (video shards are never written)
     frames_rendered: int = 0
     failed: dict[str, str] = field(default_factory=dict)  # chunk key or shard → why it has no target
     workers: list[str] = field(default_factory=list)  # where the shards were rendered (``marionette.fanout``)
@@ -201,8 +202,8 @@ class _Pass:
             self.terrains[stage] = TerrainScene.of_stage(self.corpus.stage_terrain(stage))
         return self.terrains[stage]
 
-    def target(self, vpath: Path, key: str, rec: dict) -> Path:
-        """The chunk's pose target (rendered if its inputs changed); sets ``rec["pose"]``."""
+    def target(self, vpath: Path, key: str, rec: dict) -> tuple[Path, str, list[str]]:
+        """The chunk's pose target (rendered if its inputs changed): its file, its render key, the terrain chunks seen."""
         layout, settings = self.corpus.layout, self.settings
         segment = paths.parse_chunk_key(key, str(vpath))[0]
         if segment not in self.segments:
@@ -253,32 +254,25 @@ class _Pass:
             meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, out_w, out_h, float(rec["fps"]))
             self.report.frames_rendered += write_gbuffer(path, render_frames(rast, layout, skel, cams, h, settings), meta)
             self.report.rendered.append(key)
-        rec["pose"] = {"key": digest, "terrain_chunks": seen, "frames": b - a}
-        return path
+        return path, digest, seen
 
-    def shard(self, vpath: Path, members: list[tuple[str, bytes]], progress) -> list[tuple[str, bytes]]:
-        """A shard's members with every chunk's pose target brought up to date; a chunk whose target cannot
-        be rendered keeps its RGB and record (without ``pose``) and is listed in ``report.failed``."""
-        out: list[tuple[str, bytes]] = []
-        for name, data in members:
-            key, kind = video_shards.parse_member(name, str(vpath))
-            if kind == "pose.mkv":
-                continue
-            if kind != "json":
-                out.append((name, data))
-                continue
-            rec = video_shards.chunk_record(data, key, str(vpath))
-            rec.pop("pose", None)
+    def shard(
+        self, vpath: Path, chunks: dict[str, dict[str, bytes]], state_hash: str, progress
+    ) -> list[tuple[str, bytes | Path]]:
+        """The pose shard's members for a video shard's chunks (key → {"json": bytes}), every target brought up to
+        date; a chunk whose target cannot be rendered gets no members and is listed in ``report.failed``."""
+        out: list[tuple[str, bytes | Path]] = []
+        for key, m in chunks.items():
+            rec = video_shards.chunk_record(m["json"], key, str(vpath))
             self.report.chunks += 1
             try:
-                target = self.target(vpath, key, rec)
+                target, digest, seen = self.target(vpath, key, rec)
             except Exception as exc:  # one chunk's failure is recorded; the pass goes on
-                rec.pop("pose", None)
                 self.report.failed[key] = f"{type(exc).__name__}: {exc}"
-                target = None
-            out.append((name, json.dumps(rec, sort_keys=True).encode()))
-            if target is not None:
-                out.append((video_shards.member_name(key, "pose.mkv"), target.read_bytes()))
+            else:
+                pose = video_shards.pose_record(key, digest, seen, rec["frames"][1] - rec["frames"][0], m["json"], state_hash)
+                out.append((video_shards.member_name(key, "pose.json"), json.dumps(pose, sort_keys=True).encode()))
+                out.append((video_shards.member_name(key, "pose.mkv"), target))
             progress(1)
         return out
 
@@ -324,19 +318,36 @@ def render_shard(job: RenderJob, settings: RenderSettings) -> ShardOutcome:
 
 
 def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> None:
-    """One shard through ``run``, rewritten (atomically) when its members change (``report.shards_rewritten``)."""
-    vpath = corpus.video_path(shard)
+    """One shard's pose targets through ``run``; its pose shard is rewritten (atomically) when its members change
+    (``report.shards_rewritten``). The video shard is only read."""
+    vpath, ppath = corpus.video_path(shard), corpus.pose_path(shard)
     if not vpath.exists():
         return
     try:
-        members = video_shards.read_members(vpath)
-        new_members = run.shard(vpath, members, progress)
-    except (ValueError, OSError) as exc:  # an unreadable or untrusted shard: named, left untouched
+        chunks = video_shards.read_chunks(vpath, kinds=("json",))
+        members = run.shard(vpath, chunks, corpus.shard_hash(shard), progress)
+    except (ValueError, OSError, KeyError) as exc:  # an unreadable or untrusted shard: named, left untouched
         run.report.failed[paths.shard_name(shard)] = str(exc)
         return
-    if new_members != members:
-        video_shards.write_members(vpath, new_members)
+    try:
+        current = video_shards.member_digests(ppath) if ppath.exists() else None
+    except (ValueError, OSError):
+        current = None  # a damaged pose shard is written again
+    wanted = [(name, _sha256(data)) for name, data in members]
+    if wanted != current:
+        video_shards.write_members(ppath, members)
         run.report.shards_rewritten.append(shard)
+
+
+def _sha256(data: bytes | Path) -> str:
+    """sha256 of bytes, or of a file's bytes read a block at a time."""
+    if isinstance(data, bytes):
+        return hashlib.sha256(data).hexdigest()
+    h = hashlib.sha256()
+    with open(data, "rb") as f:
+        while block := f.read(1 << 20):
+            h.update(block)
+    return h.hexdigest()
 
 
 def render_pose_targets(
@@ -377,7 +388,16 @@ def render_pose_targets(
             for old in out_dir.glob("*.mkv"):
                 if old.name not in keep:
                     old.unlink(missing_ok=True)
+        _remove_orphan_pose_shards(corpus)
     return report
+
+
+def _remove_orphan_pose_shards(corpus: Corpus) -> None:
+    """Delete the pose shards of shard numbers the corpus no longer holds (a retired recording's)."""
+    held = {paths.shard_name(s) for s in corpus.shard_ids()}
+    for p in (corpus.path / "pose").glob("shard-*.tar") if (corpus.path / "pose").is_dir() else []:
+        if paths.SHARD_NAME.fullmatch(p.stem) and p.stem not in held:
+            p.unlink(missing_ok=True)
 
 
 def _render_serial(corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar) -> set[str]:

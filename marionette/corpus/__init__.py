@@ -69,6 +69,9 @@ class Corpus:
     def video_path(self, shard: int) -> Path:
         return paths.video_shard(self.path, shard)
 
+    def pose_path(self, shard: int) -> Path:
+        return paths.pose_shard(self.path, shard)
+
     def shard_ids(self) -> list[int]:
         return sorted(self.info.shards)
 

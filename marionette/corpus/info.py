@@ -16,6 +16,7 @@ from marionette.io import read_json
 
 STATE_PATH = "state/shard-{shard:06d}.arrow"
 VIDEO_PATH = "video/shard-{shard:06d}.tar"
+POSE_PATH = "pose/shard-{shard:06d}.tar"
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,7 @@ class CorpusInfo:
     vocab_hash: str
     state_path: str = STATE_PATH
     video_path: str = VIDEO_PATH
+    pose_path: str = POSE_PATH  # absent from corpora written before pose targets had shards of their own
     extra: dict = field(default_factory=dict, compare=False)  # fields a newer writer added, kept as read
 
     @property
@@ -85,6 +87,7 @@ class CorpusInfo:
             "vocab_hash": str,
             "state_path": str,
             "video_path": str,
+            "pose_path": str,
         }
         kinds.update({n: int for n in known if n.startswith("total_")})
         for name, kind in kinds.items():
@@ -97,7 +100,7 @@ class CorpusInfo:
             paths.check_shard(n, f"{where}: field 'shards'")
         if not all(isinstance(k, str) and isinstance(v, str) for k, v in d["stages"].items()):
             raise ValueError(f"{where}: field 'stages' must map recording ids to stage ids (strings)")
-        for name, template in (("state_path", STATE_PATH), ("video_path", VIDEO_PATH)):
+        for name, template in (("state_path", STATE_PATH), ("video_path", VIDEO_PATH), ("pose_path", POSE_PATH)):
             if d.get(name, template) != template:
                 raise ValueError(f"{where}: field {name!r} is {d[name]!r}; this reader knows {template!r}")
         video = d["ingest"].get("video")

@@ -8,7 +8,7 @@ dot-dot, no separator and no absolute path, so a formatted path always stays ins
 ```
 meta/info.json  meta/segments.parquet  meta/samples.parquet  meta/quarantine.parquet
 meta/vocab.json meta/stats.json        meta/samples/<key>.json  meta/finalize-plan.json  meta/.lock
-state/shard-NNNNNN.arrow               video/shard-NNNNNN.tar
+state/shard-NNNNNN.arrow               video/shard-NNNNNN.tar    pose/shard-NNNNNN.tar
 staging/<key>/{record.json,state.arrow,video.tar}
 derived/pose/<segment>__c<chunk:05d>-<hash>.mkv
 terrain/stage_<stage>/{manifest.json, chunks/chunk_<cx>_<cz>.trn2, contributions/<key>.npz}
@@ -68,6 +68,11 @@ def state_shard(root: Path, n: int) -> Path:
 def video_shard(root: Path, n: int) -> Path:
     """``<root>/video/shard-NNNNNN.tar``."""
     return Path(root) / "video" / f"{shard_name(n)}.tar"
+
+
+def pose_shard(root: Path, n: int) -> Path:
+    """``<root>/pose/shard-NNNNNN.tar``: the pose targets of video shard ``n``, keyed like its chunks."""
+    return Path(root) / "pose" / f"{shard_name(n)}.tar"
 
 
 def meta(root: Path, name: str) -> Path:

@@ -345,6 +345,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
         "vocab_hash": vocab["hash"],
         "state_path": "state/shard-{shard:06d}.arrow",
         "video_path": "video/shard-{shard:06d}.tar",
+        "pose_path": "pose/shard-{shard:06d}.tar",
     }
     write_json(info_path, CorpusInfo.from_json(info, str(info_path)).to_json())
     return info

@@ -1,8 +1,10 @@
 """Training clips for the observation model, streamed from a corpus's video shards with webdataset.
 
 A video shard (``video/shard-NNNNNN.tar``) holds, per 81-frame chunk ``<segment>__c<chunk>``, the RGB
-clip ``rgb.mp4`` (the training resolution), its pose-control target ``pose.mkv`` (the bridge's lossless
-10-bit G-buffer, same size and frame count) and a ``json``. A *clip* is ``frames`` consecutive frames
+clip ``rgb.mp4`` (the training resolution) and a ``json``; its pose shard (``pose/shard-NNNNNN.tar``)
+the chunk's pose-control target ``pose.mkv`` (the bridge's lossless 10-bit G-buffer, same size and frame
+count), joined by key as the video shard streams past (``video_shards.PoseShard``: one pose shard open at
+a time, a member read when its chunk comes; a stale target is not joined). A *clip* is ``frames`` consecutive frames
 (4k + 1, as Wan's VAE expects) of one chunk that holds a pose target, reduced to the model's
 ``size`` (H, W):
 
@@ -23,6 +25,8 @@ file system.
 from __future__ import annotations
 
 import json
+import os
+from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +37,8 @@ import webdataset as wds
 
 from marionette.bridge.gbuffer import CODE_MAX, iter_codes
 from marionette.corpus import Corpus
-from marionette.corpus.paths import parse_chunk_key
+from marionette.corpus.paths import SHARD_NAME, CorpusPathError, parse_chunk_key
+from marionette.corpus.video_shards import PoseShard, member_index, read_at
 from marionette.ingest.video import decode_frames
 
 
@@ -117,22 +122,26 @@ class ClipSource:
             raise ValueError(f"a clip has 4k + 1 frames (Wan's VAE), not {frames}")
         self.split, self.frames, self.size = split, int(frames), (int(size[0]), int(size[1]))
         self.segments = set(self.corpus.segment_ids(split))
-        self.shards = sorted(str(p) for p in (self.corpus.path / "video").glob("shard-*.tar"))
+        self.shards = sorted(str(p) for p in (self.corpus.path / "video").glob("shard-*.tar") if SHARD_NAME.fullmatch(p.stem))
         self.skipped: dict[str, str] = {}
         self.actions = actions
         self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # segment → (source frames, tokens (n, N))
 
     def _actions(self, sample: dict, clip: Clip) -> Clip:
         """The clip with the entity tokens of its frames: the chunk json's source frames [a, b) in the segment's rows."""
+        return self._actions_from(int(json.loads(sample["json"])["frames"][0]), clip)
+
+    def _actions_from(self, first_frame: int, clip: Clip) -> Clip:
+        """The clip with the entity tokens of its frames, its chunk starting at source frame ``first_frame``."""
         from marionette.corpus.vocab import ActionTokens
 
         seg = parse_chunk_key(clip.key)[0]
         if seg not in self._tokens:
             rows = self.corpus.read_segment(seg)
             tokens, _ = ActionTokens.from_corpus(self.corpus).encode(self.corpus.layout, rows, where=str(self.corpus.path))
-            self._tokens[seg] = (rows["frame"].to_numpy(), tokens)
+            self._tokens = {seg: (rows["frame"].to_numpy(), tokens)}  # chunks of a segment are consecutive
         frames, tokens = self._tokens[seg]
-        a = int(json.loads(sample["json"])["frames"][0]) + clip.start
+        a = first_frame + clip.start
         idx = np.searchsorted(frames, np.arange(a, a + len(clip.rgb)))
         if idx.max() >= len(frames) or not np.array_equal(frames[idx], np.arange(a, a + len(clip.rgb))):
             raise ValueError(f"{clip.key}: source frames {a}..{a + len(clip.rgb) - 1} are not all rows of segment {seg}")
@@ -144,23 +153,105 @@ class ClipSource:
             return
         # every DDP rank reads every shard (ranks differ in the clips they draw, not in the chunks they hold)
         every_shard = lambda urls: urls  # noqa: E731
-        for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False, nodesplitter=every_shard):
-            key = sample["__key__"]
+        pose: tuple[str, PoseShard | None, str] | None = None  # (video shard url, its pose shard, its state hash)
+        try:
+            for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False, nodesplitter=every_shard):
+                key, url = sample["__key__"], str(sample.get("__url__", ""))
+                sample.pop("pose.mkv", None)  # a video shard written before pose shards: its targets are not joined
+                try:
+                    segment = parse_chunk_key(key, url)[0]
+                except ValueError as err:
+                    self.skipped[str(key)] = str(err)
+                    continue
+                if segment not in self.segments:
+                    continue
+                if pose is None or pose[0] != url:
+                    if pose is not None and pose[1] is not None:
+                        pose[1].close()
+                    n = int(SHARD_NAME.fullmatch(Path(url).stem)["n"])
+                    try:
+                        pose = (url, PoseShard(self.corpus.pose_path(n)), self.corpus.shard_hash(n))
+                    except CorpusPathError as err:  # an untrusted pose shard refused: its chunks are skipped
+                        self.skipped[self.corpus.pose_path(n).name] = str(err)
+                        pose = (url, None, "")
+                got = pose[1].get(key, sample["json"], pose[2]) if pose[1] is not None and "json" in sample else None
+                if got is None:
+                    self.skipped[key] = "no current pose.mkv (render the pose targets first)"
+                    continue
+                sample["pose.mkv"] = got[1]
+                n = _frame_count(sample)
+                if n < self.frames:
+                    self.skipped[key] = f"{n} frames, fewer than a clip's {self.frames}"
+                    continue
+                yield sample
+        finally:
+            if pose is not None and pose[1] is not None:
+                pose[1].close()
+
+    def index(self) -> list[ChunkRef]:
+        """Where every usable chunk's bytes are (the chunks ``chunks`` yields, in the same order, under the same
+        rules), from the shards' member headers and json members only; nothing is decoded. Grows with the number
+        of chunks (a few hundred bytes each), not with their frames."""
+        refs: list[ChunkRef] = []
+        for url in self.shards:
+            vpath = Path(url)
+            n = int(SHARD_NAME.fullmatch(vpath.stem)["n"])
+            ppath = self.corpus.pose_path(n)
             try:
-                segment = parse_chunk_key(key, str(sample.get("__url__", "")))[0]
+                members = member_index(vpath)
             except ValueError as err:
-                self.skipped[str(key)] = str(err)
+                self.skipped[vpath.name] = str(err)
                 continue
-            if segment not in self.segments:
+            wanted = {k: m for k, m in members.items() if parse_chunk_key(k)[0] in self.segments}
+            if not wanted:
                 continue
-            if "pose.mkv" not in sample:
-                self.skipped[key] = "no pose.mkv (render the pose targets first)"
+            try:
+                pose, state_hash = PoseShard(ppath), self.corpus.shard_hash(n)
+            except (ValueError, KeyError) as err:  # an untrusted pose shard refused: its chunks are skipped
+                self.skipped[ppath.name] = str(err)
                 continue
-            n = _frame_count(sample)
-            if n < self.frames:
-                self.skipped[key] = f"{n} frames, fewer than a clip's {self.frames}"
-                continue
-            yield sample
+            stamp = (*_stamp(vpath), *_stamp(ppath))
+            with pose:
+                for key, m in wanted.items():
+                    if "json" not in m or "rgb.mp4" not in m:
+                        self.skipped[key] = "no rgb.mp4 or json member"
+                        continue
+                    data = read_at(vpath, m["json"].offset_data, m["json"].size)
+                    got = pose.member(key, data, state_hash)
+                    if got is None:
+                        self.skipped[key] = "no current pose.mkv (render the pose targets first)"
+                        continue
+                    rec = json.loads(data)
+                    frames = len(rec["K"])
+                    if frames < self.frames:
+                        self.skipped[key] = f"{frames} frames, fewer than a clip's {self.frames}"
+                        continue
+                    refs.append(
+                        ChunkRef(
+                            key,
+                            str(vpath),
+                            str(ppath),
+                            (m["rgb.mp4"].offset_data, m["rgb.mp4"].size),
+                            (got[1].offset_data, got[1].size),
+                            frames,
+                            int(rec["frames"][0]),
+                            stamp,
+                        )
+                    )
+        return refs
+
+    def chunk(self, ref: ChunkRef) -> Clip:
+        """One indexed chunk whole (all its frames, start 0) at ``size``, read from where ``index`` found it; a shard
+        rewritten since is a ValueError naming it."""
+        if (*_stamp(Path(ref.video)), *_stamp(Path(ref.pose))) != ref.stamp:
+            raise ValueError(f"{ref.video}: the video or pose shard of chunk {ref.key} changed since it was indexed")
+        sample = {
+            "__key__": ref.key,
+            "rgb.mp4": read_at(Path(ref.video), *ref.rgb_at),
+            "pose.mkv": read_at(Path(ref.pose), *ref.pose_at),
+        }
+        clip = decode_clip(sample, ref.frames, self.size, 0)
+        return self._actions_from(ref.first_frame, clip) if self.actions else clip
 
     def chunks(self) -> Iterator[Clip]:
         """Every usable chunk whole (all its frames, start 0), reduced to ``size``: what a trainer keeps in
@@ -183,3 +274,73 @@ class ClipSource:
                 yield self._actions(sample, clip) if self.actions else clip
             except ValueError as err:
                 self.skipped[sample["__key__"]] = str(err)
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    """(size, mtime in ns) of a file, (−1, −1) where there is none."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return (-1, -1)
+    return (st.st_size, st.st_mtime_ns)
+
+
+@dataclass(frozen=True)
+class ChunkRef:
+    """Where one usable chunk's bytes are: its video and pose shards, (offset, size) of its ``rgb.mp4`` and
+    ``pose.mkv`` members, its frame count and first source frame, and (size, mtime) of both shards when indexed."""
+
+    key: str
+    video: str
+    pose: str
+    rgb_at: tuple[int, int]
+    pose_at: tuple[int, int]
+    frames: int
+    first_frame: int
+    stamp: tuple[int, int, int, int]
+
+
+class ChunkStore:
+    """The indexed chunks of a ``ClipSource`` as a sequence of whole ``Clip``s: a chunk is decoded when it is first
+    asked for and kept while the decoded chunks fit in ``budget_bytes`` (least recently used evicted first). What a
+    reader gets does not depend on the budget; memory does not grow with the corpus beyond the budget and the
+    index."""
+
+    def __init__(self, source: ClipSource, refs: list[ChunkRef] | None = None, budget_bytes: int = 2 << 30):
+        if budget_bytes < 0:
+            raise ValueError(f"budget_bytes must be ≥ 0, not {budget_bytes}")
+        self.source, self.budget = source, int(budget_bytes)
+        self.refs = source.index() if refs is None else list(refs)
+        self._cache: OrderedDict[int, Clip] = OrderedDict()
+        self.held_bytes = 0
+        self.decoded = 0  # decodes so far (hits are not counted)
+
+    def __len__(self) -> int:
+        return len(self.refs)
+
+    def __getitem__(self, i: int) -> Clip:
+        i = int(i)
+        if not -len(self.refs) <= i < len(self.refs):
+            raise IndexError(f"chunk {i} of {len(self.refs)}")
+        i %= len(self.refs)
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        clip = self.source.chunk(self.refs[i])
+        self.decoded += 1
+        size = _clip_bytes(clip)
+        if size <= self.budget:
+            self._cache[i] = clip
+            self.held_bytes += size
+            while self.held_bytes > self.budget:
+                _, old = self._cache.popitem(last=False)
+                self.held_bytes -= _clip_bytes(old)
+        return clip
+
+    def __iter__(self) -> Iterator[Clip]:
+        for i in range(len(self.refs)):
+            yield self[i]
+
+
+def _clip_bytes(clip: Clip) -> int:
+    return sum(t.numel() * t.element_size() for t in (clip.rgb, clip.pose, clip.actions) if t is not None)

@@ -1,8 +1,10 @@
 """Training the observation model on a corpus's video shards (RGB beside pose-control chunks), with exact resume.
 
-Data: the train split's chunks (``data.ClipSource.chunks``), decoded once per run and kept in memory
-at the model's size (the corpus's chunk size divided by ``reduce``); step s draws its batch of clips
-(chunk, start) from ``numpy.random.default_rng([seed, s])``, so a resumed run sees the same batches.
+Data: the train split's chunks, indexed from the shards' headers (``data.ClipSource.index``) and decoded
+at the model's size (the corpus's chunk size divided by ``reduce``) when a batch first needs them, kept
+while they fit in ``cache_mb`` (``data.ChunkStore``: a small corpus is decoded once per run, a large one
+streams in bounded memory); step s draws its batch of clips (chunk, start) from
+``numpy.random.default_rng([seed, s])``, so a resumed run sees the same batches whatever the cache.
 Objective: the rectified-flow loss of ``model.flow_loss`` with noise from a generator seeded by
 (seed, s); with probability ``reference_swap`` a clip's given first frame is a random frame of another
 train chunk (its targets unchanged), which teaches the model to place bodies by the pose. AdamW, linear
@@ -21,7 +23,7 @@ ranks; rank 0 evaluates and writes checkpoints and ``summary.json``.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -34,7 +36,7 @@ from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.io import check_json_fields
-from marionette.observation.data import Clip, ClipSource
+from marionette.observation.data import ChunkStore, Clip, ClipSource
 from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
 from marionette.training import knob
 
@@ -57,6 +59,9 @@ class ObservationTrainConfig:
     warmup: int = knob(50, "linear warm-up steps", min=0)
     seed: int = knob(0, "seed of the initial weights, the clips drawn and the noise", min=0)
     checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
+    cache_mb: int = knob(
+        2048, "decoded chunks kept in memory per split (MiB, least recently used evicted); results do not depend on it", min=0
+    )
     control: str = knob(
         "pose", "pose: pose-control video; actions: the pixel-AR baseline (first frame + action schedule)", choices=CONTROLS
     )
@@ -127,7 +132,7 @@ def _noise_seed(seed: int, step: int, rank: int) -> int:
 
 
 def _batch(
-    chunks: list[Clip], frames: int, size: int, seed: int, step: int, control: str, rank: int = 0, swap: float = 0.0
+    chunks: Sequence[Clip], frames: int, size: int, seed: int, step: int, control: str, rank: int = 0, swap: float = 0.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Step ``step``'s clips, their controls and their given first frames: with probability ``swap``, a clip's
     is a random frame of another chunk (reference swap), else its own frame 0."""
@@ -145,7 +150,7 @@ def _batch(
 
 
 @torch.no_grad()
-def held_out_loss(model: VideoDiT, chunks: list[Clip]) -> float:
+def held_out_loss(model: VideoDiT, chunks: Sequence[Clip]) -> float:
     """Mean flow loss over every held-out chunk's first clip at ``EVAL_DRAWS`` fixed noise draws."""
     model.eval()
     g = torch.Generator().manual_seed(1234)
@@ -180,18 +185,25 @@ def train(
     mc = model_config(corpus, config)
     actions = config.control == "actions"
     src = ClipSource(corpus, "train", mc.frames, mc.size, actions=actions)
-    chunks = list(src.chunks())
-    if not chunks:
+    chunks = ChunkStore(src, budget_bytes=config.cache_mb << 20)
+    if not len(chunks):
         first = dict(list(src.skipped.items())[:3])
         raise ValueError(
             f"{corpus.path}: no train chunk with a pose target and ≥ {mc.frames} frames; {len(src.skipped)} skipped, e.g. {first}"
         )
     held_split = HELD_OUT if corpus.segment_ids(HELD_OUT) else "train"
-    held = list(ClipSource(corpus, held_split, mc.frames, mc.size, actions=actions).chunks())
+    held = ChunkStore(ClipSource(corpus, held_split, mc.frames, mc.size, actions=actions), budget_bytes=config.cache_mb << 20)
     model = VideoDiT(mc, seed=config.seed)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=0.0)
     sched = training.warmup_cosine(opt, config.warmup, config.steps, 0.1)
-    run = training.resume(out_dir, model, opt, sched, {"train_config": config, "observation_config": mc})
+    run = training.resume(
+        out_dir,
+        model,
+        opt,
+        sched,
+        {"train_config": config, "observation_config": mc},
+        may_change=(*training.CADENCE_FIELDS, "cache_mb"),
+    )
     if run.resumed_from is not None:
         log(f"resumed from {run.resumed_from} at step {run.step}")
     params = sum(p.numel() for p in model.parameters())
