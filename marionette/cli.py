@@ -350,9 +350,10 @@ def cmd_render(a: argparse.Namespace) -> int:
 def cmd_train_dynamics(a: argparse.Namespace) -> int:
     """Train ActionGPT + PoseGPT on a corpus (resuming from --out when it holds a checkpoint)."""
     from marionette.dynamics.train import TrainConfig, run
-    from marionette.training import config_from_args
+    from marionette.training import config_from_args, nodes_from_args
 
-    summary = run(a.corpus, a.out, config_from_args(TrainConfig, a), nproc=a.nproc, progress=a.progress)
+    config = config_from_args(TrainConfig, a)
+    summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
     print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return 0
 
@@ -360,9 +361,10 @@ def cmd_train_dynamics(a: argparse.Namespace) -> int:
 def cmd_train_observation(a: argparse.Namespace) -> int:
     """Train the observation model on a corpus's video shards (resuming from --out)."""
     from marionette.observation.train import ObservationTrainConfig, run
-    from marionette.training import config_from_args
+    from marionette.training import config_from_args, nodes_from_args
 
-    summary = run(a.corpus, a.out, config_from_args(ObservationTrainConfig, a), nproc=a.nproc, progress=a.progress)
+    config = config_from_args(ObservationTrainConfig, a)
+    summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
     print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return 0
 

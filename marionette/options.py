@@ -26,10 +26,24 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose help shows defaults (``HelpFormatter``); its subparsers are Parsers too."""
+    """An ArgumentParser whose help shows defaults (``HelpFormatter``) and which checks options that only
+    make sense together (``add_check``) once they are parsed; its subparsers are Parsers too."""
 
     def __init__(self, *args, formatter_class: type = HelpFormatter, **kwargs) -> None:
         super().__init__(*args, formatter_class=formatter_class, **kwargs)
+        self.checks: list[Callable[[argparse.Namespace], str | None]] = []
+
+    def add_check(self, check: Callable[[argparse.Namespace], str | None]) -> None:
+        """After parsing, ``check(namespace)`` says what is wrong with the options together (exit 2 with
+        that message, as a bad option's type would), or None."""
+        self.checks.append(check)
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, rest = super().parse_known_args(args, namespace)
+        for check in self.checks:
+            if (why := check(namespace)) is not None:
+                self.error(why)
+        return namespace, rest
 
 
 def _integer(s: str) -> int:

@@ -14,10 +14,12 @@ config, world size and device).
     last = final_checkpoint(run, checkpoint)                            # unless nothing was trained
     finish(out, summary)                                                # summary.json (rank 0), barrier
 
-Under DDP (``launch`` with nproc > 1 relaunches the command under torchrun) every rank runs the same
-loop on its own batches; gradients are averaged by ``DistributedDataParallel`` (``ddp``), the logged
-terms by ``mean_over_ranks``; rank 0 alone logs, shows the progress bar and writes checkpoints and the
-summary.
+Under DDP (``launch`` with nproc > 1, or more than one node, relaunches the command under torchrun) every
+rank runs the same loop on its own batches; gradients are averaged by ``DistributedDataParallel``
+(``ddp``), the logged terms by ``mean_over_ranks``; rank 0 (the global rank: node 0's first process) alone
+logs, shows the progress bar and writes checkpoints and the summary. On several machines (``--nnodes``,
+``distributed.Nodes``) the training directory is one they share, and ``resume`` checks that every rank
+found the same checkpoint there.
 """
 
 from __future__ import annotations
@@ -37,9 +39,19 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from marionette.distributed import process_group_from_env, rank_world, train_under_torchrun
+from marionette.distributed import (
+    ONE_NODE,
+    Nodes,
+    host_problem,
+    nodes_problem,
+    port_problem,
+    process_group_from_env,
+    rank_world,
+    train_under_torchrun,
+)
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
 from marionette.io import write_json
+from marionette.options import Parser
 
 SUMMARY = "summary.json"  # the last run's summary (losses left out), written by rank 0 into the training directory
 CADENCE_FIELDS = ("eval_every", "checkpoint_every")  # config fields a resumed run may change
@@ -138,6 +150,11 @@ def add_config_arguments(ap: argparse.ArgumentParser, cls: type) -> None:
             raise TypeError(f"{cls.__name__}.{f.name}: no flag for a field of type {f.type}")
 
 
+def nodes_from_args(args: argparse.Namespace) -> Nodes:
+    """The ``Nodes`` of parsed node options."""
+    return Nodes(args.nnodes, args.node_rank, args.master_addr, args.master_port)
+
+
 def config_from_args(cls: type, args: argparse.Namespace) -> Any:
     """The config of parsed arguments: the ``--config`` JSON when given, then the flags that were given."""
     base = {}
@@ -150,9 +167,17 @@ def config_from_args(cls: type, args: argparse.Namespace) -> Any:
     return cls.from_json({**base, **over})
 
 
-def add_arguments(ap: argparse.ArgumentParser, cls: type) -> None:
+def _host(s: str) -> str:
+    """An argparse type: a host name or an IP address (``distributed.host_problem``)."""
+    if (why := host_problem(s)) is not None:
+        raise argparse.ArgumentTypeError(why)
+    return s
+
+
+def add_arguments(ap: Parser, cls: type) -> None:
     """A training command's arguments: the corpus, ``--out``, ``--config``, one flag per field of ``cls``,
-    ``--nproc`` and ``--progress``."""
+    ``--nproc``, the node options (``--nnodes``, ``--node-rank``, ``--master-addr``, ``--master-port``,
+    checked together once parsed) and ``--progress``."""
     ap.add_argument("corpus", type=Path, help="the corpus directory")
     ap.add_argument("--out", type=Path, required=True, help="training directory (checkpoints; a rerun resumes from it)")
     ap.add_argument("--config", type=Path, help=f"a JSON of {cls.__name__} fields; the flags below override it")
@@ -163,8 +188,25 @@ def add_arguments(ap: argparse.ArgumentParser, cls: type) -> None:
         type=at_least_one,
         default=1,
         metavar="N",
-        help="processes: > 1 relaunches this command under torchrun (DDP) (default: %(default)s)",
+        help="processes on this machine: > 1 relaunches this command under torchrun (DDP) (default: %(default)s)",
     )
+    nodes = ap.add_argument_group(
+        "several machines",
+        "one command per machine, the same but for --node-rank; OUT (and the corpus) on a filesystem they all share",
+    )
+    nodes.add_argument("--nnodes", type=at_least_one, default=1, metavar="N", help="machines of the run (default: %(default)s)")
+    nodes.add_argument(
+        "--node-rank",
+        type=_flag_type(int, lambda v: None if v >= 0 else f"must be at least 0, not {v}"),
+        default=0,
+        metavar="R",
+        help="this machine's rank, 0 to N - 1; node 0 hosts the rendezvous and its first process writes OUT (default: %(default)s)",
+    )
+    nodes.add_argument("--master-addr", type=_host, metavar="HOST", help="node 0's host name or IP address (with --nnodes > 1)")
+    nodes.add_argument(
+        "--master-port", type=_flag_type(int, port_problem), metavar="PORT", help="a free TCP port on node 0 (with --nnodes > 1)"
+    )
+    ap.add_check(lambda a: nodes_problem(a.nnodes, a.node_rank, a.master_addr, a.master_port))
     ap.add_argument(
         "--progress",
         action=argparse.BooleanOptionalAction,
@@ -250,6 +292,21 @@ class Run:
     started: int = 0  # the step this call began at
 
 
+def same_checkpoint_everywhere(out_dir: Path | str, ckpt: Path | None) -> None:
+    """Check that every rank of the process group found ``ckpt`` (the latest checkpoint in ``out_dir``, or
+    None): ranks on machines that do not share ``out_dir`` would resume from different steps."""
+    world = rank_world()[1]
+    if world == 1:
+        return
+    found: list[str | None] = [None] * world
+    dist.all_gather_object(found, None if ckpt is None else ckpt.name)
+    if len(set(found)) > 1:
+        seen = ", ".join(f"rank {r}: {name or 'none'}" for r, name in enumerate(found))
+        raise ValueError(
+            f"{out_dir}: the ranks found different latest checkpoints ({seen}); it must be one directory every node shares"
+        )
+
+
 def resume(
     out_dir: Path | str,
     model: nn.Module,
@@ -262,6 +319,7 @@ def resume(
     (meta key → config dataclass with ``from_json``) is the one it saved, fields in ``may_change`` aside,
     and restoring the model, optimizer, scheduler and torch RNG. A mismatch names the fields that differ."""
     ckpt = latest_checkpoint(Path(out_dir))
+    same_checkpoint_everywhere(out_dir, ckpt)
     if ckpt is None:
         return Run()
     meta = read_meta(ckpt)
@@ -378,25 +436,27 @@ def launch(
     config: Any,
     *,
     nproc: int = 1,
+    nodes: Nodes = ONE_NODE,
     progress: bool = False,
     log: Callable[[str], Any] = print,
 ) -> dict:
     """``train(corpus, out_dir, config, log, progress=)`` in this process (in torchrun's process group when
-    launched by it), or, with ``nproc`` > 1 outside one, ``python -m module`` in ``nproc`` processes under
-    torchrun, returning the summary rank 0 wrote (losses left out; the ranks print their own log)."""
-    if nproc > 1 and "WORLD_SIZE" not in os.environ:
-        return train_under_torchrun(module, corpus, out_dir, config.to_json(), nproc, SUMMARY, progress=progress)
+    launched by it), or, with ``nproc`` > 1 or several ``nodes`` outside one, ``python -m module`` in
+    ``nproc`` processes on this node under torchrun, returning the summary rank 0 wrote (losses left out;
+    the ranks print their own log; on a node other than 0, the summary rank 0 wrote in the shared OUT)."""
+    if (nproc > 1 or nodes.nnodes > 1) and "WORLD_SIZE" not in os.environ:
+        return train_under_torchrun(module, corpus, out_dir, config.to_json(), nproc, SUMMARY, nodes=nodes, progress=progress)
     with process_group_from_env():
         return train(corpus, out_dir, config, log, progress=progress)
 
 
 def main(argv: list[str] | None, prog: str, description: str, cls: type, run: Callable[..., dict]) -> dict:
     """A trainer module's ``python -m`` entry (also what torchrun runs): parse ``add_arguments(cls)``, then
-    ``run(corpus, out, config, nproc=, progress=)``; prints the summary unless it is one rank of many."""
-    ap = argparse.ArgumentParser(prog=prog, description=description)
+    ``run(corpus, out, config, nproc=, nodes=, progress=)``; prints the summary unless it is one rank of many."""
+    ap = Parser(prog=prog, description=description)
     add_arguments(ap, cls)
     a = ap.parse_args(argv)
-    summary = run(a.corpus, a.out, config_from_args(cls, a), nproc=a.nproc, progress=a.progress)
+    summary = run(a.corpus, a.out, config_from_args(cls, a), nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
     if "WORLD_SIZE" not in os.environ:
         print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return summary

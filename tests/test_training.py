@@ -1,5 +1,6 @@
-"""The training skeleton: flags generated from a config dataclass (help, defaults, validation), the
-warm-up + cosine schedule, per-step seeds, and the resume check naming the fields that differ."""
+"""The training skeleton: flags generated from a config dataclass (help, defaults, validation), the node
+options checked alone and together, the warm-up + cosine schedule, per-step seeds, and the resume check
+naming the fields that differ."""
 
 from __future__ import annotations
 
@@ -11,12 +12,14 @@ import pytest
 import torch
 
 from marionette import training
+from marionette.distributed import Nodes
 from marionette.dynamics.train import TrainConfig
 from marionette.observation.train import ObservationTrainConfig
+from marionette.options import Parser
 
 
 def _parser(cls) -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="t")
+    ap = Parser(prog="t")
     training.add_arguments(ap, cls)
     return ap
 
@@ -38,6 +41,10 @@ def test_flags_come_from_the_config_fields_with_help_defaults_and_checks(tmp_pat
         "--checkpoint-every",
         "--reference-swap",
         "--nproc",
+        "--nnodes",
+        "--node-rank",
+        "--master-addr",
+        "--master-port",
         "--out",
         "--progress",
     ):
@@ -60,6 +67,44 @@ def test_flags_come_from_the_config_fields_with_help_defaults_and_checks(tmp_pat
         assert bad[0] in capsys.readouterr().err
     with pytest.raises(ValueError, match="frames"):
         training.config_from_args(ObservationTrainConfig, ap.parse_args(["c", "--out", str(tmp_path), "--frames", "6"]))
+
+
+def test_node_flags_are_checked_alone_and_together(tmp_path, capsys):
+    """Each node option is refused where it is parsed (exit 2, the problem named), alone or with the others;
+    good ones become torchrun's static-rendezvous arguments, one machine keeps its loopback rendezvous."""
+    ap = _parser(TrainConfig)
+    several = ["--nnodes", "2", "--master-addr", "10.0.0.5", "--master-port", "29500"]
+    for bad, said in (
+        (["--nnodes", "0"], "--nnodes: must be at least 1, not 0"),
+        (["--node-rank", "-1"], "--node-rank: must be at least 0, not -1"),
+        ([*several, "--node-rank", "2"], "--node-rank must be at least 0 and below --nnodes (2), not 2"),
+        (["--nnodes", "2", "--master-port", "29500"], "--nnodes 2 needs --master-addr"),
+        (["--nnodes", "3", "--master-addr", "h"], "--nnodes 3 needs --master-port"),
+        (["--master-port", "29500"], "--master-port only with --nnodes > 1"),
+        ([*several[:4], "--master-port", "0"], "--master-port: a TCP port runs from 1 to 65535, not 0"),
+        ([*several[:4], "--master-port", "65536"], "not 65536"),
+        ([*several[:4], "--master-port", "x"], "--master-port: expected an integer, not 'x'"),
+        (["--nnodes", "2", "--master-addr", "", "--master-port", "1"], "--master-addr: expected a host name"),
+        (["--nnodes", "2", "--master-addr", "10.0.0.5:29500", "--master-port", "1"], "without a port"),
+        (["--nnodes", "2", "--master-addr", "tcp://h", "--master-port", "1"], "no scheme, path or spaces"),
+    ):
+        with pytest.raises(SystemExit) as exit_:
+            ap.parse_args(["c", "--out", str(tmp_path), *bad])
+        assert exit_.value.code == 2
+        assert said in capsys.readouterr().err, bad
+    nodes = training.nodes_from_args(ap.parse_args(["c", "--out", str(tmp_path), *several, "--node-rank", "1"]))
+    assert nodes == Nodes(2, 1, "10.0.0.5", 29500)
+    assert nodes.torchrun_arguments(4) == [
+        "--nnodes=2",
+        "--node-rank=1",
+        "--master-addr=10.0.0.5",
+        "--master-port=29500",
+        "--nproc-per-node=4",
+    ]
+    one = training.nodes_from_args(ap.parse_args(["c", "--out", str(tmp_path)]))
+    assert one == Nodes() and one.torchrun_arguments(2) == ["--standalone", "--nproc-per-node=2"]
+    with pytest.raises(ValueError, match="--nnodes 2 needs --master-addr and --master-port"):
+        Nodes(2, 0)
 
 
 def test_config_json_then_flags(tmp_path):

@@ -51,7 +51,6 @@ for the root (the root stream is a per-frame displacement, so copying it is cons
 
 from __future__ import annotations
 
-import argparse
 import json
 from collections.abc import Callable, Iterator
 from contextlib import nullcontext
@@ -67,7 +66,7 @@ from torch import Tensor, nn
 from marionette import geometry as geo
 from marionette import training
 from marionette.corpus import Corpus
-from marionette.distributed import rank_world
+from marionette.distributed import ONE_NODE, Nodes, rank_world
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.data import ActionTokens, Batch, HeldOutWindows, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import (
@@ -83,6 +82,7 @@ from marionette.dynamics.model import (
     pose_training_pair,
 )
 from marionette.io import check_json_fields
+from marionette.options import Parser
 from marionette.schema import Layout
 from marionette.training import knob
 
@@ -586,9 +586,9 @@ def train(
 # -- commands ----------------------------------------------------------------------------------------
 
 
-def add_arguments(ap: argparse.ArgumentParser) -> None:
+def add_arguments(ap: Parser) -> None:
     """The arguments of ``marionette train dynamics`` and ``python -m marionette.dynamics.train``: the corpus,
-    ``--out``, ``--config``, one flag per ``TrainConfig`` field, ``--nproc``, ``--progress``."""
+    ``--out``, ``--config``, one flag per ``TrainConfig`` field, ``--nproc``, the node options, ``--progress``."""
     training.add_arguments(ap, TrainConfig)
 
 
@@ -598,12 +598,15 @@ def run(
     config: TrainConfig,
     *,
     nproc: int = 1,
+    nodes: Nodes = ONE_NODE,
     progress: bool = False,
     log: Callable[[str], Any] = print,
 ) -> dict:
-    """Train in this process, or with ``nproc`` > 1 under torchrun (gloo on CPU, NCCL on GPU), returning
-    the summary (from torchrun: the one rank 0 wrote, losses left out)."""
-    return training.launch("marionette.dynamics.train", train, corpus, out_dir, config, nproc=nproc, progress=progress, log=log)
+    """Train in this process, or with ``nproc`` > 1 or several ``nodes`` under torchrun (gloo on CPU, NCCL on
+    GPU), returning the summary (from torchrun: the one rank 0 wrote, losses left out)."""
+    return training.launch(
+        "marionette.dynamics.train", train, corpus, out_dir, config, nproc=nproc, nodes=nodes, progress=progress, log=log
+    )
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -22,7 +22,6 @@ ranks; rank 0 evaluates and writes checkpoints and ``summary.json``.
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -33,11 +32,12 @@ import torch
 
 from marionette import training
 from marionette.corpus import Corpus
-from marionette.distributed import rank_world
+from marionette.distributed import ONE_NODE, Nodes, rank_world
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.io import check_json_fields
 from marionette.observation.data import ChunkStore, Clip, ClipSource
 from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
+from marionette.options import Parser
 from marionette.training import knob
 
 HELD_OUT = "test"
@@ -286,9 +286,10 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
     return model.eval()
 
 
-def add_arguments(ap: argparse.ArgumentParser) -> None:
+def add_arguments(ap: Parser) -> None:
     """The arguments of ``marionette train observation`` and ``python -m marionette.observation.train``: the
-    corpus, ``--out``, ``--config``, one flag per ``ObservationTrainConfig`` field, ``--nproc``, ``--progress``."""
+    corpus, ``--out``, ``--config``, one flag per ``ObservationTrainConfig`` field, ``--nproc``, the node options,
+    ``--progress``."""
     training.add_arguments(ap, ObservationTrainConfig)
 
 
@@ -298,13 +299,14 @@ def run(
     config: ObservationTrainConfig,
     *,
     nproc: int = 1,
+    nodes: Nodes = ONE_NODE,
     progress: bool = False,
     log: Callable[[str], Any] = print,
 ) -> dict:
-    """Train in this process, or with ``nproc`` > 1 under torchrun (gloo on CPU), returning the summary
-    (from torchrun: the one rank 0 wrote, losses left out)."""
+    """Train in this process, or with ``nproc`` > 1 or several ``nodes`` under torchrun (gloo on CPU),
+    returning the summary (from torchrun: the one rank 0 wrote, losses left out)."""
     return training.launch(
-        "marionette.observation.train", train, corpus, out_dir, config, nproc=nproc, progress=progress, log=log
+        "marionette.observation.train", train, corpus, out_dir, config, nproc=nproc, nodes=nodes, progress=progress, log=log
     )
 
 
