@@ -70,6 +70,22 @@ are a function of (seed, rank, world_size, epoch) alone. Held-out evaluation (``
 every usable segment of the split tiled from frame 0 with stride W, in segment order, rank r taking
 every world_size-th window; batches of up to ``batch_size`` (the last may be smaller); frames after a
 segment's last whole window are not evaluated.
+What "every window of the epoch" means for training: the epoch's windows are the tiles above, and
+exactly the first world_size · ⌊⌊E / world_size⌋ / batch_size⌋ · batch_size of the shuffled E are
+trained on, each by one rank once; the rest, fewer than world_size · batch_size (E mod world_size
+cut for equal shares, then each rank's partial batch), wait for another epoch's draw
+(``WindowSampler.epoch_windows`` lists all E in shuffled order).
+
+**Loader workers** (``TrainBatches``, ``train_batches``). A rank's batches from global step s on,
+epoch after epoch, numbered j = 0, 1, … from s: in-process (no workers) they are stacked in turn; with
+k DataLoader workers, worker w stacks only the batches with j ≡ w (mod k), and the DataLoader, which
+asks its workers for batches in turn and returns them in that order (``in_order``), yields the
+in-process sequence exactly, so training reads the same batches in the same order (same losses) with
+any number of workers. A worker computes the epoch's window list itself from (seed, rank,
+world_size, epoch) and reads windows from the memory-mapped cache: what reaches it is the sampler's
+recipe (``WindowData`` pickles as its corpus path, split, flags, normaliser and token tables, and
+re-opens the arrays when unpickled, under a ``spawn`` start method; ``fork`` shares the open maps),
+never the arrays, so k workers add k processes' fixed overhead and no copy of the split.
 
 **Window arrays on disk** (``shard_windows``). What a window reads — normalised root and body
 (float32), tokens (int64), progress (float32), and when asked terrain features and ``known`` and the
@@ -91,7 +107,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -101,6 +117,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import torch
 from torch import Tensor
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from marionette import geometry as geo
 from marionette.corpus import RESAMPLE_VERSION, Corpus, fixed_rows, world_of_rows
@@ -531,8 +548,9 @@ class Batch:
 
 
 class WindowData:
-    """One split's dynamics view in memory: normalised root and body (float32), tokens, progress and,
-    when asked, terrain features and the relative feature, per segment (segments in ``corpus.segment_ids(split)`` order)."""
+    """One split's dynamics view, memory-mapped from the window cache: normalised root and body (float32), tokens,
+    progress and, when asked, terrain features and the relative feature, per segment (segments in
+    ``corpus.segment_ids(split)`` order). A pickle of it holds how to open it, not its arrays."""
 
     def __init__(
         self,
@@ -588,6 +606,24 @@ class WindowData:
             self.known.append(k)
             self.rel.append(rl)
         self.lengths = np.asarray([len(r) for r in self.root], np.int64)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """What a pickle holds (a DataLoader worker under ``spawn``): how to open the data, not its arrays."""
+        return {
+            "corpus": str(self.corpus.path),
+            "split": self.split,
+            "terrain": self.terrain,
+            "relative": self.relative,
+            "normaliser": self.normaliser,
+            "tokens": self.tokens,
+            "fps": self.fps,
+            "method": self.method,
+        }
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Re-open the pickled data's window arrays, memory-mapped from the cache (computed if it is gone)."""
+        corpus, split = state.pop("corpus"), state.pop("split")
+        self.__init__(corpus, split, **state)  # type: ignore[misc]
 
     def usable(self, frames: int) -> list[int]:
         """Indices of the segments holding at least ``frames`` dynamics frames."""
@@ -657,18 +693,23 @@ class WindowSampler:
                 f"batch_size {batch_size} × world_size {world_size}; use shorter windows or smaller batches"
             )
 
-    def windows(self, epoch: int) -> list[tuple[int, int]]:
-        """This rank's windows (segment index, first frame) of ``epoch``, in batch order."""
+    def epoch_windows(self, epoch: int) -> list[tuple[int, int]]:
+        """Every window (segment index, first frame) of ``epoch`` over all ranks, in the shuffled order the
+        ranks deal from (module doc: which of them are trained on)."""
         rng = np.random.default_rng([self.seed, int(epoch)])
         W, every = self.frames, []
         for i in self.usable:
             n = int(self.data.lengths[i])
             phase = int(rng.integers(0, min(W - 1, n - W) + 1))
             every += [(i, s) for s in range(phase, n - W + 1, W)]
-        order = rng.permutation(len(every))
+        return [every[k] for k in rng.permutation(len(every))]
+
+    def windows(self, epoch: int) -> list[tuple[int, int]]:
+        """This rank's windows (segment index, first frame) of ``epoch``, in batch order."""
+        every = self.epoch_windows(epoch)
         per_rank = len(every) // self.world_size
-        mine = order[: per_rank * self.world_size][self.rank :: self.world_size]
-        return [every[k] for k in mine[: (per_rank // self.batch_size) * self.batch_size]]
+        mine = every[: per_rank * self.world_size][self.rank :: self.world_size]
+        return mine[: (per_rank // self.batch_size) * self.batch_size]
 
     def batches(self, epoch: int) -> int:
         """Number of batches this rank (and every rank) gets in ``epoch``."""
@@ -679,6 +720,57 @@ class WindowSampler:
         wins = self.windows(epoch)
         for k in range(0, len(wins), self.batch_size):
             yield self.data.batch(wins[k : k + self.batch_size], self.frames)
+
+    def stream(self, step: int = 0, part: int = 0, parts: int = 1) -> Iterator[Batch]:
+        """This rank's batches from global step ``step`` on, epoch after epoch without end; with ``parts`` > 1
+        only the j-th (j = 0, 1, … counted from ``step``) with j ≡ ``part`` (mod ``parts``), the share of
+        DataLoader worker ``part`` of ``parts`` (module doc: loader workers)."""
+        if not 0 <= part < parts:
+            raise ValueError(f"part {part} outside {parts} parts")
+        epoch, skip, j, bs = 0, int(step), 0, self.batch_size
+        while True:
+            wins = self.windows(epoch)
+            n = len(wins) // bs
+            for k in range(skip, n):
+                if j % parts == part:
+                    yield self.data.batch(wins[k * bs : (k + 1) * bs], self.frames)
+                j += 1
+            skip, epoch = max(0, skip - n), epoch + 1
+
+
+class TrainBatches(IterableDataset):
+    """A rank's training batches from global step ``step`` on (``WindowSampler.stream``), for a
+    ``DataLoader(batch_size=None)``: in worker w of k only the batches j ≡ w (mod k), which the DataLoader
+    interleaves back into the in-process order (module doc: loader workers)."""
+
+    def __init__(self, sampler: WindowSampler, step: int = 0):
+        super().__init__()
+        self.sampler, self.step = sampler, int(step)
+
+    def __iter__(self) -> Iterator[Batch]:
+        info = get_worker_info()
+        return self.sampler.stream(self.step) if info is None else self.sampler.stream(self.step, info.id, info.num_workers)
+
+
+def train_batches(sampler: WindowSampler, step: int = 0, workers: int = 0) -> Generator[Batch, None, None]:
+    """The sampler's batches from global step ``step`` on, stacked in this process (``workers`` 0) or by
+    ``workers`` DataLoader worker processes; the same batches in the same order either way. Close the
+    generator (or drop it) to stop the workers."""
+    if workers < 0:
+        raise ValueError(f"loader workers must be ≥ 0, not {workers}")
+    return sampler.stream(step) if workers == 0 else _loader_batches(sampler, step, workers)
+
+
+def _loader_batches(sampler: WindowSampler, step: int, workers: int) -> Generator[Batch, None, None]:
+    # The loader's own generator: its seed draw leaves torch's global RNG (dropout's) as it was.
+    loader = DataLoader(
+        TrainBatches(sampler, step), batch_size=None, num_workers=workers, in_order=True, generator=torch.Generator()
+    )
+    it = iter(loader)
+    try:
+        yield from it
+    finally:
+        del it  # the last reference: its workers are shut down now, not at the next garbage collection
 
 
 class HeldOutWindows:

@@ -33,6 +33,9 @@ noise and dropout are drawn from seeds of (seed, s, rank). A checkpoint holds we
 scheduler, torch RNG and the loss history; resuming from ``latest_checkpoint(out_dir)`` (the step
 loop, resume check and checkpoints are ``marionette.training``'s, shared with the observation
 trainer) continues the same loss sequence bit for bit (same config, same world size, same device).
+``loader_workers`` k > 0 has k DataLoader worker processes stack the batches, handed back in the order
+one process stacks them (``dynamics.data``, "Loader workers"): the losses do not depend on k, and a
+resumed run may change it.
 
 DDP: when ``torch.distributed`` is initialised, ActionGPT and PoseGPT are each wrapped in
 ``DistributedDataParallel``, rank r samples its own windows (``WindowSampler(rank=r)``), the logged
@@ -52,7 +55,7 @@ for the root (the root stream is a per-frame displacement, so copying it is cons
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -68,7 +71,15 @@ from marionette import training
 from marionette.corpus import Corpus
 from marionette.distributed import ONE_NODE, Nodes, rank_world
 from marionette.dynamics.checkpoint import save_checkpoint
-from marionette.dynamics.data import ActionTokens, Batch, HeldOutWindows, Normaliser, WindowData, WindowSampler
+from marionette.dynamics.data import (
+    ActionTokens,
+    Batch,
+    HeldOutWindows,
+    Normaliser,
+    WindowData,
+    WindowSampler,
+    train_batches,
+)
 from marionette.dynamics.model import (
     PATCH_SIZE,
     PRESETS,
@@ -90,6 +101,7 @@ HELD_OUT_SPLIT = "test"
 N_PATCH = PATCH_SIZE * PATCH_SIZE  # terrain feature slots before the key joints' clearances
 TENSORBOARD = "tensorboard"  # event files under the training directory (rank 0)
 SUMMARY = training.SUMMARY
+LOADER_FIELDS = ("loader_workers",)  # how batches are stacked, not which: a resumed run may change them
 
 
 @dataclass(frozen=True)
@@ -99,6 +111,9 @@ class TrainConfig:
     preset: str = knob("tiny", "model size (dynamics.model.PRESETS)", choices=sorted(PRESETS))
     steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
     batch_size: int = knob(16, "windows per step and process", min=1)
+    loader_workers: int = knob(
+        0, "DataLoader worker processes stacking each rank's batches; 0: in the training process (same batches either way)", min=0
+    )
     window: int | None = knob(None, "model steps per window; default: the preset's, capped to the train segments", min=1)
     lr: float = knob(3e-4, "peak learning rate", above=0.0)
     betas: tuple[float, float] = knob((0.9, 0.95), "AdamW betas", min=0.0, below=1.0)
@@ -194,20 +209,10 @@ def resolve_window(data: WindowData, config: TrainConfig, world_size: int = 1) -
     raise ValueError(f"{data.corpus.path}: the train split is too short for any window at batch_size {config.batch_size}")
 
 
-def batches_from(sampler: WindowSampler, step: int) -> Iterator[Batch]:
-    """The sampler's batches from global step ``step`` on: epoch after epoch, skipping earlier batches."""
-    epoch, skip = 0, step
-    while True:
-        wins = sampler.windows(epoch)
-        n = len(wins) // sampler.batch_size
-        if skip < n:
-            bs = sampler.batch_size
-            for k in range(skip * bs, n * bs, bs):
-                yield sampler.data.batch(wins[k : k + bs], sampler.frames)
-            skip = 0
-        else:
-            skip -= n
-        epoch += 1
+def batches_from(sampler: WindowSampler, step: int, workers: int = 0) -> Generator[Batch, None, None]:
+    """The sampler's batches from global step ``step`` on: epoch after epoch, skipping earlier batches; stacked
+    by ``workers`` DataLoader workers (0: in this process), the same batches in the same order either way."""
+    return train_batches(sampler, step, workers)
 
 
 def _to(frames: Frames, device: torch.device) -> Frames:
@@ -486,7 +491,8 @@ def train(
     hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None
     model = DynamicsModel(dyn, seed=config.seed).to(device)
     opt, sched = make_optimizer(model, config)
-    run = training.resume(out_dir, model, opt, sched, {"train_config": config, "dynamics_config": dyn})
+    configs = {"train_config": config, "dynamics_config": dyn}
+    run = training.resume(out_dir, model, opt, sched, configs, may_change=(*training.CADENCE_FIELDS, *LOADER_FIELDS))
     if run.resumed_from is not None:
         log(f"resumed from {run.resumed_from} at step {run.step}")
     counts = parameter_counts(model)
@@ -533,7 +539,7 @@ def train(
                 if k != "step":
                     board.add_scalar(f"train/{k}", v, record["step"])
 
-    batches = batches_from(sampler, run.step)
+    batches = batches_from(sampler, run.step, config.loader_workers)
 
     def loss_at(step: int) -> dict[str, Tensor]:
         batch = next(batches)
@@ -545,25 +551,28 @@ def train(
                 model, action, pose, Batch(frames, known, batch.segments, batch.starts), normaliser, config, hinge, noise
             )
 
-    training.run_steps(
-        run,
-        end,
-        loss_at,
-        model,
-        opt,
-        sched,
-        seed=config.seed,
-        objective="total",
-        grad_clip=config.grad_clip,
-        checkpoint=checkpoint,
-        checkpoint_every=config.checkpoint_every,
-        evaluate=run_eval,
-        eval_every=config.eval_every,
-        on_record=to_board,
-        log=log,
-        progress=progress,
-        desc="train dynamics",
-    )
+    try:
+        training.run_steps(
+            run,
+            end,
+            loss_at,
+            model,
+            opt,
+            sched,
+            seed=config.seed,
+            objective="total",
+            grad_clip=config.grad_clip,
+            checkpoint=checkpoint,
+            checkpoint_every=config.checkpoint_every,
+            evaluate=run_eval,
+            eval_every=config.eval_every,
+            on_record=to_board,
+            log=log,
+            progress=progress,
+            desc="train dynamics",
+        )
+    finally:
+        batches.close()  # the loader's workers stop here (before the evaluation, or on an error)
     if not run.evals or run.evals[-1]["step"] != run.step:
         run_eval(run.step)
     last = training.final_checkpoint(run, checkpoint)
