@@ -118,12 +118,16 @@ def _planar_frame(frame: np.ndarray, width: int, height: int, where: str) -> av.
     return vf
 
 
-def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta) -> int:
+def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta, overlap: bool = True) -> int:
     """Encode frames losslessly to ``path`` (atomic); returns the frame count. A frame is rendered floats
     (H, W, 3), 10-bit codes (H, W, 3) uint16, or code planes (3, H, W) uint16 in G, B, R order
-    (``Rasterizer.render_planes``, the fast path)."""
+    (``Rasterizer.render_planes``, the fast path).
+
+    With ``overlap`` the encoder runs on a thread of its own, fed through a short queue, while this thread
+    produces the frames (the renderer's GL context stays on the thread that made it): FFV1 and the GL
+    readback both release the GIL, so a render + encode pass takes about the slower of the two instead of
+    their sum. One encoder consumes the frames in order, so the bytes are those of the serial loop."""
     path = Path(path)
-    n = 0
     # bitexact: no random segment UID or encoder string, so a re-render is byte-identical
     with atomic_path(path) as tmp, av.open(str(tmp), "w", format="matroska", options={"fflags": "+bitexact"}) as c:
         c.metadata[TAG] = json.dumps(asdict(meta), sort_keys=True)
@@ -132,12 +136,66 @@ def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta) -
         s.width, s.height, s.pix_fmt = meta.width, meta.height, "gbrp10le"
         s.options = {"level": "3", "g": "1", "slicecrc": "1"}
         s.thread_count = 1
-        for f in frames:
-            for p in s.encode(_planar_frame(f, meta.width, meta.height, f"{path}: frame {n}")):
+
+        def encode(f: np.ndarray | None, n: int) -> None:
+            frame = None if f is None else _planar_frame(f, meta.width, meta.height, f"{path}: frame {n}")
+            for p in s.encode(frame):
                 c.mux(p)
+
+        n = _encode_overlapped(frames, encode) if overlap else _encode_serially(frames, encode)
+    return n
+
+
+def _encode_serially(frames: Iterable[np.ndarray], encode) -> int:
+    n = 0
+    for f in frames:
+        encode(f, n)
+        n += 1
+    encode(None, n)  # flush
+    return n
+
+
+QUEUED_FRAMES = 4  # frames in flight between the producer and the encoder thread
+
+
+def _encode_overlapped(frames: Iterable[np.ndarray], encode) -> int:
+    """``_encode_serially`` with ``encode`` on a thread of its own; an error on either side stops both and is
+    raised here (the producer's first)."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=QUEUED_FRAMES)
+    failed: list[BaseException] = []
+    done = object()
+
+    def consume() -> None:
+        n = 0
+        try:
+            while (f := q.get()) is not done:
+                if not failed:
+                    encode(f, n)
+                n += 1
+            if not failed:
+                encode(None, n)
+        except BaseException as exc:  # noqa: BLE001 (handed to the producer, which raises it)
+            failed.append(exc)
+            while q.get() is not done:  # drain, so the producer never blocks on a full queue
+                pass
+
+    worker = threading.Thread(target=consume, name="gbuffer-encode", daemon=True)
+    worker.start()
+    n = 0
+    try:
+        for f in frames:
+            if failed:
+                break
+            q.put(f)
             n += 1
-        for p in s.encode():
-            c.mux(p)
+    finally:
+        q.put(done)
+        worker.join()
+    if failed:
+        raise failed[0]
     return n
 
 

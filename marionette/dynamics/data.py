@@ -107,6 +107,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import tempfile
 from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -518,9 +519,10 @@ def _write_windows(
         if idx[-1] - idx[0] + 1 != len(idx):
             raise SchemaError(f"{c.dynamics_dir(fps, method)}: shard {shard}'s rows of segment {s} are not contiguous")
         spans[str(s)] = [int(idx[0]), int(idx[-1]) + 1]
-    tmp = d.with_name(f".{d.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    d.parent.mkdir(parents=True, exist_ok=True)
+    # a fresh name: ranks on other machines sharing the corpus may have this process's pid
+    tmp = Path(tempfile.mkdtemp(prefix=f".{d.name}.", suffix=".tmp", dir=d.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes 0700; the cache is read by every user of the corpus
     for k, a in out.items():
         np.save(tmp / f"{k}.npy", np.ascontiguousarray(a), allow_pickle=False)
     write_json(tmp / "segments.json", spans)
