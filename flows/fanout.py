@@ -5,6 +5,7 @@ results in job order, as it does for a local pool."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -16,12 +17,27 @@ from prefect_dask import DaskTaskRunner
 from marionette.fanout import Mapper
 
 
+def local_worker_env(n_workers: int) -> dict[str, str]:
+    """The environment of a local cluster's workers: Mesa's llvmpipe (the pose pass's renderer) gets this
+    machine's cores split between them, unless ``LP_NUM_THREADS`` is set already (a cluster's workers started
+    by hand take the environment they are started with)."""
+    if "LP_NUM_THREADS" in os.environ:
+        return {}
+    return {"LP_NUM_THREADS": str(max(1, (os.cpu_count() or 1) // max(1, n_workers)))}
+
+
 def dask_runner(dask_address: str | None, n_workers: int) -> DaskTaskRunner:
     """An existing Dask scheduler by address, else a local cluster of single-threaded processes."""
     if dask_address:
         return DaskTaskRunner(address=dask_address)
     return DaskTaskRunner(
-        cluster_kwargs={"n_workers": n_workers, "threads_per_worker": 1, "processes": True, "dashboard_address": ":0"}
+        cluster_kwargs={
+            "n_workers": n_workers,
+            "threads_per_worker": 1,
+            "processes": True,
+            "dashboard_address": ":0",
+            "env": local_worker_env(n_workers),
+        }
     )
 
 
@@ -34,7 +50,9 @@ def dask_cluster(dask_address: str | None, n_workers: int) -> Iterator[str]:
         return
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+    with LocalCluster(
+        n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0", env=local_worker_env(n_workers)
+    ) as cluster:
         yield cluster.scheduler_address
 
 

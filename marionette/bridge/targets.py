@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -303,10 +304,14 @@ class ShardOutcome:
     worker: str
 
 
-def render_shard(job: RenderJob, settings: RenderSettings) -> ShardOutcome:
-    """Bring one shard's pose targets up to date in a pass of its own (its own rasterizer and terrain)."""
+def render_shard(job: RenderJob, settings: RenderSettings, gl_threads: int | None = None) -> ShardOutcome:
+    """Bring one shard's pose targets up to date in a pass of its own (its own rasterizer and terrain). With
+    ``gl_threads``, a worker that has no ``LP_NUM_THREADS`` of its own gives Mesa's llvmpipe that many threads
+    (read when the process's first GL context is made: k workers on one machine share its cores)."""
     from marionette.fanout import worker_identity
 
+    if gl_threads is not None:
+        os.environ.setdefault("LP_NUM_THREADS", str(int(gl_threads)))
     corpus = Corpus(Path(job.corpus))
     report = TargetsReport()
     run = _Pass(corpus, settings, report)
@@ -351,7 +356,12 @@ def _sha256(data: bytes | Path) -> str:
 
 
 def render_pose_targets(
-    corpus_path: Path, settings: RenderSettings | None = None, progress: bool = False, workers: int = 1, mapper=None
+    corpus_path: Path,
+    settings: RenderSettings | None = None,
+    progress: bool = False,
+    workers: int = 1,
+    mapper=None,
+    gl_threads: int | None = None,
 ) -> TargetsReport:
     """Bring every video chunk's pose target up to date (module docstring), holding the corpus lock; a chunk
     or shard that fails is recorded in ``failed`` and the pass goes on. ``progress`` shows a bar over chunks.
@@ -360,7 +370,8 @@ def render_pose_targets(
     once). Otherwise each shard is a job (``render_shard``) for ``mapper`` (``marionette.fanout``; default: a
     pool of ``workers`` fresh processes, none inheriting this one's GL context; the flows pass one that runs
     on Dask) and the outcomes are merged in shard order: a shard's bytes depend only on its own chunks, so
-    every worker count writes the same files and the same report.
+    every worker count writes the same files and the same report. ``gl_threads``: llvmpipe's threads in each
+    worker (``render_shard``); by default the local pool's workers split this machine's cores between them.
     """
     from marionette.fanout import pool_mapper
 
@@ -380,7 +391,10 @@ def render_pose_targets(
             if mapper is None and workers == 1:
                 keep = _render_serial(corpus, settings, report, bar)
             else:
-                keep = _render_fanned_out(corpus, settings, report, bar, mapper or pool_mapper(workers, start_method="spawn"))
+                if mapper is None and gl_threads is None:
+                    gl_threads = max(1, (os.cpu_count() or 1) // workers)
+                mapper = mapper or pool_mapper(workers, start_method="spawn")
+                keep = _render_fanned_out(corpus, settings, report, bar, mapper, gl_threads)
         finally:
             if bar:
                 bar.close()
@@ -413,10 +427,12 @@ def _render_serial(corpus: Corpus, settings: RenderSettings, report: TargetsRepo
     return run.keep
 
 
-def _render_fanned_out(corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar, mapper) -> set[str]:
+def _render_fanned_out(
+    corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar, mapper, gl_threads: int | None
+) -> set[str]:
     jobs = [RenderJob(str(corpus.path), s) for s in corpus.shard_ids()]
     outcomes: dict[int, ShardOutcome] = {}
-    for out in mapper(render_shard, jobs, {"settings": settings}):
+    for out in mapper(render_shard, jobs, {"settings": settings, "gl_threads": gl_threads}):
         outcomes[out.job.shard] = out
         if bar:
             bar.update(out.report.chunks)
