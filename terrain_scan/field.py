@@ -4,7 +4,9 @@ A ``LayeredField`` sits over sparse TRN2 chunks and loads, lazily, only the chun
 Inside, every loaded chunk becomes one block of 10 000 rows in a slab: row = block × 10 000 + cell,
 with the cell's valid layers sorted by height and ``+inf`` in the slots after them (block 0 is the
 all-empty block every missing chunk maps to). ``W`` — the slab width — is the most layers any loaded
-cell holds, so a single-layer stage costs one slot per cell whatever its files' ``max_layers``.
+cell holds, so a single-layer stage costs one slot per cell whatever its files' ``max_layers``. The
+slab is row-major, a cell's W heights side by side, and keeps the files' float32 heights as they are
+(exact); every computation on them is float64.
 
 The query (``query(x, z, ref_y)``, exact definition; ``docs/formats.md`` repeats it):
 
@@ -57,11 +59,11 @@ ChunkLoader = Callable[[int, int], "Chunk | None"]
 
 
 def _compact(chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
-    """A chunk's layers as (10000, Wc) float64 heights sorted ascending, +inf after the valid ones,
+    """A chunk's layers as (10000, Wc) float32 heights sorted ascending, +inf after the valid ones,
     and (10000, Wc, 3) float32 normals; Wc ≥ 1 is the most valid layers of any of its cells."""
-    h = chunk.cells["h"].astype(np.float64)
+    h = chunk.cells["h"].astype(np.float32)
     valid = chunk.valid() & np.isfinite(h) & np.isfinite(chunk.cells["n"]).all(axis=2)
-    h = np.where(valid, h, np.inf)
+    h = np.where(valid, h, np.float32(np.inf))
     order = np.argsort(h, axis=1, kind="stable")
     width = max(int(valid.sum(axis=1).max(initial=0)), 1)
     order = order[:, :width]
@@ -77,7 +79,7 @@ class LayeredField:
     def __init__(self, load_chunk: ChunkLoader):
         self._load = load_chunk
         self._block: dict[tuple[int, int], int] = {}
-        self._h = np.full((1, CELL_COUNT), np.inf)  # (W, blocks·10000) slab, slot-major; block 0 is all empty
+        self._h = np.full((CELL_COUNT, 1), np.inf, np.float32)  # (blocks·10000, W) slab; block 0 is all empty
         self._n = np.zeros((CELL_COUNT, 1, 3), np.float32)
         self._blocks = 1
 
@@ -99,7 +101,7 @@ class LayeredField:
     @property
     def width(self) -> int:
         """W: the most layers any loaded cell holds (at least 1)."""
-        return self._h.shape[0]
+        return self._h.shape[1]
 
     # -- the slab ----------------------------------------------------------------------------------
 
@@ -110,20 +112,20 @@ class LayeredField:
             return _EMPTY_BLOCK
         h, n = _compact(chunk)
         width = max(self.width, h.shape[1])
-        capacity = self._h.shape[1] // CELL_COUNT
+        capacity = self._h.shape[0] // CELL_COUNT
         if width > self.width or self._blocks == capacity:
             rows = (2 * capacity if self._blocks == capacity else capacity) * CELL_COUNT
-            new_h = np.full((width, rows), np.inf)
+            new_h = np.full((rows, width), np.inf, np.float32)
             new_n = np.zeros((rows, width, 3), np.float32)
             used = self._blocks * CELL_COUNT
-            new_h[: self.width, :used] = self._h[:, :used]
+            new_h[:used, : self.width] = self._h[:used]
             new_n[:used, : self.width] = self._n[:used]
             self._h, self._n = new_h, new_n
         b = self._blocks
         rows = slice(b * CELL_COUNT, (b + 1) * CELL_COUNT)
-        self._h[:, rows] = np.inf
+        self._h[rows] = np.inf
         self._n[rows] = 0.0
-        self._h[: h.shape[1], rows] = h.T
+        self._h[rows, : h.shape[1]] = h
         self._n[rows, : h.shape[1]] = n
         self._blocks += 1
         self._block[key] = b
@@ -170,6 +172,24 @@ class LayeredField:
             rows[edge] = self._rows(gx, gz)
         return rows
 
+    def _slots(self, rows: np.ndarray) -> list[np.ndarray]:
+        """The slab's heights at ``rows``, slot by slot: W float64 arrays of rows' shape."""
+        flat, first = self._h.ravel(), rows * self.width  # a 1-D gather per slot: numpy's fastest
+        return [flat[first + s].astype(np.float64) for s in range(self.width)]
+
+    def _known_table(self, cx0: int, cz0: int, nx: int, nz: int) -> np.ndarray:
+        """(nx·nz,) slab block of each chunk (cx0 + k % nx, cz0 + k // nx) of a box, −1 where the field has
+        not asked its loader for the chunk yet."""
+        table = np.full(nx * nz, -1, np.int64)
+        if nx * nz <= len(self._block):
+            for k in range(nx * nz):
+                table[k] = self._block.get((cx0 + k % nx, cz0 + k // nx), -1)
+        else:
+            for (cx, cz), b in self._block.items():
+                if 0 <= cx - cx0 < nx and 0 <= cz - cz0 < nz:
+                    table[(cz - cz0) * nx + (cx - cx0)] = b
+        return table
+
     # -- cells -------------------------------------------------------------------------------------
 
     def cell_layers(self, gx: np.ndarray, gz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -177,7 +197,7 @@ class LayeredField:
         after the valid ones, and normals (..., W, 3) float64 (NaN where empty)."""
         gx, gz = np.broadcast_arrays(np.asarray(gx, np.int64), np.asarray(gz, np.int64))
         rows = self._rows(gx, gz)
-        h = np.moveaxis(self._h[:, rows], 0, -1)
+        h = self._h[rows].astype(np.float64)
         n = self._n[rows].astype(np.float64)
         empty = ~np.isfinite(h)
         h[empty] = np.nan
@@ -191,7 +211,7 @@ class LayeredField:
         ok = np.isfinite(x) & np.isfinite(z) & np.isfinite(ref)
         xs, zs, rs = x[ok], z[ok], ref[ok]
         rows = self._rows(np.floor(xs).astype(np.int64), np.floor(zs).astype(np.int64))
-        out[ok] = _nearest_np([hs[rows] for hs in self._h], rs)[0]
+        out[ok] = _nearest_np(self._slots(rows), rs)[0]
         out[~np.isfinite(out)] = np.nan
         return out
 
@@ -213,7 +233,7 @@ class LayeredField:
         np.multiply(fx, az, out=w[:, 1])
         np.multiply(ax, fz, out=w[:, 2])
         np.multiply(fx, fz, out=w[:, 3])
-        H = [hs[rows] for hs in self._h]  # W × (N, 4)
+        H = self._slots(rows)  # W × (N, 4)
         anchor, _ = _nearest_np([h.ravel()[contain] for h in H], ref)  # (N,)
         lost = np.flatnonzero(~np.isfinite(anchor))
         if lost.size:  # containing cell empty: the layer nearest ref_y among the four neighbours
@@ -240,23 +260,20 @@ class LayeredField:
         x, z, ref = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (x, z, ref_y)))
         shape = x.shape
         x, z, ref = (np.ascontiguousarray(v).ravel() for v in (x, z, ref))
-        ok = np.isfinite(x) & np.isfinite(z) & np.isfinite(ref)
-        out = np.full(x.size, np.nan)
-        if not ok.any():
-            return out.reshape(shape)[()]
-        xo, zo = (x, z) if ok.all() else (x[ok], z[ok])
-        cx0 = int(np.floor(xo.min() - 0.5)) // CELLS
-        cz0 = int(np.floor(zo.min() - 0.5)) // CELLS
-        nx = (int(np.floor(xo.max() - 0.5)) + 1) // CELLS - cx0 + 1
-        nz = (int(np.floor(zo.max() - 0.5)) + 1) // CELLS - cz0 + 1
+        count, gx_min, gx_max, gz_min, gz_max = _kernel.finite_box(x, z, ref)
+        if count == 0:
+            return np.full(shape, np.nan)[()]
+        cx0, cz0 = int(gx_min) // CELLS, int(gz_min) // CELLS
+        nx = (int(gx_max) + 1) // CELLS - cx0 + 1  # the upper neighbours lie one cell past the bounds
+        nz = (int(gz_max) + 1) // CELLS - cz0 + 1
         if nx * nz > _DENSE_TABLE_MAX:
             return self.query_reference(x, z, ref).reshape(shape)[()]
-        used = _kernel.mark_chunks(x, z, ok, cx0, cz0, nx, nz)
-        table = np.zeros(nx * nz, np.int64)
-        for k in np.flatnonzero(used).tolist():
-            c = (cx0 + k % nx, cz0 + k // nx)
-            table[k] = self._block[c] if c in self._block else self._add(c)
-        _kernel.bilinear(x, z, ref, ok, table, cx0, cz0, nx, self._h, MATCH_M, MIN_FRACTION, out)
+        table, out = self._known_table(cx0, cz0, nx, nz), np.empty(x.size)
+        if _kernel.bilinear(x, z, ref, table, cx0, cz0, nx, self._h, MATCH_M, MIN_FRACTION, out):
+            # points needed chunks the field had not asked for: load exactly those, and run again
+            for k in np.flatnonzero(_kernel.missing_chunks(x, z, out, table, cx0, cz0, nx)).tolist():
+                table[k] = self._add((cx0 + k % nx, cz0 + k // nx))
+            _kernel.bilinear(x, z, ref, table, cx0, cz0, nx, self._h, MATCH_M, MIN_FRACTION, out)
         return out.reshape(shape)[()]
 
     def query_reference(self, x: np.ndarray, z: np.ndarray, ref_y: np.ndarray) -> np.ndarray:
@@ -393,7 +410,7 @@ class DenseRegion:
         gz, gx = np.meshgrid(np.arange(gz0, gz0 + nz), np.arange(gx0, gx0 + nx), indexing="ij")
         rows = field._rows(gx.ravel(), gz.ravel())
         dtype = dtype or torch.float32
-        h = torch.from_numpy(field._h[:, rows].T.copy()).to(device=device, dtype=dtype)
+        h = torch.from_numpy(field._h[rows]).to(device=device, dtype=dtype)
         n = torch.from_numpy(field._n[rows]).to(device=device, dtype=dtype)
         return DenseRegion(gx0, gz0, nx, nz, h, n)
 

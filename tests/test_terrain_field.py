@@ -307,3 +307,54 @@ def test_compiled_query_matches_the_numpy_reference_bit_for_bit():
     assert 0.5 < np.isfinite(got).mean() < 1.0
     assert field.query(x[:7].reshape(7, 1), z[:3], ref[0]).shape == (7, 3)
     assert np.isnan(field.query(np.nan, 0.0, 0.0)) and np.ndim(field.query(-1000.0, 800.0, 0.0)) == 0
+
+
+FAR = [(cx, cz) for cx in (-731, -730, -729) for cz in (-412, -411)]  # x ∈ [−73100, −72800), z ∈ [−41200, −41000)
+
+
+def stage_chunk(cx, cz, rng, slots=8):
+    """A chunk shaped like a real stage's: in 10 × 10-cell patches, half the cells empty, a quarter with
+    one layer and a quarter with 2 to ``slots`` layers 0.5–6 m apart (so a neighbour's layer is often,
+    not always, within MATCH_M of the anchor), written to the slots in a random order."""
+    x, z = cell_centres(cx, cz)
+    idx = np.arange(10000)
+    kind = rng.choice(3, 100, p=[0.5, 0.25, 0.25])[(idx // 100) // 10 * 10 + (idx % 100) // 10]
+    count = np.where(kind == 0, 0, np.where(kind == 1, 1, rng.integers(2, slots + 1, 10000)))
+    h = smooth(x, z)[:, None] + np.cumsum(np.c_[np.zeros(10000), rng.uniform(0.5, 6.0, (10000, slots - 1))], axis=1)
+    used = np.arange(slots) < count[:, None]
+    order = np.argsort(rng.random((10000, slots)), axis=1)
+    used, h = np.take_along_axis(used, order, axis=1), np.take_along_axis(h, order, axis=1)
+    c = Chunk.empty(cx, cz, slots)
+    c.cells["h"][used] = h[used]
+    c.cells["n"][used] = (0.0, 1.0, 0.0)
+    c.cells["flags"][used] = FLAG_VALID
+    return c
+
+
+def test_compiled_query_matches_the_reference_on_a_realistic_stage_far_out():
+    rng = np.random.default_rng(12)
+    chunks = {k: stage_chunk(*k, rng) for k in FAR}
+    chunks[(-731, -412)] = make_chunk(-731, -412, [smooth], max_layers=8)  # one layer in every cell
+    field = LayeredField.from_chunks(chunks)
+    n = 200_000
+    x, z = rng.uniform(-73105, -72795, n), rng.uniform(-41205, -40995, n)  # past the stage on every side
+    x[:10000] = np.round(x[:10000])  # on cell edges and chunk edges
+    z[5000:15000] = np.round(z[5000:15000]) + 0.5  # on cell centres
+    x[15000:15100], z[15000:15100] = -73000.0 + rng.uniform(-1, 1, 100), -41100.0 + rng.uniform(-1, 1, 100)  # a chunk corner
+    layers, _ = field.cell_layers(np.floor(x).astype(np.int64), np.floor(z).astype(np.int64))
+    pick = np.floor(rng.random(n) * np.maximum(np.isfinite(layers).sum(axis=1), 1)).astype(np.int64)
+    ref = np.where(np.isfinite(layers[:, 0]), layers[np.arange(n), pick], smooth(x, z)) + rng.uniform(-3.0, 3.0, n)
+    two = np.flatnonzero(np.isfinite(layers[:, 1]))[:3000]
+    ref[two] = (layers[two, 0] + layers[two, 1]) / 2  # exactly between two layers: a tie, to break alike
+    ref[-100:], x[-200:-100] = np.nan, -np.inf
+    want = field.query_reference(x, z, ref)
+    assert 0.4 < np.isfinite(want).mean() < 0.9
+
+    lazy = LayeredField.from_chunks(chunks)
+    lazy.query(rng.uniform(-73090, -73010, 1000), rng.uniform(-41190, -41110, 1000), 0.0)
+    assert lazy.loaded_chunks == {(-731, -412)} and lazy.width == 1
+    got = lazy.query(x, z, ref)  # loads the other chunks inside the query, the slab widening to 8 slots
+    assert lazy.width == 8 and lazy.loaded_chunks == field.loaded_chunks
+    np.testing.assert_array_equal(got, want)  # NaN in the same places, equal bits elsewhere
+    np.testing.assert_array_equal(lazy.query(x, z, ref), want)  # and again, every chunk loaded
+    np.testing.assert_array_equal(field.query(x[::-1], z[::-1], ref[::-1]), want[::-1])  # in any order
