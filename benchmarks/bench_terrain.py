@@ -1,10 +1,12 @@
 """The layered height field: query speed and accuracy (bilinear vs nearest), and the scan's speed and accuracy by knob.
 
     .venv/bin/python benchmarks/bench_terrain.py [--points 1000000] [--repeats 3] [--seconds 10]
-        [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--max-depths 10,20,30] [--image-normal-ys 0,0.8] [--edge-ms 0,0.1]
+        [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--subsamples 1,2,4] [--combos 4:2,4:4] [--source-size 180x320]
+        [--max-depths 10,20,30] [--image-normal-ys 0,0.8] [--edge-ms 0,0.1]
         [--part all|queries|stage|scan|fanout] [--recordings 4] [--workers 1,2]
 
-Input: one seeded synthetic recording (``marionette.synth.generate``, 320×180, ``--seconds`` long),
+Input: one seeded synthetic recording (``marionette.synth.generate``, ``--source-size``, default 320×180
+(H×W 180x320; WildWorld's 1280×720 is 720x1280), ``--seconds`` long),
 made in a temp dir; every figure is per core (BLAS/OpenMP pools and torch at one thread).
 
 Queries. Four fields: hand-built 4 × 4 chunks (400 m × 400 m around the arena) holding the analytic
@@ -28,8 +30,9 @@ wall's sides, the deck's edges or the terraces' ledges (``terrain.near_step``), 
 a bilinear query reads hold two heights whatever the query does.
 
 Scan. ``scan_recording(ref, load_scene("duel"), DepthDecoder.synthetic(), ...)`` then
-``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, max depth 20 m, image-normal test 0.8,
-edge-leak test 0.1 m; 0 turns a test off):
+``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, depth subsample 1 —
+every pixel; f keeps one pixel per f × f block, ``accumulate.subsampled`` — max depth 20 m, image-normal
+test 0.8, edge-leak test 0.1 m; 0 turns a test off), then the ``--combos`` of stride and subsample together:
 depth frames/s (wall time of the whole scan: sample read, video decode, back-projection, open3d
 pass, contacts, merge; one run each, a scan takes seconds) and height error of the merged layers at
 their cell centres against ``terrain.surface_height`` (as ``tests/test_terrain_accumulate.py``):
@@ -99,6 +102,7 @@ SCAN_HEADER = [
     "varied",
     "voxel m",
     "stride",
+    "depth subsample",
     "max depth m",
     "image ny",
     "edge m",
@@ -293,6 +297,7 @@ def scan_row(ref, layout, decoder, label: str, **kw) -> tuple[list[object], obje
         label,
         f"{kw.get('voxel_m', 0.25):g}",
         kw.get("frame_stride", 1),
+        kw.get("depth_subsample", 1),
         f"{kw.get('max_depth_m', SCAN_DEFAULTS['max_depth_m']):g}",
         f"{kw.get('image_normal_y', SCAN_DEFAULTS['image_normal_y']):g}",
         f"{kw.get('edge_m', SCAN_DEFAULTS['edge_m']):g}",
@@ -414,6 +419,14 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--voxels", type=floats, default=[0.1, 0.25, 0.5])
     ap.add_argument("--strides", type=lambda s: [int(v) for v in s.split(",")], default=[1, 2, 4])
+    ap.add_argument("--subsamples", type=lambda s: [int(v) for v in s.split(",")], default=[1, 2, 4])
+    ap.add_argument(
+        "--combos",
+        type=lambda s: [tuple(int(x) for x in v.split(":")) for v in s.split(",")],
+        default=[(4, 2), (4, 4)],
+        help="stride:subsample pairs scanned together",
+    )
+    ap.add_argument("--source-size", default="180x320", help="the recording's size HxW (WildWorld's: 720x1280)")
     ap.add_argument("--max-depths", type=floats, default=[10.0, 20.0, 30.0])
     ap.add_argument("--image-normal-ys", type=floats, default=[0.0, 0.8])
     ap.add_argument("--edge-ms", type=floats, default=[0.0, 0.1])
@@ -438,7 +451,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_terrain_") as tmp:
         tmp = Path(tmp)
         t0 = time.perf_counter()
-        synth.generate(tmp / "src", recordings=1, seconds=args.seconds, seed=args.seed, width=320, height=180)
+        sh, sw = (int(v) for v in args.source_size.split("x"))
+        synth.generate(tmp / "src", recordings=1, seconds=args.seconds, seed=args.seed, width=sw, height=sh)
         ref = discover(tmp / "src")[0]
         setup_s = time.perf_counter() - t0
 
@@ -452,6 +466,11 @@ def main() -> None:
             for s in args.strides:
                 if s != 1:
                     scan_rows.append(scan_row(ref, layout, decoder, "stride", frame_stride=s)[0])
+            for f in args.subsamples:
+                if f != 1:
+                    scan_rows.append(scan_row(ref, layout, decoder, "depth subsample", depth_subsample=f)[0])
+            for st, f in args.combos:
+                scan_rows.append(scan_row(ref, layout, decoder, "stride + subsample", frame_stride=st, depth_subsample=f)[0])
             for m in args.max_depths:
                 if m != SCAN_DEFAULTS["max_depth_m"]:
                     scan_rows.append(scan_row(ref, layout, decoder, "max depth", max_depth_m=m)[0])

@@ -279,7 +279,9 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
     from terrain_scan.scan import ScanOptions
 
     decoder = DepthDecoder.synthetic() if a.depth_decoder is None else DepthDecoder.from_json(read_json(a.depth_decoder))
-    options = ScanOptions(decoder=decoder.to_json(), frame_stride=a.frame_stride, voxel_m=a.voxel)
+    options = ScanOptions(
+        decoder=decoder.to_json(), frame_stride=a.frame_stride, voxel_m=a.voxel, depth_subsample=a.depth_subsample
+    )
     if a.stage is not None:
         check_stage(a.corpus, a.stage)
     report = refresh(a.corpus, a.stage, a.incremental, options, pose=a.pose, progress=not a.quiet, workers=a.workers)
@@ -682,6 +684,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--stage", default=None, help="one stage id (default: every stage)")
     s.add_argument("--incremental", action="store_true", help="scan only recordings that are new or changed")
     s.add_argument("--frame-stride", type=positive_int, default=1, help="use every Nth depth frame")
+    s.add_argument(
+        "--depth-subsample",
+        type=positive_int,
+        default=1,
+        help="use every Nth depth pixel of every Nth row (a 1280x720 depth video at 4 is scanned at 320x180)",
+    )
     s.add_argument("--voxel", type=positive_float, default=0.25, help="voxel size of the point down-sampling, metres")
     s.add_argument("--depth-decoder", type=Path, default=None, help="8-bit depth mapping JSON (default: the synthetic game's)")
     s.add_argument(

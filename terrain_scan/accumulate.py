@@ -324,6 +324,19 @@ def image_normals(G: np.ndarray, eye: np.ndarray) -> np.ndarray:
         return np.where((np.sum(n * (eye - G), axis=-1) < 0)[..., None], -n, n)
 
 
+def subsampled(codes: np.ndarray, K: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray]:
+    """(codes, K (fx, fy, cx, cy)) with every ``f``-th pixel of every ``f``-th row kept, from offset o = f // 2,
+    and the intrinsics of that image: a kept pixel's centre j + ½ sits at source pixel f·j + o + ½, so
+    fx' = fx / f, fy' = fy / f, cx' = (cx − o − ½) / f + ½ (cy' likewise). f = 1 returns both unchanged."""
+    if f < 1:
+        raise ValueError(f"depth subsample must be at least 1, not {f}")
+    if f == 1:
+        return codes, np.asarray(K, np.float64)
+    o = f // 2
+    fx, fy, cx, cy = (float(k) for k in K)
+    return codes[o::f, o::f], np.array([fx / f, fy / f, (cx - o - 0.5) / f + 0.5, (cy - o - 0.5) / f + 0.5])
+
+
 def frame_points(
     codes: np.ndarray,
     sample: RecordedSample,
@@ -337,8 +350,13 @@ def frame_points(
     mask_radius_scale: float = 3.0,
     mask_margin_m: float = 0.3,
     image_normal_y: float = 0.8,
+    subsample: int = 1,
 ) -> tuple[np.ndarray, int]:
     """One frame's non-character world points (P, 3) and how many valid points were masked as characters.
+
+    ``subsample`` f > 1 keeps every f-th pixel of every f-th row (the one at offset f // 2 in each f × f
+    block: codes are never interpolated, which would mix surfaces) with the intrinsics mapped to match
+    (``subsampled``), so every later step costs about 1 / f² of the full frame's.
 
     The frame's camera must be valid. Codes are de-quantised (``smooth_codes``), pixels next to a
     depth edge dropped (their depth mixes two surfaces after smoothing), depths beyond ``max_depth_m``
@@ -349,11 +367,12 @@ def frame_points(
     the crease at a wall's foot or top mixes both surfaces; in the image they are still recognisably
     steep. The underside of a deck seen from below faces down and is dropped too.
     """
+    codes, K = subsampled(codes, sample.camera_K[i], subsample)
     z_raw = decoder.decode(codes)
     z = decoder.decode(smooth_codes(codes, smooth_radius, smooth_tol)) if smooth_radius > 0 else z_raw
     z[depth_edges(z_raw, edge_rel)] = np.nan
     z[~(z <= max_depth_m)] = np.nan  # NaN stays NaN
-    G = backproject(z, sample.camera_K[i], sample.camera_pos[i], sample.camera_rot[i])
+    G = backproject(z, K, sample.camera_pos[i], sample.camera_rot[i])
     if image_normal_y > 0:
         eye = np.asarray(sample.camera_pos[i], dtype=np.float64)
         steep = ~(image_normals(G, eye)[..., 1] >= image_normal_y)  # NaN normals (borders, holes) count as steep
@@ -391,8 +410,10 @@ def scan_sample(
     contact_tol_m: float = 0.05,
     contact_hits: int = 1,
     keep_points: bool = False,
+    depth_subsample: int = 1,
 ) -> ScanResult:
-    """Scan a read sample with its depth frames (codes, (H, W) uint8); see ``scan_recording``."""
+    """Scan a read sample with its depth frames (codes, (H, W) uint8); see ``scan_recording``.
+    ``depth_subsample``: ``frame_points``' ``subsample``."""
     res = ScanResult(Observations.empty(), int(recording_ts))
     stride = max(1, int(frame_stride))
     n = sample.n_frames
@@ -419,6 +440,7 @@ def scan_sample(
             mask_radius_scale,
             mask_margin_m,
             image_normal_y,
+            depth_subsample,
         )
         res.frames_used += 1
         res.points_valid += len(P) + masked

@@ -26,14 +26,26 @@ SCAN_VERSION = "3"  # 2: image-space steepness test, 20 m depth range; 3: edge l
 
 @dataclass(frozen=True)
 class ScanOptions:
-    """How depth becomes observations: the depth decoder, frame stride and voxel size."""
+    """How depth becomes observations: the depth decoder, frame stride, voxel size and depth subsampling (every
+    ``depth_subsample``-th pixel of every such row, ``accumulate.subsampled``)."""
 
     decoder: dict = field(default_factory=lambda: DepthDecoder.synthetic().to_json())
     frame_stride: int = 1
     voxel_m: float = 0.25
+    depth_subsample: int = 1
+
+    def __post_init__(self) -> None:
+        if self.frame_stride < 1 or self.depth_subsample < 1 or not self.voxel_m > 0:
+            raise ValueError(
+                f"ScanOptions: frame_stride and depth_subsample must be at least 1 and voxel_m positive, not "
+                f"{self.frame_stride}, {self.depth_subsample}, {self.voxel_m}"
+            )
 
     def key(self) -> str:
-        return text_sha256(json.dumps(asdict(self), sort_keys=True), SCAN_VERSION)[:16]
+        d = asdict(self)
+        if d["depth_subsample"] == 1:  # the key of a scan made before the knob existed
+            del d["depth_subsample"]
+        return text_sha256(json.dumps(d, sort_keys=True), SCAN_VERSION)[:16]
 
 
 def corpus_stages(corpus: Path) -> dict[str, list[dict]]:
@@ -96,7 +108,14 @@ def scan_job(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
         if job.stored_hash == out.input_hash:
             return out
         decoder = DepthDecoder.from_json(options.decoder)
-        out.result = scan_recording(ref, layout, decoder, frame_stride=options.frame_stride, voxel_m=options.voxel_m)
+        out.result = scan_recording(
+            ref,
+            layout,
+            decoder,
+            frame_stride=options.frame_stride,
+            voxel_m=options.voxel_m,
+            depth_subsample=options.depth_subsample,
+        )
     except Exception as exc:  # one recording's failure never stops the others
         out.reason = _reason(exc, ref)
     return out

@@ -238,3 +238,31 @@ def test_invalid_cameras_and_empty_recordings_are_harmless(rec):
     r = scan_sample(empty, layout, iter(()), dec)
     assert len(r.observations) == 0 and r.counters() == dict.fromkeys(r.counters(), 0)
     assert isinstance(r.observations, Observations)
+
+
+@pytest.mark.parametrize("f", [2, 3, 4])
+def test_subsampled_depth_keeps_pixels_and_maps_the_intrinsics(f):
+    """Issue 16: ``depth_subsample`` keeps one source pixel per f × f block (never a blend of codes) and maps K so
+    each kept pixel back-projects to the very world point it does at full size, far from the origin too."""
+    from terrain_scan.accumulate import backproject, subsampled
+    from terrain_scan.scan import ScanOptions
+
+    rng = np.random.default_rng(f)
+    H, W = 72, 128
+    codes = rng.integers(1, 255, (H, W), dtype=np.uint8)
+    K = np.array([110.0, 112.0, 63.7, 36.2])
+    pos, rot = np.array([-2500.0, 40.0, 3100.0]), np.array([0.1, 0.7, -0.1, 0.7]) / np.linalg.norm([0.1, 0.7, -0.1, 0.7])
+    small, K2 = subsampled(codes, K, f)
+    o = f // 2
+    assert small.shape == (len(range(o, H, f)), len(range(o, W, f)))
+    np.testing.assert_array_equal(small, codes[o::f, o::f])
+    z = codes.astype(np.float64) / 10.0
+    full = backproject(z, K, pos, rot)[o::f, o::f]
+    np.testing.assert_allclose(backproject(small.astype(np.float64) / 10.0, K2, pos, rot), full, rtol=0, atol=1e-9)
+    assert subsampled(codes, K, 1)[0] is codes
+    with pytest.raises(ValueError, match="at least 1"):
+        subsampled(codes, K, 0)
+    # the scan's key: unchanged at 1 (scans made before the knob stay current), new at f
+    assert ScanOptions().key() == ScanOptions(depth_subsample=1).key() != ScanOptions(depth_subsample=f).key()
+    with pytest.raises(ValueError, match="depth_subsample"):
+        ScanOptions(depth_subsample=0)
