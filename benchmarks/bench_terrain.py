@@ -501,7 +501,7 @@ def main() -> None:
 
         print(preamble("Terrain: layered height field queries and the scan"))
         print(
-            f"1 × {args.seconds:g} s synthetic recording at 320×180 (seed {args.seed}, 30 fps), made in {setup_s:.0f} s "
+            f"1 × {args.seconds:g} s synthetic recording at {sw}×{sh} (seed {args.seed}, 30 fps), made in {setup_s:.0f} s "
             f"(not timed); {THREADS}.\n"
         )
         if speed_rows:
