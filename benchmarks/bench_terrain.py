@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/bench_terrain.py [--points 1000000] [--repeats 3] [--seconds 10]
         [--voxels 0.1,0.25,0.5] [--strides 1,2,4] [--subsamples 1,2,4] [--combos 4:2,4:4] [--source-size 180x320]
         [--max-depths 10,20,30] [--image-normal-ys 0,0.8] [--edge-ms 0,0.1]
-        [--part all|queries|stage|scan|fanout] [--recordings 4] [--workers 1,2]
+        [--part all|queries|stage|scan|fanout|rebuild] [--recordings 4] [--workers 1,2]
+        [--stage-chunks 10x6] [--stage-recordings 12]
 
 Input: one seeded synthetic recording (``marionette.synth.generate``, ``--source-size``, default 320×180
 (H×W 180x320; WildWorld's 1280×720 is 720x1280), ``--seconds`` long),
@@ -50,6 +51,18 @@ over the scanned corpus (``render_pose_targets``, a shard a job on spawned proce
 one-process pass): wall time (process start-up included), frames rendered per second, and whether the
 video shards are byte-identical to the first row's. BLAS/OpenMP pools are at one thread (inherited by
 the workers); llvmpipe and the encoders use what the library gives them.
+
+Rebuild (``--part rebuild``, not in "all"). A generated stage of ``--stage-chunks`` (X×Z chunks, the
+first at chunk (−3, −2)) covered by ``--stage-recordings`` seeded recordings on a grid, each a patch of
+1.5 grid steps a side (so neighbours overlap) holding 70 % of its cells (the rest are holes for the
+fill) on a gentle slope, a deck 5.5 m over every seventh row; then one small recording (20 × 20
+cells inside chunk (0, 0)) added. Not timed: making the observations, ``Stage.put`` and the first
+rebuild. Timed, each on a fresh copy of that stage (the copy not timed): ``Stage.rebuild`` whole (all
+contributions at once: the reference), full (every chunk, one neighbourhood at a time) and
+incremental (the chunks whose neighbourhood holds the new recording), then an incremental rebuild
+with nothing changed; median wall time of ``--repeats``, and the peak of memory traced by
+``tracemalloc`` (Python objects and numpy buffers) in a separate run; whether the chunk files and the
+manifest's chunk entries equal the whole rebuild's.
 """
 
 from __future__ import annotations
@@ -83,7 +96,7 @@ from marionette.synth import terrain  # noqa: E402
 from terrain_scan.accumulate import scan_recording, scan_sample  # noqa: E402
 from terrain_scan.depth import DepthDecoder  # noqa: E402
 from terrain_scan.field import DenseRegion, LayeredField, open_stage, query_torch  # noqa: E402
-from terrain_scan.layers import merge  # noqa: E402
+from terrain_scan.layers import Observations, merge  # noqa: E402
 from terrain_scan.store import Stage  # noqa: E402
 from terrain_scan.trn2 import CELLS, FLAG_VALID, Chunk  # noqa: E402
 
@@ -408,6 +421,102 @@ def bench_stage(args) -> None:
     print_queries(args, speed_rows, acc_rows)
 
 
+def stage_recordings(chunks_x: int, chunks_z: int, n: int, seed: int) -> dict[str, Observations]:
+    """``n`` seeded recordings on a grid over chunks_x × chunks_z chunks from chunk (−3, −2), each a patch
+    of 1.5 grid steps a side (clipped to the stage) holding 70 % of its cells."""
+    rng = np.random.default_rng(seed)
+    nx = max(1, round(np.sqrt(n * chunks_x / chunks_z)))
+    nz = -(-n // nx)
+    x0, z0 = -3 * CELLS, -2 * CELLS
+    sx, sz = chunks_x * CELLS / nx, chunks_z * CELLS / nz
+    out = {}
+    for i in range(n):
+        ix, iz = i % nx, i // nx
+        ax, az = int(x0 + (ix - 0.25) * sx), int(z0 + (iz - 0.25) * sz)
+        gx, gz = np.meshgrid(np.arange(ax, ax + int(1.5 * sx)), np.arange(az, az + int(1.5 * sz)), indexing="ij")
+        gx, gz = gx.ravel(), gz.ravel()
+        inside = (gx >= x0) & (gx < x0 + chunks_x * CELLS) & (gz >= z0) & (gz < z0 + chunks_z * CELLS)
+        keep = inside & (rng.random(len(gx)) < 0.7)
+        out[f"bench/rec{i:04d}"] = patch(rng, gx[keep], gz[keep], 1767225600 + 3600 * i)
+    return out
+
+
+def patch(rng: np.random.Generator, gx: np.ndarray, gz: np.ndarray, ts: int) -> Observations:
+    """Ground on a gentle slope (2 cm of noise) at cells (gx, gz), a deck 5.5 m up over every 7th row."""
+    h = 20.0 + 0.05 * gx - 0.03 * gz + rng.normal(0, 0.02, len(gx))
+    deck = (gz % 7) == 0
+    gx, gz, h = np.r_[gx, gx[deck]], np.r_[gz, gz[deck]], np.r_[h, h[deck] + 5.5]
+    n = np.tile([0.0, 1.0, 0.0], (len(gx), 1))
+    return Observations(
+        gx.astype(np.int64), gz.astype(np.int64), h, n, rng.integers(1, 20, len(gx)), np.full(len(gx), ts, np.int64)
+    )
+
+
+REBUILDS = [  # (row label, Stage.rebuild mode, rebuilt once before the timed run)
+    ("whole stage at once (reference)", "whole", False),
+    ("full, chunk by chunk", "full", False),
+    ("incremental, one small recording added", "incremental", False),
+    ("incremental, nothing changed", "incremental", True),
+]
+
+
+def bench_rebuild(args) -> None:
+    import json
+    import tracemalloc
+
+    chunks_x, chunks_z = (int(v) for v in args.stage_chunks.split("x"))
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_terrain_rebuild_") as tmp:
+        tmp = Path(tmp)
+        t0 = time.perf_counter()
+        recs = stage_recordings(chunks_x, chunks_z, args.stage_recordings, args.seed)
+        base = Stage(tmp / "base")
+        for name, obs in recs.items():
+            base.put(name, obs, name, int(obs.ts[0]))
+        first = base.rebuild()
+        gx, gz = np.meshgrid(np.arange(40, 60), np.arange(40, 60), indexing="ij")  # inside chunk (0, 0)
+        small = patch(np.random.default_rng(args.seed + 1), gx.ravel(), gz.ravel(), 1767225600 + 3600 * len(recs))
+        base.put("bench/small", small, "bench/small", int(small.ts[0]))
+        setup_s = time.perf_counter() - t0
+
+        def fresh(name: str, mode: str, again: bool) -> Stage:
+            """A copy of the stage with the small recording put (and rebuilt once, with ``again``)."""
+            shutil.copytree(tmp / "base", tmp / name)
+            if again:
+                Stage(tmp / name).rebuild(mode)
+            return Stage(tmp / name)
+
+        reference = None
+        for label, mode, again in REBUILDS:
+            times = []
+            for k in range(args.repeats):
+                stage = fresh(f"{mode}-{again}-{k}", mode, again)
+                t = time.perf_counter()
+                rep = stage.rebuild(mode)
+                times.append(time.perf_counter() - t)
+            chunks = {p.name: p.read_bytes() for p in sorted((stage.dir / "chunks").glob("*.trn2"))}
+            got = (chunks, json.loads((stage.dir / "manifest.json").read_text())["chunks"])
+            reference = reference or got
+            stage = fresh(f"{mode}-{again}-mem", mode, again)
+            tracemalloc.start()
+            stage.rebuild(mode)
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+            same = "yes" if got == reference else "NO"
+            rows.append(
+                [label, len(rep.derived), len(rep.written), rep.read, f"{np.median(times):.2f}", f"{peak / 2**20:.0f}", same]
+            )
+    print(preamble("Terrain: rebuilding a stage's chunks, whole against chunk by chunk and incremental"))
+    print(
+        f"A generated stage of {chunks_x} × {chunks_z} chunks ({len(first.written)} chunk files, {first.layers:,} layers, "
+        f"{first.filled:,} filled) from {len(recs)} recordings ({sum(len(o) for o in recs.values()):,} cell observations), "
+        f"then one recording of {len(small):,} observations in chunk (0, 0) added; made in {setup_s:.0f} s (not timed). "
+        f"One thread; median of {args.repeats}, each on a fresh copy of the stage.\n"
+    )
+    header = ["rebuild", "chunks derived", "written", "contributions read", "wall s", "peak traced MiB", "bytes = whole"]
+    print(table(header, rows))
+
+
 def floats(s: str) -> list[float]:
     return [float(v) for v in s.split(",")]
 
@@ -432,14 +541,19 @@ def main() -> None:
     ap.add_argument("--edge-ms", type=floats, default=[0.0, 0.1])
     ap.add_argument(
         "--part",
-        choices=("all", "queries", "stage", "scan", "fanout"),
+        choices=("all", "queries", "stage", "scan", "fanout", "rebuild"),
         default="all",
         help="stage: the queries on the hand-built fields and the realistic stage only (no recording, no scan)",
     )
     ap.add_argument("--recordings", type=int, default=4, help="recordings in the fan-out corpus")
     ap.add_argument("--workers", type=lambda s: [int(v) for v in s.split(",")], default=[1, 2], help="fan-out worker counts")
+    ap.add_argument("--stage-chunks", default="10x6", help="rebuild: the generated stage's extent in chunks, X×Z")
+    ap.add_argument("--stage-recordings", type=int, default=12, help="rebuild: recordings over the generated stage")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    if args.part == "rebuild":
+        bench_rebuild(args)
+        return
     if args.part == "fanout":
         bench_fanout(args)
         return

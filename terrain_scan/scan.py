@@ -3,8 +3,9 @@
 A stage lives at ``<corpus>/terrain/stage_<id>/`` (see ``terrain_scan.store``). A recording is
 scanned again only when its input changes — its ingest input hash, its depth.mkv, or the scan
 settings (decoder, stride, voxel size) — so an incremental scan after new recordings arrive reads
-only the new ones, and rewrites only the chunks whose bytes change. A full scan re-reads every
-recording of the stage; both give identical chunk files.
+only the new ones, derives only the chunks near a changed contribution, and rewrites only the chunks
+whose bytes change. A full scan re-reads every recording of the stage and derives every chunk; both
+give identical chunk files.
 """
 
 from __future__ import annotations
@@ -194,13 +195,14 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
         raise RuntimeError(f"{corpus}: the scan's workers returned no outcome for {missing}")
     report: dict = {}
     for st in stages:
-        rb = held[st].rebuild()
+        rb = held[st].rebuild("incremental" if incremental else "full")
         report[st] = {
             "dir": str(held[st].dir),
             **reports[st],
             "chunks_written": [list(c) for c in rb.written],  # [cx, cz] pairs (JSON-shaped)
             "chunks_unchanged": [list(c) for c in rb.unchanged],
             "chunks_removed": [list(c) for c in rb.removed],
+            "chunks_derived": [list(c) for c in rb.derived],
             "layers": rb.layers,
             "filled": rb.filled,
         }

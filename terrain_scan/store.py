@@ -1,15 +1,20 @@
 """A stage on disk: per-recording contributions, the derived TRN2 chunks, and a manifest.
 
 ```
-<stage_dir>/manifest.json                 recordings (input hash, time, observation count, chunks touched)
-                                          and chunks (file, sha256, contributing recordings)
+<stage_dir>/manifest.json                 recordings (input hash, contribution sha256, time, observation count,
+                                          chunks touched), chunks (file, sha256, contributing recordings, layer
+                                          and filled counts) and what the last rebuild derived from ("rebuilt")
 <stage_dir>/contributions/<key>.npz       one recording's merged observations (gx, gz, h, n, hits, ts)
 <stage_dir>/chunks/chunk_<cx>_<cz>.trn2   the layered height field
 ```
 
-Chunks are always derived from all contributions (merge, then hole fill), so adding recordings in
-any order, re-scanning one, or rebuilding from scratch give byte-identical chunk files. A rebuild
-writes only the chunk files whose bytes change: untouched chunks keep their bytes and mtime.
+A chunk is a function of the contributions' observations within its own cells and a halo of
+``halo_cells(fill_rounds)`` cells around them (``derive``: merge, drop edge aliases, hole fill), so
+chunks are derived one at a time from that neighbourhood alone, and a rebuild re-derives only the
+chunks near a recording that was added, re-scanned with another result, or removed since the last
+one. Any order of adding recordings, re-scanning one, an incremental or a full rebuild, and the
+whole-stage derivation (``Stage.layers(whole=True)``) therefore give byte-identical chunk files. A rebuild writes
+only the chunk files whose bytes change: untouched chunks keep their bytes and mtime.
 """
 
 from __future__ import annotations
@@ -17,6 +22,8 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,12 +33,16 @@ from marionette.corpus.paths import CorpusPathError, inside
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import MAX_LAYERS, Observations, drop_aliases, merge
-from terrain_scan.trn2 import FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, split_cell
+from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, split_cell
 
 MANIFEST_FORMAT = "marionette-terrain-stage"
 MANIFEST_VERSION = 1
+DERIVE_VERSION = 1  # bump when merge, the alias rule or the hole fill change: the next rebuild derives every chunk
 FILL_ROUNDS = 2
 CHUNK_NAME = re.compile(r"(-?\d{1,9})_(-?\d{1,9})")
+REBUILD_MODES = ("incremental", "full", "whole")
+
+ChunkKey = tuple[int, int]
 
 
 def recording_key(recording: str) -> str:
@@ -58,6 +69,13 @@ def parse_chunk_name(name: object, where: str) -> tuple[int, int]:
     return int(m[1]), int(m[2])
 
 
+def _is_chunk_list(v: object) -> bool:
+    """A JSON list of [cx, cz] integer pairs."""
+    return isinstance(v, list) and all(
+        isinstance(c, list) and len(c) == 2 and all(isinstance(x, int) and not isinstance(x, bool) for x in c) for c in v
+    )
+
+
 def check_manifest(manifest: object, path: Path) -> dict:
     """A stage manifest read from disk, checked: its format, and every file it names is the one its
     recording or chunk name gives (so no entry can point outside the stage); else an error naming the entry."""
@@ -71,7 +89,7 @@ def check_manifest(manifest: object, path: Path) -> dict:
             got = rec.get("file") if isinstance(rec, dict) else rec
             raise CorpusPathError(f"{path}: recordings.{name}.file is {got!r}, not {contribution_file(name)!r}")
         for i, c in enumerate(rec.get("chunks", [])):
-            if not (isinstance(c, list) and len(c) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in c)):
+            if not _is_chunk_list([c]):
                 raise ValueError(f"{path}: recordings.{name}.chunks[{i}] is not [cx, cz]")
     for name, rec in chunks.items():
         cx, cz = parse_chunk_name(name, str(path))
@@ -81,13 +99,40 @@ def check_manifest(manifest: object, path: Path) -> dict:
     return manifest
 
 
+def halo_cells(fill_rounds: int) -> int:
+    """How far (cells, in x and z) a cell's derived layers reach: the edge-alias rule reads the merged layers
+    of the 4 edge neighbours (1), and each hole-fill round the 8 neighbours as the round before left them
+    (1 a round). Merge is per cell."""
+    return 1 + max(fill_rounds, 0)
+
+
+def derive(obs: Observations, max_layers: int, fill_rounds: int) -> tuple[Observations, np.ndarray]:
+    """Layers of observations (merged, edge aliases dropped, then hole fill) and the filled mask, sorted by
+    (gx, gz, h). A cell's result depends only on the observations within ``halo_cells(fill_rounds)`` of it."""
+    return fill_holes(drop_aliases(merge(obs, max_layers=max_layers)), rounds=fill_rounds)
+
+
+def contribution_sha256(obs: Observations) -> str:
+    """sha256 of a contribution's columns (dtype, shape and bytes): equal observations, equal hash."""
+    h = hashlib.sha256()
+    for name in ("gx", "gz", "h", "n", "hits", "ts"):
+        a = np.ascontiguousarray(getattr(obs, name))
+        h.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 @dataclass
 class RebuildReport:
-    """Which chunk files a rebuild wrote, left untouched, or removed."""
+    """What a rebuild did: the chunks it derived (all, when ``full``), and the stage's chunk files it wrote,
+    left untouched (derived to the same bytes, or not derived) or removed; the stage's layer and filled counts."""
 
     written: list[tuple[int, int]] = field(default_factory=list)
     unchanged: list[tuple[int, int]] = field(default_factory=list)
     removed: list[tuple[int, int]] = field(default_factory=list)
+    derived: list[tuple[int, int]] = field(default_factory=list)
+    full: bool = True
+    read: int = 0  # contributions read
     layers: int = 0
     filled: int = 0
 
@@ -123,6 +168,16 @@ class Stage:
         """Manifest chunk name "cx_cz" → (its TRN2 file, its sha256), in name order."""
         return {name: (self.file(rec["file"]), rec["sha256"]) for name, rec in sorted(self.manifest["chunks"].items())}
 
+    @property
+    def halo(self) -> int:
+        """Cells around a chunk whose observations its derivation reads."""
+        return halo_cells(self.fill_rounds)
+
+    def around(self, key: ChunkKey) -> list[ChunkKey]:
+        """The chunk and the chunks its halo reaches into, in (cx, cz) order."""
+        r = -(-self.halo // CELLS)
+        return [(key[0] + dx, key[1] + dz) for dx in range(-r, r + 1) for dz in range(-r, r + 1)]
+
     # -- contributions --------------------------------------------------------------------------
 
     def recordings(self) -> dict[str, dict]:
@@ -143,6 +198,7 @@ class Stage:
         chunks = sorted({(int(a), int(b)) for a, b in zip(cx, cz)})
         self.manifest["recordings"][recording] = {
             "input_hash": input_hash,
+            "sha256": contribution_sha256(obs),
             "ts": int(ts),
             "observations": len(obs),
             "file": contribution_file(recording),
@@ -161,49 +217,204 @@ class Stage:
         with np.load(self.file(rec["file"]), allow_pickle=False) as z:
             return Observations(z["gx"], z["gz"], z["h"], z["n"], z["hits"], z["ts"])
 
-    # -- chunks ---------------------------------------------------------------------------------
-
-    def layers(self) -> tuple[Observations, np.ndarray]:
-        """All layers of the stage (merged contributions without edge aliases, then hole fill) and the filled mask."""
-        parts = [self._load(r) for _, r in sorted(self.manifest["recordings"].items())]
-        merged = drop_aliases(merge(Observations.concat(parts), max_layers=self.max_layers))
-        return fill_holes(merged, rounds=self.fill_rounds)
-
-    def rebuild(self) -> RebuildReport:
-        """Derive every chunk from the contributions; write only the files whose bytes change."""
-        report = RebuildReport()
-        layers, filled = self.layers()
-        report.layers, report.filled = len(layers), int(filled.sum())
-        chunks = _to_chunks(layers, filled, self.max_layers)
-        contributors = self._contributors()
-        old = {parse_chunk_name(k, str(self.dir / "manifest.json")) for k in self.manifest["chunks"]}
-        new_manifest_chunks = {}
-        for (cx, cz), chunk in sorted(chunks.items()):
-            data = chunk.to_bytes()
-            path = self.dir / "chunks" / chunk_filename(cx, cz)
-            if path.exists() and path.read_bytes() == data:
-                report.unchanged.append((cx, cz))
-            else:
-                write_bytes(path, data)
-                report.written.append((cx, cz))
-            new_manifest_chunks[f"{cx}_{cz}"] = {
-                "file": chunk_file(cx, cz),
-                "sha256": hashlib.sha256(data).hexdigest(),
-                "recordings": sorted(contributors.get((cx, cz), [])),
-            }
-        for cx, cz in sorted(old - set(chunks)):
-            (self.dir / "chunks" / chunk_filename(cx, cz)).unlink(missing_ok=True)
-            report.removed.append((cx, cz))
-        self.manifest["chunks"] = new_manifest_chunks
-        write_json(self.dir / "manifest.json", self.manifest)
-        return report
-
-    def _contributors(self) -> dict[tuple[int, int], list[str]]:
-        out: dict[tuple[int, int], list[str]] = {}
-        for name, rec in self.manifest["recordings"].items():
+    def _contributors(self) -> dict[ChunkKey, list[str]]:
+        """Chunk → the recordings whose contribution holds cells in it, in name order."""
+        out: dict[ChunkKey, list[str]] = {}
+        for name, rec in sorted(self.manifest["recordings"].items()):
             for cx, cz in rec["chunks"]:
                 out.setdefault((cx, cz), []).append(name)
         return out
+
+    # -- chunks ---------------------------------------------------------------------------------
+
+    def covered(self) -> list[ChunkKey]:
+        """Every chunk that can hold a layer: those the contributions touch and those their halo reaches."""
+        return sorted({c for k in self._contributors() for c in self.around(k)})
+
+    def chunk_layers(
+        self, keys: list[ChunkKey], pieces: ChunkPieces | None = None
+    ) -> Iterator[tuple[ChunkKey, Observations, np.ndarray]]:
+        """Each chunk of ``keys`` in turn: its layers (``derive`` over the observations within its halo,
+        then its own cells kept; empty when it has none) and their filled mask. The contributions are read
+        through ``pieces`` (default: a new ``ChunkPieces`` for ``keys``), so what is held is a neighbourhood,
+        not the stage."""
+        pieces = ChunkPieces(self, keys) if pieces is None else pieces
+        for key in keys:
+            layers, filled = derive(pieces.window(key), self.max_layers, self.fill_rounds)
+            cx, cz, _ = split_cell(layers.gx, layers.gz)
+            own = np.flatnonzero((cx == key[0]) & (cz == key[1]))
+            yield key, layers.take(own), filled[own]
+
+    def layers(self, whole: bool = False) -> tuple[Observations, np.ndarray]:
+        """All layers of the stage and their filled mask, sorted by (gx, gz, h): chunk by chunk, or with
+        ``whole`` derived from all contributions at once (the definition, kept as the reference; its dense
+        grids span the stage's bounding box)."""
+        if whole:
+            parts = [self._load(r) for _, r in sorted(self.manifest["recordings"].items())]
+            return derive(Observations.concat(parts), self.max_layers, self.fill_rounds)
+        chunks = [(layers, filled) for _, layers, filled in self.chunk_layers(self.covered())]
+        if not chunks:
+            return Observations.empty(), np.zeros(0, bool)
+        layers, filled = Observations.concat([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
+        order = np.lexsort((layers.h, layers.gz, layers.gx))  # stable: a cell's rows keep their order
+        return layers.take(order), filled[order]
+
+    def rebuild(self, mode: str = "incremental") -> RebuildReport:
+        """Derive the chunks from the contributions; write only the files whose bytes change.
+
+        ``incremental``: only the chunks whose own or halo neighbourhood's contributions changed since the
+        last rebuild (and any chunk whose file is missing); every chunk when the manifest does not record
+        the last rebuild, or records other settings. ``full``: every chunk, one neighbourhood at a time.
+        ``whole``: every chunk from the whole stage's layers at once (``layers(whole=True)``): the
+        definition the other two equal byte for byte, kept as their reference.
+        """
+        if mode not in REBUILD_MODES:
+            raise ValueError(f"rebuild mode {mode!r} is not one of {REBUILD_MODES}")
+        for rec in self.manifest["recordings"].values():
+            if "sha256" not in rec:  # stored before contributions were hashed: hashed once, here
+                rec["sha256"] = contribution_sha256(self._load(rec))
+        stale = self._stale() if mode == "incremental" else None
+        report = RebuildReport(full=stale is None)
+        pieces = None
+        if mode == "whole":
+            derived = _split_by_chunk(*self.layers(whole=True))
+        else:
+            keys = sorted(stale) if stale is not None else self.covered()
+            pieces = ChunkPieces(self, keys)
+            derived = self.chunk_layers(keys, pieces)
+        entries = dict(self.manifest["chunks"]) if stale is not None else {}
+        where = str(self.dir / "manifest.json")
+        old = {parse_chunk_name(k, where) for k in self.manifest["chunks"]}
+        contributors = self._contributors()
+        for (cx, cz), layers, filled in derived:
+            report.derived.append((cx, cz))
+            entries.pop(f"{cx}_{cz}", None)
+            if not len(layers):
+                continue
+            data = _to_chunks(layers, filled, self.max_layers)[(cx, cz)].to_bytes()
+            path = self.dir / "chunks" / chunk_filename(cx, cz)
+            if not (path.exists() and path.read_bytes() == data):
+                write_bytes(path, data)
+                report.written.append((cx, cz))
+            entries[f"{cx}_{cz}"] = {
+                "file": chunk_file(cx, cz),
+                "sha256": hashlib.sha256(data).hexdigest(),
+                "recordings": contributors.get((cx, cz), []),
+                "layers": len(layers),
+                "filled": int(filled.sum()),
+            }
+        kept = {parse_chunk_name(k, where) for k in entries}
+        for cx, cz in sorted(old - kept):
+            (self.dir / "chunks" / chunk_filename(cx, cz)).unlink(missing_ok=True)
+            report.removed.append((cx, cz))
+        report.unchanged = sorted(kept - set(report.written))
+        report.read = len(pieces.read) if pieces is not None else len(self.manifest["recordings"])
+        report.layers = sum(e.get("layers", 0) for e in entries.values())
+        report.filled = sum(e.get("filled", 0) for e in entries.values())
+        self.manifest["chunks"] = entries
+        self.manifest["rebuilt"] = self._inputs()
+        write_json(self.dir / "manifest.json", self.manifest)
+        return report
+
+    def _inputs(self) -> dict:
+        """What chunks are derived from now: the derivation's version and settings, and per recording its
+        contribution's sha256 and chunks (kept after the recording is removed, to find the chunks it touched)."""
+        return {
+            "derive_version": DERIVE_VERSION,
+            "max_layers": self.max_layers,
+            "fill_rounds": self.fill_rounds,
+            "recordings": {
+                name: {"sha256": rec["sha256"], "chunks": rec["chunks"]} for name, rec in self.manifest["recordings"].items()
+            },
+        }
+
+    def _stale(self) -> set[ChunkKey] | None:
+        """The chunks whose own or halo neighbourhood's contributions differ from the last rebuild's, and those
+        whose file is missing; None when the manifest cannot tell (no, or a malformed, record of the last
+        rebuild, or one made by another derivation or other settings)."""
+        last, now = self.manifest.get("rebuilt"), self._inputs()
+        if not isinstance(last, dict) or any(last.get(k) != now[k] for k in ("derive_version", "max_layers", "fill_rounds")):
+            return None
+        before = last.get("recordings")
+        if not isinstance(before, dict) or not all(
+            isinstance(r, dict) and _is_chunk_list(r.get("chunks")) for r in before.values()
+        ):
+            return None
+        touched: set[ChunkKey] = set()
+        for name in before.keys() | now["recordings"].keys():
+            a, b = before.get(name), now["recordings"].get(name)
+            if a is None or b is None or a.get("sha256") != b["sha256"]:
+                touched |= {(cx, cz) for r in (a, b) if r is not None for cx, cz in r["chunks"]}
+        stale = {c for k in touched for c in self.around(k)}
+        for name, rec in self.manifest["chunks"].items():
+            if not self.file(rec["file"]).exists():
+                stale.add(parse_chunk_name(name, str(self.dir / "manifest.json")))
+        return stale
+
+
+class ChunkPieces:
+    """A stage's contributions split by chunk, for deriving ``keys`` in their order: a recording is read the
+    first time a chunk near it is derived, and a chunk's pieces are dropped once every chunk of ``keys`` that
+    reads them is done. What is held is the neighbourhoods being derived plus the not yet needed chunks of the
+    recordings read so far, never the whole stage's layers."""
+
+    def __init__(self, stage: Stage, keys: list[ChunkKey]):
+        self.stage = stage
+        self.by_chunk = stage._contributors()
+        self.waiting = Counter(c for k in keys for c in stage.around(k) if c in self.by_chunk)
+        self.pieces: dict[ChunkKey, list[Observations]] = {}
+        self.read: set[str] = set()  # the recordings whose contribution was read
+
+    def window(self, key: ChunkKey) -> Observations:
+        """The observations of chunk ``key`` and its halo, from every recording."""
+        near = self.stage.around(key)
+        for c in near:
+            for name in self.by_chunk.get(c, ()):
+                if name not in self.read:
+                    self._read(name)
+        h = self.stage.halo
+        x0, z0, w = key[0] * CELLS - h, key[1] * CELLS - h, CELLS + 2 * h
+        parts = []
+        for c in near:
+            for p in self.pieces.get(c, ()):
+                if c != key:  # a neighbour: only its cells within the halo
+                    p = p.take(np.flatnonzero((p.gx >= x0) & (p.gx < x0 + w) & (p.gz >= z0) & (p.gz < z0 + w)))
+                parts.append(p)
+            if c in self.waiting:
+                self.waiting[c] -= 1
+                if not self.waiting[c]:
+                    del self.waiting[c]
+                    self.pieces.pop(c, None)
+        return Observations.concat(parts)
+
+    def _read(self, name: str) -> None:
+        """Read one recording's contribution and keep its pieces of the chunks still to be read."""
+        rec = self.stage.manifest["recordings"][name]
+        obs = self.stage._load(rec)
+        self.read.add(name)
+        if not len(obs):
+            return
+        cx, cz, _ = split_cell(obs.gx, obs.gz)
+        key = (cx - cx.min()) * (int(cz.max() - cz.min()) + 1) + (cz - cz.min())  # one int per chunk
+        order = np.argsort(key, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
+        listed = {tuple(c) for c in rec["chunks"]}
+        for start, end in zip(starts.tolist(), np.r_[starts[1:], len(key)].tolist()):
+            c = (int(cx[order[start]]), int(cz[order[start]]))
+            if c not in listed:
+                raise ValueError(
+                    f"{self.stage.file(rec['file'])}: holds cells of chunk {c}, which its manifest entry does not list"
+                )
+            if self.waiting.get(c):
+                self.pieces.setdefault(c, []).append(obs.take(order[start:end]))
+
+
+def _split_by_chunk(layers: Observations, filled: np.ndarray) -> Iterator[tuple[ChunkKey, Observations, np.ndarray]]:
+    """Layers (sorted by cell, then height) chunk by chunk, in (cx, cz) order."""
+    cx, cz, _ = split_cell(layers.gx, layers.gz)
+    for key in sorted(set(zip(cx.tolist(), cz.tolist()))):
+        own = np.flatnonzero((cx == key[0]) & (cz == key[1]))
+        yield key, layers.take(own), filled[own]
 
 
 def _to_chunks(layers: Observations, filled: np.ndarray, max_layers: int) -> dict[tuple[int, int], Chunk]:

@@ -31,10 +31,11 @@ def test_scan_incremental_equals_full(corpus, tmp_path):
     assert first and len(report["default"]["scanned"]) == 3
     # scanning again changes nothing: no recording is read, no chunk is written
     again = scan_stages(work, "default", incremental=True, options=FAST, log=lambda *_: None)["default"]
-    assert again["scanned"] == [] and again["chunks_written"] == [] and _files(sdir) == first
+    assert again["scanned"] == [] and again["chunks_written"] == [] and again["chunks_derived"] == [] and _files(sdir) == first
     # a full rescan reads everything and still writes nothing new, on two worker processes as in one
     full = scan_stages(work, "default", incremental=False, options=FAST, log=lambda *_: None, workers=2)["default"]
     assert len(full["scanned"]) == 3 and full["chunks_written"] == [] and _files(sdir) == first
+    assert len(full["chunks_derived"]) >= len(first)  # a full scan derives every chunk
     here = report["default"]["scanned"][0]["worker"]  # one worker: scanned in this process
     assert here.endswith(f"/pid-{os.getpid()}") and all(s["worker"] != here for s in full["scanned"])  # then in the pool's
     # recordings added in another order give the same bytes

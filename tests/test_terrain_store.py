@@ -1,10 +1,13 @@
 """The stage store: order independence, re-scan without double counting, incremental = full, fill."""
 
+import json
+
 import numpy as np
+import pytest
 
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import Observations
-from terrain_scan.store import Stage
+from terrain_scan.store import Stage, derive
 from terrain_scan.trn2 import FLAG_FILLED, read_chunk
 
 
@@ -161,3 +164,113 @@ def test_filled_flag_reaches_the_chunk(tmp_path):
     st.rebuild()
     c = read_chunk(tmp_path / "s" / "chunks" / "chunk_0_0.trn2")
     assert c.cells["flags"][0, 0] & FLAG_FILLED and c.cells["h"][0, 0] == np.float32(2.0)
+
+
+# -- chunk by chunk and incremental: byte-identical to the whole-stage derivation --------------------
+
+
+def _spread(ox, oz):
+    """Recordings across chunk corners and edges around cell (ox, oz) (a chunk corner), overlapping at
+    other heights: hole fill and edge aliases at chunk borders, where the halo matters."""
+    rng = np.random.default_rng(1)
+    recs = {
+        "p/a": _obs(rng, ox - 20, oz - 20, 40, 20.0, 1767225600, deck=True),
+        "p/b": _obs(rng, ox - 35, oz + 70, 45, 21.0, 1767225700),
+        "p/c": _obs(rng, ox + 88, oz - 12, 24, 19.0, 1767225800, deck=True),
+        "p/d": _obs(rng, ox - 8, oz - 30, 25, 26.0, 1767225900),
+    }
+    leak = recs["p/a"]  # a weak copy of the deck one cell over: the alias rule drops it
+    on = (leak.h - 0.05 * leak.gx > 24.0) & (leak.gz % 7 == 1)
+    recs["p/e"] = Observations(leak.gx[on], leak.gz[on] + 1, leak.h[on], leak.n[on], np.ones(on.sum(), np.int64), leak.ts[on])
+    return recs
+
+
+def _stage(path, recs, mode):
+    st = Stage(path)
+    for name, o in recs.items():
+        st.put(name, o, f"hash-{name}", int(o.ts[0]))
+    return st, st.rebuild(mode)
+
+
+@pytest.mark.parametrize("ox, oz", [(0, 0), (-1_234_500, 987_600)])
+def test_chunk_by_chunk_equals_the_whole_stage(tmp_path, ox, oz):
+    recs = _spread(ox, oz)
+    whole, rw = _stage(tmp_path / "whole", recs, "whole")
+    each, re_ = _stage(tmp_path / "each", recs, "full")
+    assert _chunk_bytes(tmp_path / "each") == _chunk_bytes(tmp_path / "whole")
+    assert each.manifest["chunks"] == whole.manifest["chunks"] and (re_.layers, re_.filled) == (rw.layers, rw.filled)
+    touched = {(cx - ox // 100, cz - oz // 100) for r in each.recordings().values() for cx, cz in r["chunks"]}
+    assert touched == {(-1, -1), (0, -1), (1, -1), (-1, 0), (0, 0), (1, 0), (-1, 1), (0, 1)} and re_.filled > 0
+    lw, fw = whole.layers(whole=True)
+    le, fe = each.layers()
+    assert all(np.array_equal(getattr(lw, f), getattr(le, f)) for f in ("gx", "gz", "h", "n", "hits", "ts"))
+    assert np.array_equal(fw, fe)
+
+
+def test_a_chunk_needs_its_whole_halo(tmp_path):
+    """Cell (0, 2) of chunk (0, 0) depends on an observation three cells west, in chunk (-1, 0):
+    (-3, 2)'s strong layer makes (-2, 2)'s weak one an edge alias; without it, round 1 of the hole fill
+    gives (-1, 3) another height, which round 2's fill of (0, 2) reads."""
+    rows = [(-2, 2, 0.2, 10), (-1, 2, 0.2, 10), (0, 3, 0.3, 10), (-2, 2, 1.8, 1), (-3, 2, 1.8, 50)]
+    gx, gz, h, hits = (np.array(c) for c in zip(*rows))
+    o = Observations(gx, gz, h, np.tile([0.0, 1.0, 0.0], (len(h), 1)), hits, np.zeros(len(h), np.int64))
+    each, _ = _stage(tmp_path / "each", {"r": o}, "full")
+    _stage(tmp_path / "whole", {"r": o}, "whole")
+    assert _chunk_bytes(tmp_path / "each") == _chunk_bytes(tmp_path / "whole")
+    cell = read_chunk(tmp_path / "each" / "chunks" / "chunk_0_0.trn2").cells[2 * 100 + 0, 0]
+    assert cell["flags"] & FLAG_FILLED and cell["h"] == np.float32(0.2)
+    assert each.halo == 3
+    short, filled = derive(o.take(np.flatnonzero(o.gx >= -(each.halo - 1))), each.max_layers, each.fill_rounds)
+    at = np.flatnonzero((short.gx == 0) & (short.gz == 2))
+    assert filled[at].all() and abs(short.h[at[0]] - 0.2) > 1.0
+
+
+def test_incremental_derives_only_the_changed_neighbourhood(tmp_path):
+    recs = _spread(0, 0)
+    st, first = _stage(tmp_path / "s", recs, "incremental")  # no record of a last rebuild: every chunk
+    assert first.full and first.derived == st.covered()
+    rng = np.random.default_rng(2)
+    new = _obs(rng, 320, -170, 12, 30.0, 1767226000)  # inside chunk (3, -2), away from the others
+    st.put("p/new", new, "hash-new", int(new.ts[0]))
+    added = st.rebuild()
+    around = [(3 + dx, -2 + dz) for dx in (-1, 0, 1) for dz in (-1, 0, 1)]
+    assert not added.full and added.derived == around and added.written == [(3, -2)] and added.removed == []
+    ref, _ = _stage(tmp_path / "ref", {**recs, "p/new": new}, "whole")
+    assert _chunk_bytes(tmp_path / "s") == _chunk_bytes(tmp_path / "ref") and st.manifest["chunks"] == ref.manifest["chunks"]
+    # the same contribution again: nothing to derive
+    st.put("p/new", new, "hash-new", int(new.ts[0]))
+    assert st.rebuild().derived == []
+    # removing a recording re-derives the chunks it touched and their halo
+    touched = st.manifest["recordings"]["p/c"]["chunks"]
+    st.remove("p/c")
+    gone = st.rebuild()
+    assert gone.derived == sorted({(cx + dx, cz + dz) for cx, cz in touched for dx in (-1, 0, 1) for dz in (-1, 0, 1)})
+    assert gone.removed and not gone.full
+    recs.pop("p/c")
+    ref, _ = _stage(tmp_path / "ref2", {**recs, "p/new": new}, "whole")
+    assert _chunk_bytes(tmp_path / "s") == _chunk_bytes(tmp_path / "ref2") and st.manifest["chunks"] == ref.manifest["chunks"]
+
+
+def test_incremental_falls_back_to_full(tmp_path):
+    st, _ = _stage(tmp_path / "s", _spread(0, 0), "full")
+    # a missing chunk file is derived again
+    (tmp_path / "s" / "chunks" / "chunk_0_0.trn2").unlink()
+    rep = Stage(tmp_path / "s").rebuild()
+    assert rep.derived == [(0, 0)] and rep.written == [(0, 0)]
+    # other settings, or a stage rebuilt before the record of what it was derived from: every chunk
+    assert Stage(tmp_path / "s", fill_rounds=1).rebuild().full
+    legacy = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    del legacy["rebuilt"]
+    for rec in legacy["recordings"].values():
+        del rec["sha256"]
+    (tmp_path / "s" / "manifest.json").write_text(json.dumps(legacy))
+    old = Stage(tmp_path / "s")
+    rep = old.rebuild()
+    assert rep.full and rep.derived == old.covered() and all("sha256" in r for r in old.manifest["recordings"].values())
+    assert not Stage(tmp_path / "s").rebuild().derived
+    # a manifest entry that hides a chunk its contribution holds is an error, not a silently missing piece
+    legacy = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    legacy["recordings"]["p/a"]["chunks"].remove([0, 0])
+    (tmp_path / "s" / "manifest.json").write_text(json.dumps(legacy))
+    with pytest.raises(ValueError, match="chunk \\(0, 0\\)"):
+        Stage(tmp_path / "s").rebuild("full")
