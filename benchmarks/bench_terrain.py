@@ -402,18 +402,18 @@ def print_queries(args, speed_rows: list, acc_rows: list) -> None:
     print(table(["field", "method", "subset", "points", "RMSE mm", "p99 mm", "max mm", "NaN"], acc_rows))
 
 
+def hand_built_fields(points: int, rng) -> list[tuple[str, LayeredField, tuple, float]]:
+    """The hand-built fields with one and two layers per cell, each with its points and target."""
+    return [
+        (f"hand-built, {k} layer{'s' if k > 1 else ''}/cell", hand_built_field(k), hand_built_points(points, k, rng), TARGET_QPS)
+        for k in (1, 2)
+    ]
+
+
 def bench_stage(args) -> None:
     """``--part stage``: the query speed on the hand-built fields and the realistic stage."""
     rng = np.random.default_rng(args.seed)
-    fields = [
-        (
-            f"hand-built, {k} layer{'s' if k > 1 else ''}/cell",
-            hand_built_field(k),
-            hand_built_points(args.points, k, rng),
-            TARGET_QPS,
-        )
-        for k in (1, 2)
-    ]
+    fields = hand_built_fields(args.points, rng)
     fields.append(realistic_field(args))
     speed_rows, acc_rows = bench_queries(fields, args.points, args.repeats)
     print(preamble("Terrain: layered height field queries on the hand-built fields and a realistic stage"))
@@ -600,15 +600,7 @@ def main() -> None:
             stage = Stage(tmp / "stage")
             stage.put(f"{ref.part}/{ref.sample_id}", default_res.observations, "bench", default_res.recording_ts)
             stage.rebuild()
-            fields = [
-                (
-                    f"hand-built, {k} layer{'s' if k > 1 else ''}/cell",
-                    hand_built_field(k),
-                    hand_built_points(args.points, k, rng),
-                    TARGET_QPS,
-                )
-                for k in (1, 2)
-            ]
+            fields = hand_built_fields(args.points, rng)
             fields.append(("scanned (defaults)", open_stage(tmp / "stage"), scanned_points(stage, args.points, rng), TARGET_QPS))
             fields.append(realistic_field(args))
             speed_rows, acc_rows = bench_queries(fields, args.points, args.repeats)
