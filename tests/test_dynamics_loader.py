@@ -51,7 +51,7 @@ def test_workers_hand_back_the_in_process_batches(dynamics_corpus):
             assert torch.equal(a.terrain_known, b.terrain_known)
     blob = pickle.dumps(TrainBatches(sampler, step))
     assert len(blob) < 64 << 10, len(blob)  # the split's arrays are ~19 MB
-    again = pickle.loads(blob)
+    again = pickle.loads(blob)  # our own object, pickled above, as a spawned DataLoader worker receives it: never data
     assert type(again.sampler.data.body[0]).__name__ == "memmap" and ids(itertools.islice(iter(again), 4)) == ids(serial[:4])
     with pytest.raises(ValueError, match="loader_workers"):
         TrainConfig(loader_workers=-1)
