@@ -102,7 +102,7 @@ def test_pose_shard_member_outside_its_kinds_is_refused(corpus_copy, tmp_path, e
     with pytest.raises(paths.CorpusPathError, match="member"):
         video_shards.PoseShard(pose)
     src = ClipSource(c, None, 1, (c.info.video["height"], c.info.video["width"]))
-    keys = [s["__key__"] for s in src._samples()]
+    keys = [s["__key__"] for s, _ in src._samples()]
     assert "shard-000000.tar" in src.skipped and "member" in src.skipped["shard-000000.tar"]
     shard0 = {s for s in c.segment_ids() if c.segment_row(s)["shard"] == 0}
     assert not any(paths.parse_chunk_key(k)[0] in shard0 for k in keys)

@@ -211,10 +211,14 @@ class PoseShard:
             return None
         return rec, mkv
 
+    def read(self, member: tarfile.TarInfo) -> bytes:
+        """The bytes of a ``pose.mkv`` header that ``member`` returned."""
+        return self._tar.extractfile(member).read()
+
     def get(self, key: str, chunk_json: bytes, state_hash: str) -> tuple[dict, bytes] | None:
         """(``pose.json`` record, ``pose.mkv`` bytes) of the chunk (``member``), or None."""
         got = self.member(key, chunk_json, state_hash)
-        return None if got is None else (got[0], self._tar.extractfile(got[1]).read())
+        return None if got is None else (got[0], self.read(got[1]))
 
     def close(self) -> None:
         if self._tar is not None:

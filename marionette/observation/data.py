@@ -30,6 +30,7 @@ from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,7 +38,7 @@ import webdataset as wds
 
 from marionette.bridge.gbuffer import CODE_MAX, iter_codes
 from marionette.corpus import Corpus
-from marionette.corpus.paths import SHARD_NAME, CorpusPathError, parse_chunk_key
+from marionette.corpus.paths import SHARD_NAME, parse_chunk_key
 from marionette.corpus.video_shards import PoseShard, member_index, read_at
 from marionette.ingest.video import decode_frames
 
@@ -104,13 +105,6 @@ def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) ->
     )
 
 
-def _frame_count(sample: dict) -> int:
-    """Frames of a chunk, from its json (one camera intrinsics row per frame)."""
-    if "json" not in sample:
-        raise ValueError(f"{sample['__key__']}: no json member")
-    return len(json.loads(sample["json"])["K"])
-
-
 class ClipSource:
     """The clips of one split of a corpus's video shards (module doc: which clips)."""
 
@@ -148,45 +142,65 @@ class ClipSource:
         clip.actions = torch.from_numpy(tokens[idx])
         return clip
 
-    def _samples(self) -> Iterator[dict]:
+    def _pose_shard(self, n: int) -> tuple[PoseShard, str] | None:
+        """Video shard ``n``'s pose shard (open) and the state shard's ingest hash; None, the reason in ``skipped``,
+        where the pose shard is refused (untrusted input: its chunks are skipped)."""
+        path = self.corpus.pose_path(n)
+        try:
+            return PoseShard(path), self.corpus.shard_hash(n)
+        except (ValueError, KeyError) as err:
+            self.skipped[path.name] = str(err)
+            return None
+
+    def _usable(self, key: str, chunk_json: bytes | None, pose: tuple[PoseShard, str] | None) -> tuple[Any, int, int] | None:
+        """(current ``pose.mkv`` member, frame count, first source frame) of a chunk a clip can come from; None, the reason in
+        ``skipped``, for a chunk without a json member or a current pose target, or shorter than a clip. The one rule
+        both readers (``_samples``, ``index``) apply."""
+        try:
+            got = pose[0].member(key, chunk_json, pose[1]) if pose is not None and chunk_json is not None else None
+            if got is None:
+                self.skipped[key] = "no current pose.mkv (render the pose targets first)"
+                return None
+            rec = json.loads(chunk_json)
+            frames, first = len(rec["K"]), int(rec["frames"][0])  # one intrinsics row per frame
+        except (ValueError, KeyError, TypeError, IndexError) as err:
+            self.skipped[key] = f"not a chunk record or pose target: {type(err).__name__}: {err}"
+            return None
+        if frames < self.frames:
+            self.skipped[key] = f"{frames} frames, fewer than a clip's {self.frames}"
+            return None
+        return got[1], frames, first
+
+    def _samples(self) -> Iterator[tuple[dict, int]]:
+        """(webdataset sample with its ``pose.mkv`` joined, frame count) of every usable chunk, streamed in shard order."""
         if not self.shards:
             return
         # every DDP rank reads every shard (ranks differ in the clips they draw, not in the chunks they hold)
         every_shard = lambda urls: urls  # noqa: E731
-        pose: tuple[str, PoseShard | None, str] | None = None  # (video shard url, its pose shard, its state hash)
+        url, pose = None, None  # the video shard streaming past, its pose shard and state hash
         try:
             for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False, nodesplitter=every_shard):
-                key, url = sample["__key__"], str(sample.get("__url__", ""))
+                key = sample["__key__"]
                 sample.pop("pose.mkv", None)  # a video shard written before pose shards: its targets are not joined
                 try:
-                    segment = parse_chunk_key(key, url)[0]
+                    segment = parse_chunk_key(key, str(sample.get("__url__", "")))[0]
                 except ValueError as err:
                     self.skipped[str(key)] = str(err)
                     continue
                 if segment not in self.segments:
                     continue
-                if pose is None or pose[0] != url:
-                    if pose is not None and pose[1] is not None:
-                        pose[1].close()
-                    n = int(SHARD_NAME.fullmatch(Path(url).stem)["n"])
-                    try:
-                        pose = (url, PoseShard(self.corpus.pose_path(n)), self.corpus.shard_hash(n))
-                    except CorpusPathError as err:  # an untrusted pose shard refused: its chunks are skipped
-                        self.skipped[self.corpus.pose_path(n).name] = str(err)
-                        pose = (url, None, "")
-                got = pose[1].get(key, sample["json"], pose[2]) if pose[1] is not None and "json" in sample else None
-                if got is None:
-                    self.skipped[key] = "no current pose.mkv (render the pose targets first)"
-                    continue
-                sample["pose.mkv"] = got[1]
-                n = _frame_count(sample)
-                if n < self.frames:
-                    self.skipped[key] = f"{n} frames, fewer than a clip's {self.frames}"
-                    continue
-                yield sample
+                if url != sample["__url__"]:
+                    if pose is not None:
+                        pose[0].close()
+                    url = sample["__url__"]
+                    pose = self._pose_shard(int(SHARD_NAME.fullmatch(Path(url).stem)["n"]))
+                use = self._usable(key, sample.get("json"), pose)
+                if use is not None:
+                    sample["pose.mkv"] = pose[0].read(use[0])
+                    yield sample, use[1]
         finally:
-            if pose is not None and pose[1] is not None:
-                pose[1].close()
+            if pose is not None:
+                pose[0].close()
 
     def index(self) -> list[ChunkRef]:
         """Where every usable chunk's bytes are (the chunks ``chunks`` yields, in the same order, under the same
@@ -196,48 +210,29 @@ class ClipSource:
         for url in self.shards:
             vpath = Path(url)
             n = int(SHARD_NAME.fullmatch(vpath.stem)["n"])
-            ppath = self.corpus.pose_path(n)
             try:
                 members = member_index(vpath)
             except ValueError as err:
                 self.skipped[vpath.name] = str(err)
                 continue
             wanted = {k: m for k, m in members.items() if parse_chunk_key(k)[0] in self.segments}
-            if not wanted:
+            if not wanted or (pose := self._pose_shard(n)) is None:
                 continue
-            try:
-                pose, state_hash = PoseShard(ppath), self.corpus.shard_hash(n)
-            except (ValueError, KeyError) as err:  # an untrusted pose shard refused: its chunks are skipped
-                self.skipped[ppath.name] = str(err)
-                continue
+            ppath = self.corpus.pose_path(n)
             stamp = (*_stamp(vpath), *_stamp(ppath))
-            with pose:
+            with pose[0]:
                 for key, m in wanted.items():
-                    if "json" not in m or "rgb.mp4" not in m:
-                        self.skipped[key] = "no rgb.mp4 or json member"
+                    if "rgb.mp4" not in m:
+                        self.skipped[key] = "no rgb.mp4 member"
                         continue
-                    data = read_at(vpath, m["json"].offset_data, m["json"].size)
-                    got = pose.member(key, data, state_hash)
-                    if got is None:
-                        self.skipped[key] = "no current pose.mkv (render the pose targets first)"
+                    data = read_at(vpath, m["json"].offset_data, m["json"].size) if "json" in m else None
+                    use = self._usable(key, data, pose)
+                    if use is None:
                         continue
-                    rec = json.loads(data)
-                    frames = len(rec["K"])
-                    if frames < self.frames:
-                        self.skipped[key] = f"{frames} frames, fewer than a clip's {self.frames}"
-                        continue
-                    refs.append(
-                        ChunkRef(
-                            key,
-                            str(vpath),
-                            str(ppath),
-                            (m["rgb.mp4"].offset_data, m["rgb.mp4"].size),
-                            (got[1].offset_data, got[1].size),
-                            frames,
-                            int(rec["frames"][0]),
-                            stamp,
-                        )
-                    )
+                    mkv, frames, first = use
+                    rgb = m["rgb.mp4"]
+                    at = ((rgb.offset_data, rgb.size), (mkv.offset_data, mkv.size))
+                    refs.append(ChunkRef(key, str(vpath), str(ppath), *at, frames, first, stamp))
         return refs
 
     def chunk(self, ref: ChunkRef) -> Clip:
@@ -256,9 +251,9 @@ class ClipSource:
     def chunks(self) -> Iterator[Clip]:
         """Every usable chunk whole (all its frames, start 0), reduced to ``size``: what a trainer keeps in
         memory to cut clips from."""
-        for sample in self._samples():
+        for sample, n in self._samples():
             try:
-                clip = decode_clip(sample, _frame_count(sample), self.size, 0)
+                clip = decode_clip(sample, n, self.size, 0)
                 yield self._actions(sample, clip) if self.actions else clip
             except ValueError as err:
                 self.skipped[sample["__key__"]] = str(err)
@@ -266,8 +261,7 @@ class ClipSource:
     def clips(self, seed: int = 0, epoch: int = 0, random: bool = True) -> Iterator[Clip]:
         """Every usable chunk's clip, in shard order; random starts (seeded) or start 0."""
         rng = np.random.default_rng([int(seed), int(epoch)])
-        for sample in self._samples():
-            n = _frame_count(sample)
+        for sample, n in self._samples():
             start = int(rng.integers(0, n - self.frames + 1)) if random else 0
             try:
                 clip = decode_clip(sample, self.frames, self.size, start)
