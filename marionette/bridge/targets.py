@@ -26,7 +26,7 @@ import pyarrow as pa
 
 from marionette.corpus import Corpus, fixed_rows, paths, video_shards
 from marionette.corpus.lock import corpus_lock
-from marionette.io import text_sha256
+from marionette.io import file_sha256, text_sha256
 from marionette.schema import Entity, Layout
 
 from .camera import Cameras, follow_cameras, recorded_cameras
@@ -338,21 +338,12 @@ def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> None:
         current = video_shards.member_digests(ppath) if ppath.exists() else None
     except (ValueError, OSError):
         current = None  # a damaged pose shard is written again
-    wanted = [(name, _sha256(data)) for name, data in members]
+    wanted = [
+        (name, hashlib.sha256(data).hexdigest() if isinstance(data, bytes) else file_sha256(data)) for name, data in members
+    ]
     if wanted != current:
         video_shards.write_members(ppath, members)
         run.report.shards_rewritten.append(shard)
-
-
-def _sha256(data: bytes | Path) -> str:
-    """sha256 of bytes, or of a file's bytes read a block at a time."""
-    if isinstance(data, bytes):
-        return hashlib.sha256(data).hexdigest()
-    h = hashlib.sha256()
-    with open(data, "rb") as f:
-        while block := f.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
 
 
 def render_pose_targets(
