@@ -353,6 +353,62 @@ def test_time_left_counts_down_to_an_events_end(duel, tiny):
     assert model.action.input.in_features == DynamicsModel(tiny).action.input.in_features + 2 * n
 
 
+def test_a_played_out_event_gives_way(duel, tiny):
+    """With ``events_end``, where an entity's event has at most source_fps / model_fps source frames left, its current
+    token's logit is −inf (the next token is another); earlier, and for loops, the logits are a plain model's. The loss
+    stays finite with label smoothing, spread over the tokens the frame allows; the config round-trips."""
+    from marionette.dynamics.train import action_loss
+
+    lengths = ((0.0, 30.0, 10.0, 30.0, 0.0, 50.0, 150.0),) * 2  # tokens 0 and 4 do not end on their own
+    cfg = replace(tiny, events_end=lengths, source_fps=30.0, model_fps=20.0)
+    assert DynamicsConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    assert DynamicsConfig.from_json({k: v for k, v in cfg.to_json().items() if k != "events_end"}).events_end == ()
+    with pytest.raises(ValueError, match="events_end"):
+        replace(tiny, events_end=((0.0, 0.5),) * tiny.n_entities)
+    model, plain = with_heads(DynamicsModel(cfg)).eval(), with_heads(DynamicsModel(tiny)).eval()
+    n = cfg.n_entities
+    # frames left (1 − p) · L: 1.0 (last frame), 1.5 (½ frame late, 2 left: ends by the next model frame), 2.0, 5.0,
+    # a loop at its end, token 0
+    tokens = torch.tensor([[[3] * n, [3] * n, [3] * n, [2] * n, [4] * n, [0] * n]])
+    progress = torch.tensor([[[29 / 30] * n, [28.5 / 30] * n, [28 / 30] * n, [0.5] * n, [1.0] * n, [0.0] * n]])
+    frames = replace(random_frames(cfg, 1, 6, seed=4), tokens=tokens, progress=progress)
+    assert torch.equal(model.action.ending(frames)[0, :, 0], torch.tensor([True, True, False, False, False, False]))
+    with torch.no_grad():
+        out, ref = model.action(frames), plain.action(frames)
+    for i, (lg, rg) in enumerate(zip(out.logits, ref.logits)):
+        cur = tokens[0, :, i]
+        assert torch.isneginf(lg[0, [0, 1], cur[:2]]).all()
+        assert torch.equal(lg[0, 2:], rg[0, 2:]) and torch.equal(lg[0, :2].isfinite().sum(-1), torch.tensor([6, 6]))
+        assert (lg[0, :2].argmax(-1) != cur[:2]).all()
+    target = torch.tensor([[[1] * n] * 6])  # another token everywhere
+    for smoothing in (0.0, 0.1):
+        loss = action_loss(out.logits, target, smoothing)
+        assert torch.isfinite(loss)
+    # with nothing dropped, the smoothed loss is torch's
+    ref_loss = sum(
+        torch.nn.functional.cross_entropy(
+            lg.reshape(-1, lg.shape[-1]), target[..., i].reshape(-1), label_smoothing=0.1, reduction="sum"
+        )
+        for i, lg in enumerate(ref.logits)
+    ) / (6 * n)
+    assert torch.allclose(action_loss(ref.logits, target, 0.1), ref_loss, atol=1e-6)
+
+
+def test_events_that_run_on_in_the_train_split_keep_their_odds():
+    """``ended_events`` zeroes a token whose rows run on past its played-out frame (replayed back to back)."""
+    from types import SimpleNamespace
+
+    from marionette.dynamics.data import ended_events
+
+    lengths = ((0.0, 4.0, 6.0),)
+    ok = np.array([[1], [1], [1], [1], [2], [2]]), np.array([[0.0], [0.25], [0.5], [0.75], [0.0], [0.5]], np.float32)
+    run_on = np.array([[2], [2], [2], [2]]), np.array([[0.5], [0.75], [5 / 6], [0.0]], np.float32)  # 2 played out, then 2
+    data = SimpleNamespace(action=[ok[0]], progress=[ok[1]])
+    assert ended_events(data, lengths, 1.5) == lengths
+    data = SimpleNamespace(action=[ok[0], run_on[0]], progress=[ok[1], run_on[1]])
+    assert ended_events(data, lengths, 1.5) == ((0.0, 4.0, 0.0),)
+
+
 def test_displacement_gate_blends_the_carried_displacement_and_the_head(tiny):
     """With ``displacement_gate``, each displacement is g · carried + (1 − g) · head, g = sigmoid(gate head), carried =
     ``frames.skip`` (a rollout's own proposal) or else ``frames.root``, nothing where an action starts (``frames.changed``,

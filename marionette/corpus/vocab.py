@@ -61,10 +61,12 @@ class ActionTokens:
     vocab_tokens: tuple[np.ndarray, ...]  # per entity, per token: the token within its type's vocab
     composites: tuple[np.ndarray, ...]  # per entity, per token: composite id
     clip_lengths: tuple[np.ndarray, ...]  # per entity, per token: clip length, source frames (1 for token 0)
+    # the corpus's source rate: with it, a resampled row's progress counts the time past its source frame (``encode``)
+    source_fps: float = 0.0
 
     @classmethod
-    def from_vocab(cls, vocab: dict, layout: Layout) -> ActionTokens:
-        """Entity token tables from a corpus's vocab.json contents."""
+    def from_vocab(cls, vocab: dict, layout: Layout, source_fps: float = 0.0) -> ActionTokens:
+        """Entity token tables from a corpus's vocab.json contents (``source_fps``: the corpus's rate, 0 if unknown)."""
         types = vocab.get("entity_types", {})
         lookup, keys, vtok, comp, clip, sizes = [], [], [], [], [], []
         for e in layout.articulated:
@@ -95,6 +97,7 @@ class ActionTokens:
             tuple(vtok),
             tuple(comp),
             tuple(clip),
+            float(source_fps),
         )
 
     def token_field(self, vocab: dict, field: str) -> tuple[tuple[Any, ...], ...]:
@@ -130,12 +133,23 @@ class ActionTokens:
     def from_corpus(cls, corpus: Corpus | Path | str) -> ActionTokens:
         """Entity token tables of a corpus (its vocab.json and layout)."""
         c = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
-        return cls.from_vocab(c.vocab, c.layout)
+        fps = c.info.fps
+        one_rate = not isinstance(fps, list) or len(set(fps)) == 1  # recordings at several rates: δ unknown, 0
+        return cls.from_vocab(c.vocab, c.layout, c.fps if one_rate else 0.0)
 
     def encode(self, layout: Layout, table: pa.Table, where: str = "") -> tuple[np.ndarray, np.ndarray]:
         """State rows → tokens (n, N) int64 and progress (n, N) float32 in [0, 1]; an id the vocab lacks
-        is a ValueError naming the segment, the row within it and the source frame."""
+        is a ValueError naming the segment, the row within it and the source frame.
+
+        Progress = (motion_frame + δ) / clip length, δ the row's time past its source frame in source frames,
+        t · source_fps − frame (0 on a source row; 0 or ½ on a 20 fps row of a 30 fps corpus, which carries the
+        source frame at or before its time), so along a resampled run progress grows at the rate a rollout advances
+        it. Without ``source_fps`` (or a ``t`` column) δ = 0."""
         n = table.num_rows
+        late = np.zeros(n, np.float64)
+        if self.source_fps > 0 and n and "t" in table.column_names:
+            t = table["t"].to_numpy().astype(np.float64)
+            late = np.clip(t * self.source_fps - table["frame"].to_numpy().astype(np.float64), 0.0, None)
         tokens = np.zeros((n, len(self.entities)), np.int64)
         progress = np.zeros((n, len(self.entities)), np.float32)
         for i, e in enumerate(layout.articulated):
@@ -154,7 +168,7 @@ class ActionTokens:
                     lut[k] = tok
                 tokens[nz, i] = lut[inverse.reshape(-1)]
             clip = self.clip_lengths[i][tokens[:, i]]
-            p = np.clip(np.maximum(mf, 0.0) / clip, 0.0, 1.0)
+            p = np.clip(np.where(mf >= 0, mf + late, 0.0) / clip, 0.0, 1.0)
             progress[:, i] = np.where(tokens[:, i] == 0, 0.0, p)
         return tokens, progress
 

@@ -137,7 +137,7 @@ PATCH_AHEAD_M = 1.0
 RELATIVE_SCALE_M = 5.0  # the relative feature's unit: fighters stand a few metres apart
 TERRAIN_DIR = "terrain-features"
 WINDOWS_DIR = "windows"
-WINDOWS_VERSION = "1"
+WINDOWS_VERSION = "2"  # 2: progress counts the time past the source frame
 
 
 def as_corpus(corpus: Corpus | Path | str) -> Corpus:
@@ -547,6 +547,25 @@ class Batch:
     terrain_known: Tensor | None
     segments: tuple[str, ...]
     starts: tuple[int, ...]  # first dynamics frame of each window within its segment
+
+
+def ended_events(data: WindowData, lengths: tuple[tuple[float, ...], ...], step: float) -> tuple[tuple[float, ...], ...]:
+    """``lengths`` (per entity, per token: an event's clip length in source frames, 0 for a loop) with 0 for every
+    token that the split's rows show running on where it has played out: a row of the token with at most ``step``
+    source frames left, (1 − progress) · length ≤ step, followed by a row of the same token. By the vocab's
+    definition an event's motion_frame never wraps, so on a consistent corpus none does; one that does (an action
+    replayed back to back, or a motion_frame that stalls) keeps its copy-last odds (``DynamicsConfig.events_end``)."""
+    out = [list(t) for t in lengths]
+    for i, table in enumerate(lengths):
+        L = np.asarray(table, np.float64)
+        for tok, prog in zip(data.action, data.progress):
+            if len(tok) < 2:
+                continue
+            cur, nxt = tok[:-1, i], tok[1:, i]
+            ended = (L[cur] > 0) & ((1.0 - prog[:-1, i].astype(np.float64)) * L[cur] <= step + 1e-3)
+            for t in np.unique(cur[ended & (nxt == cur)]):
+                out[i][int(t)] = 0.0
+    return tuple(tuple(t) for t in out)
 
 
 class WindowData:

@@ -20,7 +20,10 @@ Alignment, for training on a window of frames x[0..T] (``action_training_pair``,
   relative[t], and with ``clip_frames`` each entity's time left in its event at t (``ActionGPT.time_left``:
   seconds, capped at 4, and the inverse of the source frames left, 1 on an event's last frame: a sharp
   signal of the frame an event ends, which progress alone, 1.5/clip length per model frame, is not);
-  it predicts root[t+1] and the logits of tokens[t+1].
+  it predicts root[t+1] and the logits of tokens[t+1]. With ``events_end``, where an entity's current token is an
+  event with at most source_fps / model_fps source frames left, (1 − progress[t]) · clip length ≤ 1.5, the next
+  token cannot be the same (by the vocab's definition an event's motion_frame never wraps; the train split is
+  checked, ``data.ended_events``): that logit is −inf, so the model names what follows where copy-last cannot.
 - PoseGPT step t reads body[t] and the conditions of the frame being animated: tokens[t+1] (the
   caller's, possibly overridden), root[t+1] (likewise), terrain[t+1] and relative[t+1], and with
   ``pose_progress`` the progress[t+1] of each token there (a rollout's: it restarts at 0 where a token is
@@ -210,10 +213,16 @@ class DynamicsConfig:
     # learned class embedding is added to every token's, so a rarely played token starts from its class's motion
     token_classes: tuple[tuple[int, ...], ...] = ()
     # per entity, per token: the clip length in source frames of a token that ends on its own (an event; the vocab's
-    # clip_length), 0 for one that does not (a loop, token 0); when given, ActionGPT reads each entity's time left
-    # in its event (``time_left``), which is when the next action starts
+    # clip_length), 0 for one that does not (a loop, token 0); when given with ``reads_time_left``, ActionGPT reads each
+    # entity's time left in its event (``time_left``), which is when the next action starts
     clip_frames: tuple[tuple[float, ...], ...] = ()
     source_fps: float = 30.0  # the rate clip_frames count at (the corpus's)
+    reads_time_left: bool = True  # with clip_frames: ActionGPT reads the time left (configs before events_end did)
+    # a played-out event ends: where an entity's current token has clip_frames L > 0 and at most source_fps / model_fps
+    # source frames left, (1 − progress) · L ≤ that, the next token is another (its logit is dropped); per entity, per
+    # token, the lengths this rule uses: clip_frames, 0 where the train split saw the token run on (``ended_events``)
+    events_end: tuple[tuple[float, ...], ...] = ()
+    model_fps: float = 20.0  # the rate the model steps at (the corpus's dynamics view)
 
     def __post_init__(self) -> None:
         n = len(self.entities)
@@ -226,8 +235,17 @@ class DynamicsConfig:
                 f"dynamics config: clip_frames must give each of the {n} entities one length (≥ 1, or 0) per token "
                 f"(vocab sizes {self.vocab_sizes})"
             )
-        if not self.source_fps > 0:
-            raise ValueError(f"dynamics config: source_fps {self.source_fps} must be > 0")
+        if not self.source_fps > 0 or not self.model_fps > 0:
+            raise ValueError(f"dynamics config: source_fps {self.source_fps} and model_fps {self.model_fps} must be > 0")
+        if self.events_end and (
+            len(self.events_end) != n
+            or any(len(t) != v for t, v in zip(self.events_end, self.vocab_sizes))
+            or any(not (x >= 1 or x == 0) for t in self.events_end for x in t)
+        ):
+            raise ValueError(
+                f"dynamics config: events_end must give each of the {n} entities one length (≥ 1, or 0) per token "
+                f"(vocab sizes {self.vocab_sizes})"
+            )
         if self.token_classes and (
             len(self.token_classes) != n
             or any(len(t) != v for t, v in zip(self.token_classes, self.vocab_sizes))
@@ -321,7 +339,7 @@ class DynamicsConfig:
                 v = TransformerSpec(**v)
             elif k == "token_classes" and isinstance(v, list):
                 v = tuple(tuple(int(x) for x in t) for t in v)
-            elif k == "clip_frames" and isinstance(v, list):
+            elif k in ("clip_frames", "events_end") and isinstance(v, list):
                 v = tuple(tuple(float(x) for x in t) for t in v)
             elif isinstance(v, list):
                 v = tuple(bool(x) if k == "terrain" else x for x in v)
@@ -591,7 +609,8 @@ class _FrameGPT(nn.Module, ABC):
         if c.token_classes:
             self.class_embed = nn.ModuleDict({e: nn.Embedding(N_TOKEN_CLASSES + 1, spec.action_embed) for e in c.entities})
         self._class_tables: dict[tuple[int, torch.device], Tensor] = {}  # (entity, device) → token → class, built once
-        self._clip_tables: dict[torch.device, list[Tensor]] = {}  # device → per entity: token → clip length, built once
+        # (config field, device) → per entity: token → clip length, built once
+        self._clip_tables: dict[tuple[str, torch.device], list[Tensor]] = {}
         on = [e for e, t in zip(c.entities, c.terrain) if t]
         self.terrain_mlp = nn.ModuleDict({e: _terrain_mlp(c.terrain_features, spec.terrain_hidden, spec.terrain_out) for e in on})
         in_dim = own_dims + c.n_entities * spec.action_embed + len(on) * spec.terrain_out
@@ -667,7 +686,7 @@ class ActionGPT(_FrameGPT):
         c, s = config, config.action_gpt
         with torch.device("meta"):
             # root, progress, weapon, and with clip_frames each entity's time left (2 per entity)
-            own = c.root_dim + c.n_entities + c.weapon_dim + (2 * c.n_entities if c.clip_frames else 0)
+            own = c.root_dim + c.n_entities + c.weapon_dim + (2 * c.n_entities if c.clip_frames and c.reads_time_left else 0)
             self._build_encoders(s, c, own_dims=own)
             self.root_head = nn.Linear(s.width, c.root_dim)
             self.action_heads = nn.ModuleDict({e: nn.Linear(s.width, v) for e, v in zip(c.entities, c.vocab_sizes)})
@@ -694,24 +713,36 @@ class ActionGPT(_FrameGPT):
             raise ValueError("ActionGPT reads the actions' progress; frames.progress is None")
         weapon = frames.body[..., c.weapon[0] : c.weapon[1]]
         progress = frames.progress.to(frames.root.dtype)
-        left = [self.time_left(frames.tokens, progress)] if c.clip_frames else []
+        left = [self.time_left(frames.tokens, progress)] if c.clip_frames and c.reads_time_left else []
         return torch.cat([frames.root, progress, weapon, *left, *self._shared_features(frames)], dim=-1)
+
+    def _frames_left(self, field: str, tokens: Tensor, progress: Tensor) -> Tensor:
+        """(B, T, N) float64: each entity's source frames left in its token by the config's ``field`` (per entity, per
+        token: a length, 0 = does not end on its own → inf)."""
+        key = (field, tokens.device)
+        if key not in self._clip_tables:  # not per call: a rollout runs this every frame
+            tables = getattr(self.config, field)
+            self._clip_tables[key] = [torch.tensor(t, dtype=torch.float64, device=tokens.device) for t in tables]
+        return torch.stack(
+            [
+                torch.where(table[tokens[..., i]] > 0, (1 - progress[..., i].double()) * table[tokens[..., i]], math.inf)
+                for i, table in enumerate(self._clip_tables[key])
+            ],
+            -1,
+        )
+
+    def ending(self, frames: Frames) -> Tensor:
+        """(B, T, N) bool: where an entity's event has played out by the next model frame (``events_end``)."""
+        c = self.config
+        step = c.source_fps / c.model_fps
+        return self._frames_left("events_end", frames.tokens, frames.progress) <= step + 1e-3
 
     def time_left(self, tokens: Tensor, progress: Tensor) -> Tensor:
         """Each entity's time left in its event (B, T, 2N): seconds, (1 − progress) · clip length / source fps capped
         at 4 s, then the inverse of the source frames left (1 on an event's last frame, ½ on the one before, → 0
         early on); a token that does not end on its own (clip length 0: a loop, no action) reads 4 s and 0."""
         c = self.config
-        key = tokens.device
-        if key not in self._clip_tables:  # not per call: a rollout runs this every frame
-            self._clip_tables[key] = [torch.tensor(t, dtype=torch.float64, device=key) for t in c.clip_frames]
-        frames_left = torch.stack(
-            [
-                torch.where(table[tokens[..., i]] > 0, (1 - progress[..., i].double()) * table[tokens[..., i]], math.inf)
-                for i, table in enumerate(self._clip_tables[key])
-            ],
-            -1,
-        )  # (B, T, N) source frames
+        frames_left = self._frames_left("clip_frames", tokens, progress)  # (B, T, N) source frames
         seconds = (frames_left / c.source_fps).clamp(max=4.0)
         inverse = 1.0 / frames_left.clamp(min=1.0)
         return torch.cat([seconds, inverse], -1).to(progress.dtype)
@@ -742,10 +773,14 @@ class ActionGPT(_FrameGPT):
             root = fixed + g * ((frames.root if frames.skip is None else frames.skip) - fixed)
         logits = []
         stay = self.stay_head(h) if self.config.adaptive_copy else None  # (B, T, N)
+        ending = self.ending(frames) if self.config.events_end else None
         for i, (e, v) in enumerate(zip(self.config.entities, self.config.vocab_sizes)):
             current = F.one_hot(frames.tokens[..., i], v).to(h.dtype)  # (B, T, v)
             gain = self.copy_gain[i].to(h.dtype) + (0.0 if stay is None else stay[..., i : i + 1])
-            logits.append(self.action_heads[e](h) + gain * current)
+            lg = self.action_heads[e](h) + gain * current
+            if ending is not None:  # a played-out event does not go on: its logit is dropped
+                lg = lg.masked_fill(ending[..., i : i + 1] & current.bool(), -math.inf)
+            logits.append(lg)
         return ActionOutputs(root=root, logits=tuple(logits), proposal=proposal)
 
 

@@ -78,6 +78,7 @@ from marionette.dynamics.data import (
     Normaliser,
     WindowData,
     WindowSampler,
+    ended_events,
     train_batches,
 )
 from marionette.dynamics.model import (
@@ -123,7 +124,9 @@ class TrainConfig:
     grad_clip: float = knob(1.0, "gradient-norm clipping", above=0.0)
     seed: int = knob(0, "seed of the initial weights, the windows drawn and the input noise", min=0)
     terrain: bool = knob(True, "load terrain features: monsters read them (DynamicsConfig.from_layout), the hinge uses them")
-    relative: bool = knob(False, "the relative-position feature (DESIGN: beyond the paper)")
+    # the relative position is what the fighters' behaviour turns on (the hunter keeps its distance and circles, the
+    # drake turns to face it): on, free rollouts keep the pair together and the probe's count steadies over seeds
+    relative: bool = knob(True, "the relative-position feature (DESIGN: beyond the paper)")
     pose_progress: bool = knob(True, "PoseGPT reads the progress of each token it animates (beyond the paper)")
     dropout: float = knob(0.0, "dropout in both transformers", min=0.0, below=1.0)
     # Long rollouts (docs/tradeoffs.md): residual heads integrate their errors and leave the data; a learned gain on
@@ -131,11 +134,13 @@ class TrainConfig:
     # it ran off by kilometres, so displacements are absolute unless ``displacement_gate`` blends in the current one (in a
     # rollout: the model's own proposal, not the rules' correction of it). Untrained, the anchors are the baselines.
     # The gate and PoseGPT's progress are the defaults: over four seeds they beat constant velocity on every seed and
-    # raised the probe and forcing means (docs/tradeoffs.md, "Seed to seed"); time_left and adaptive_copy stay off (in
-    # this game an event's successor is drawn at random, so knowing when it ends buys nothing).
+    # raised the probe and forcing means (docs/tradeoffs.md, "Seed to seed"). events_end is on: an event that has played
+    # out gives way (by the vocab's definition an event never wraps), so at an event's end the model names what follows
+    # (the game's recovery) where copy-last cannot; time_left and adaptive_copy stay off (they cost the probe).
     residual: bool = knob(False, "both heads add a change to the current frame, gain 1 (DynamicsConfig.residual)")
     token_classes: bool = knob(True, "add a learned embedding of each token's motion class (DynamicsConfig.token_classes)")
     time_left: bool = knob(False, "ActionGPT reads each event's time left (DynamicsConfig.clip_frames)")
+    events_end: bool = knob(True, "a played-out event is followed by another token (DynamicsConfig.events_end)")
     body_anchor: bool = knob(True, "PoseGPT predicts gain ⊙ current body + a change, a gain per dimension; off with residual")
     rotation_anchor: bool = knob(True, "ActionGPT predicts each root rotation as the current one + a change; off with residual")
     adaptive_copy: bool = knob(False, "ActionGPT's copy gain on the current token gets a learned per-frame term")
@@ -244,13 +249,21 @@ def vertical_displacement(root: Tensor, normaliser: Normaliser) -> Tensor:
 
 def action_loss(logits: tuple[Tensor, ...], target: Tensor, smoothing: float = 0.0) -> Tensor:
     """Cross-entropy pooled over entities and frames whose next token is not 0 ("no valid action"), its targets
-    smoothed by ``smoothing`` (spread over the vocabulary)."""
+    smoothed by ``smoothing`` (spread over the tokens the frame allows: a logit of −inf, a played-out event's
+    (``ActionGPT.ending``), is a token that cannot follow and gets none)."""
     total, count = logits[0].new_zeros(()), 0
     for i, lg in enumerate(logits):
         t = target[..., i].reshape(-1)
         flat = lg.reshape(-1, lg.shape[-1]).float()
-        total = total + F.cross_entropy(flat, t, ignore_index=0, reduction="sum", label_smoothing=smoothing)
-        count += int((t != 0).sum())
+        keep = t != 0
+        logp = F.log_softmax(flat[keep], dim=-1)
+        nll = -logp.gather(1, t[keep, None])[:, 0]
+        if smoothing:
+            allowed = torch.isfinite(logp)
+            uniform = -torch.where(allowed, logp, 0.0).sum(-1) / allowed.sum(-1)
+            nll = (1 - smoothing) * nll + smoothing * uniform
+        total = total + nll.sum()
+        count += int(keep.sum())
     return total / max(count, 1)
 
 
@@ -355,7 +368,7 @@ def evaluate(model: DynamicsModel, windows: HeldOutWindows, device: torch.device
     """The model's next-action accuracy (frames whose next token ≠ 0) and next body / root MSE (normalised)."""
     was = model.training
     model.eval()
-    hits = valid = 0
+    hits = valid = changes = called = false_calls = 0
     body_se = root_se = 0.0
     body_n = root_n = 0
     for batch in windows:
@@ -366,6 +379,10 @@ def evaluate(model: DynamicsModel, windows: HeldOutWindows, device: torch.device
         ok = tok_next != 0
         hits += int(((pred == tok_next) & ok).sum())
         valid += int(ok.sum())
+        change = ok & (tok_next != a_in.tokens)
+        changes += int(change.sum())
+        called += int((change & (pred == tok_next)).sum())
+        false_calls += int((ok & ~change & (pred != tok_next)).sum())
         p_in, body_next = pose_training_pair(frames)
         body = model.pose(p_in)
         body_se += float(((body.float() - body_next) ** 2).sum())
@@ -375,6 +392,11 @@ def evaluate(model: DynamicsModel, windows: HeldOutWindows, device: torch.device
     model.train(was)
     return {
         "action_accuracy": hits / max(valid, 1),
+        # the next action against copy-last, frame by frame: of the frames whose next token differs from the current
+        # one, how many the model called; of the frames that keep it, how many it called a change on
+        "action_changes": changes,
+        "changes_called": called,
+        "false_changes": false_calls,
         "body_mse": body_se / max(body_n, 1),
         "root_mse": root_se / max(root_n, 1),
         "windows": len(windows.windows()),
@@ -486,6 +508,8 @@ def train(
         token_classes=tokens.class_indices(corpus.vocab) if config.token_classes else (),
         clip_frames=tokens.event_lengths(corpus.vocab) if config.time_left else (),
         source_fps=float(corpus.fps),
+        model_fps=float(data.fps),
+        events_end=ended_events(data, tokens.event_lengths(corpus.vocab), corpus.fps / data.fps) if config.events_end else (),
         **terrain_switch,
     )
     hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None

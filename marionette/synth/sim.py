@@ -9,7 +9,10 @@ a swing chosen by distance, dodges or blocks the drake's attacks, reacts to hits
 closes in again; the drake turns in place to face it, attacks (bites, claws, tail, lunges), stalks
 sideways, hops back, roars, and now and then walks off to another spot of the fight ground, often
 up a terrace ramp, where the hunter follows. Variants are picked by distance, angle and the
-recording's random generator, so a few minutes of play use most of the clip table.
+recording's random generator, so a few minutes of play use most of the clip table. Every event
+(an attack, a dodge, a hit reaction, a roar) settles into a short recovery stance (``RECOVER``, a third
+of a second) before the next decision, unless a hit has just landed, as fighting games play: what
+follows an event is the event's to say, so a model that knows when an event ends can call the change.
 
 Decisions are taken at frame boundaries; roots are integrated at ``SUBSTEPS`` per frame and stored,
 so the motion is a function of continuous time: roots interpolate linearly between the stored
@@ -40,6 +43,8 @@ REACH = {"hunter": 6.0, "monster": 7.5}  # an attack lands when the roots are cl
 DECK_Z = (ter.DECK[2] + ter.DECK[3]) / 2
 UNDER_EXIT_M = 6.0  # an under-bridge crossing ends this far north of the deck
 FIGHT_CENTER = (-944.0, 846.0)  # the drake's spots to fight from lie around here (m)
+RECOVER = "recover"  # the short stance every event settles into before the next decision
+HIT_WINDOW = 12  # frames after a hit lands in which its target reacts
 
 
 @dataclass
@@ -241,6 +246,13 @@ def _names(a: _Actor, *prefixes: str, cls: str | None = None) -> list[str]:
     return [n for n, c in a.clips.items() if n.startswith(prefixes) and (cls is None or c.cls == cls)]
 
 
+def _settled(a: _Actor) -> bool:
+    """Whether ``a`` may react now: its last clip was not a reaction of its own (a hit, a dodge, ...) unless it
+    was the recovery after one."""
+    prev = a.prev()
+    return a.clips[prev].cls != "other" or prev == RECOVER
+
+
 def _side(angle: float) -> str:
     """The hit-reaction side of an attack from ``angle`` (radians from the facing, + = left)."""
     return "front" if abs(angle) < 0.8 else ("left" if angle > 0 else "right")
@@ -255,7 +267,7 @@ def _decide_hunter(a: _Actor, m: _Actor, f: int, rng: np.random.Generator) -> No
     mc = m.clip()
     m_attacking = mc.cls == "attack" and f < m.seg.start + mc.hit_at * mc.length
     r = rng.random()
-    if f - a.hit_frame < 12 and a.clips[prev].cls != "other":
+    if f - a.hit_frame < HIT_WINDOW and _settled(a):
         side = "left" if a.hit_side > 0 else "right"
         a.start(
             f,
@@ -268,7 +280,7 @@ def _decide_hunter(a: _Actor, m: _Actor, f: int, rng: np.random.Generator) -> No
                 else [f"hit_{side}"],
             ),
         )
-    elif m_attacking and d < REACH["monster"] + 0.5 and a.clips[prev].cls != "other" and r < 0.75:
+    elif m_attacking and d < REACH["monster"] + 0.5 and _settled(a) and r < 0.75:
         if r < 0.2:
             a.start(f, a.pick(rng, ["block_light", "block_heavy"]))
         else:
@@ -343,7 +355,7 @@ def _decide_monster(a: _Actor, h: _Actor, f: int, rng: np.random.Generator) -> N
     d, ang = _geometry(a, h)
     r = rng.random()
     wandering, a.wandering = a.wandering, False
-    if f - a.hit_frame < 12 and a.clips[prev].cls != "other" and r < 0.5:
+    if f - a.hit_frame < HIT_WINDOW and _settled(a) and r < 0.5:
         a.start(f, a.pick(rng, ["stagger"] if r < 0.1 else [f"flinch_{_side(a.hit_side)}"]))
     elif wandering and np.hypot(a.waypoint[0] - a.x, a.waypoint[1] - a.z) > 2.0 and f - a.wander_start < 240:
         a.wandering = True
@@ -471,6 +483,14 @@ def _land_hits(a: _Actor, o: _Actor, f: int) -> None:
             o.hit_side = _geometry(o, a)[1]
 
 
+def _recovers(a: _Actor, f: int) -> bool:
+    """Whether ``a``, its clip just over at ``f``, settles into ``RECOVER`` before deciding: after every event but
+    the recovery itself, unless a hit has just landed on it (then it decides, and may react) or it is still on its
+    opening approach. What follows an event is then the event's to say, as in fighting games."""
+    c = a.clip()
+    return c.kind == "event" and c.name != RECOVER and not a.crossing and f - a.hit_frame >= HIT_WINDOW
+
+
 def _interrupted(a: _Actor, o: _Actor, f: int) -> bool:
     """Whether ``a`` drops the loop it plays at ``f``: hit just now, or (the hunter, out of its approach) the
     other starts an attack within reach. Only a loop that has played a full cycle is dropped, so every
@@ -519,7 +539,10 @@ def simulate(seed: int, index: int, n_frames: int, fps: float = 30.0) -> Plan:
         for a, o, decide in ((hunter, monster, _decide_hunter), (monster, hunter, _decide_monster)):
             if f >= a.seg.start + a.seg.length or (f > a.seg.start and _interrupted(a, o, f)):
                 a.seg.length = f - a.seg.start
-                decide(a, o, f, rng)
+                if _recovers(a, f):
+                    a.start(f, RECOVER)
+                else:
+                    decide(a, o, f, rng)
         for s in range(SUBSTEPS):
             i = f * SUBSTEPS + s
             for n, a in actors.items():
@@ -604,23 +627,26 @@ def _controls(plan: Plan, entity: str, tf: np.ndarray) -> dict[str, np.ndarray]:
     clips = CLIPS[entity]
     starts = np.array([s.start for s in segs])
     k = np.searchsorted(starts, tf, side="right") - 1
+
+    def pose(i: int, t: np.ndarray) -> dict[str, np.ndarray]:
+        """Segment i's controls at times t (at or after its start): its clip (an event holds its last pose once it
+        is over), blended over BLEND_FRAMES from the pose segment i − 1 had reached, itself blended when it was
+        shorter than the blend (a recovery), so a short segment leaves no jump."""
+        seg = segs[i]
+        c = clips[seg.clip]
+        since = t - seg.start
+        cur = fn(c, np.minimum(since, c.length) if c.kind == "event" else since)
+        if i == 0 or since.min() >= BLEND_FRAMES:
+            return cur
+        prev = pose(i - 1, t)
+        w = np.clip(since / BLEND_FRAMES, 0, 1)
+        w = w * w * (3 - 2 * w)
+        return {key: prev[key] + w * (cur[key] - prev[key]) for key in cur}
+
     out: dict[str, np.ndarray] = {}
     for i in np.unique(k):
         m = k == i
-        seg = segs[i]
-        cur = fn(clips[seg.clip], tf[m] - seg.start)
-        since = tf[m] - seg.start
-        if i > 0:
-            p = segs[i - 1]
-            pc = clips[p.clip]
-            pphase = tf[m] - p.start
-            if pc.kind == "event":
-                pphase = np.minimum(pphase, pc.length)
-            prev = fn(pc, pphase)
-            w = np.clip(since / BLEND_FRAMES, 0, 1)
-            w = w * w * (3 - 2 * w)
-            cur = {key: prev[key] + w * (cur[key] - prev[key]) for key in cur}
-        for key, v in cur.items():
+        for key, v in pose(int(i), tf[m]).items():
             out.setdefault(key, np.zeros(len(tf)))[m] = v
     return out
 
