@@ -18,7 +18,7 @@ import numpy as np
 
 MERGE_M = 0.5
 MAX_LAYERS = 8
-ALIAS_FRACTION = 0.2  # a layer with under this share of its cell's strongest layer's hits ...
+ALIAS_FRACTION = 0.25  # a layer with under this share of its cell's strongest layer's hits ...
 ALIAS_DOMINANCE = 5  # ... that a 4-neighbour holds at the same height with this many times its hits is an alias
 
 
