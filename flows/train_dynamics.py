@@ -62,7 +62,7 @@ def train_dynamics(
     window: int | None = None,
     lr: float = 3e-4,
     seed: int = 0,
-    relative: bool = False,
+    relative: bool = True,
     checkpoint_every: int = 500,
     eval_every: int = 0,
     nproc: int = 1,

@@ -431,12 +431,17 @@ def cmd_eval(a: argparse.Namespace) -> int:
     return 0
 
 
+# The demo's video chunks: half the default size, so six minutes of play ingest and render their pose targets in the
+# time 80 s took at full size; the tiny observation models paint 22 × 40 either way.
+DEMO_VIDEO_SIZE = (88, 160)  # (height, width)
+
+
 def cmd_demo(a: argparse.Namespace) -> int:
     """Synthetic recordings → corpus → 20 fps view → terrain → pose targets → dynamics → a rollout → observation model →
     evaluation report, end to end."""
     from marionette.corpus import Corpus
     from marionette.eval.report import evaluate
-    from marionette.ingest import IngestOptions
+    from marionette.ingest import IngestOptions, VideoSettings
     from marionette.pipeline import build
     from marionette.synth import generate
     from terrain_scan.scan import ScanOptions
@@ -453,7 +458,8 @@ def cmd_demo(a: argparse.Namespace) -> int:
         "depth frame) and its pose-control targets"
     )
     scan = ScanOptions(frame_stride=a.scan_stride)
-    built = build(src, corpus, IngestOptions(), workers=a.workers, progress=True, scan_options=scan)
+    video = VideoSettings(height=DEMO_VIDEO_SIZE[0], width=DEMO_VIDEO_SIZE[1])
+    built = build(src, corpus, IngestOptions(video=video), workers=a.workers, progress=True, scan_options=scan)
     print(f"    {time.time() - t:.0f} s")
     c = Corpus(corpus)
     rows = sum(c.dynamics_shard(s).num_rows for s in c.shard_ids())
@@ -542,7 +548,10 @@ def _demo_observation(c, out: Path, steps: int) -> None:
 
     runs, base = out / "observation", out / "observation-baseline"
     video = c.info.video
-    reduce = 8 if video["height"] % 8 == 0 and video["width"] % 8 == 0 else 4
+    # the tiny models paint about 22 × 40: the largest reduction of the chunk size that keeps that
+    reduce = next(
+        r for r in (8, 4, 2, 1) if r == 1 or (video["height"] % r == 0 and video["width"] % r == 0 and video["height"] // r >= 22)
+    )
     tiny = dict(preset="tiny", steps=steps, batch_size=4, frames=5, reduce=reduce, patch=2, lr=1e-3, warmup=20)
     t = time.time()
     print(
@@ -613,13 +622,15 @@ def mesh_path(s: str) -> Path:
     return Path(s)
 
 
-def _synthetic_arguments(s: argparse.ArgumentParser, recordings: int, workers: int) -> None:
+def _synthetic_arguments(
+    s: argparse.ArgumentParser, recordings: int, workers: int, seconds: float = 20.0, size: tuple[int, int] = (320, 180)
+) -> None:
     """The synthetic recordings' options (``synth`` and ``demo``)."""
     s.add_argument("--recordings", type=positive_int, default=recordings, help="recordings to write")
-    s.add_argument("--seconds", type=positive_float, default=20.0, help="length of each recording, seconds")
+    s.add_argument("--seconds", type=positive_float, default=seconds, help="length of each recording, seconds")
     s.add_argument("--seed", type=non_negative_int, default=0, help="seed of the synthetic game")
-    s.add_argument("--width", type=even_int, default=320, help="source video width, pixels (even)")
-    s.add_argument("--height", type=even_int, default=180, help="source video height, pixels (even)")
+    s.add_argument("--width", type=even_int, default=size[0], help="source video width, pixels (even)")
+    s.add_argument("--height", type=even_int, default=size[1], help="source video height, pixels (even)")
     s.add_argument("--workers", type=positive_int, default=workers, help="parallel worker processes")
 
 
@@ -773,7 +784,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = command("demo", "run the pipeline end to end on synthetic data")
     s.add_argument("--out", type=Path, default=Path("demo-run"), help="directory for everything the demo writes")
-    _synthetic_arguments(s, recordings=4, workers=2)
+    # six minutes of play: the dynamics model needs them to beat its baselines (80 s did not: docs/tradeoffs.md, "The
+    # demo's ten minutes"); at 160×90 they synthesise in about the time 80 s took at 320×180
+    _synthetic_arguments(s, recordings=12, workers=2, seconds=30.0, size=(160, 90))
     s.add_argument(
         "--scan-stride", type=positive_int, default=4, help="scan every Nth depth frame (docs/tradeoffs.md: 4 keeps the RMSE)"
     )
@@ -781,7 +794,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--observation-steps",
         type=positive_int,
-        default=500,
+        default=300,
         help="training steps of each tiny observation model (the pose model and its baseline)",
     )
     s.set_defaults(fn=cmd_demo)

@@ -136,7 +136,7 @@ def test_engaged_windows_start_with_the_pair_within_the_distance(dynamics_corpus
 
 def test_protocols_are_typed_and_checked():
     quick = PROTOCOLS["quick"]
-    assert PAPER.reduced() == [] and "probe_windows 4 (paper 48)" in quick.reduced()
+    assert PAPER.reduced() == [] and "probe_windows 8 (paper 48)" in quick.reduced()
     assert (PAPER.probe_windows, PAPER.seed_frames, PAPER.horizon, PAPER.temperature) == (48, 64, 120, 0.0)
     assert parse_protocol("quick", rollouts=3).rollouts == 3
     # Table 3's state rollouts: the paper's are the painted ones; the quick protocol measures the rules on more and longer

@@ -200,7 +200,7 @@ PROTOCOLS = {
     # the demo's: inside ~2 minutes of a 10-minute demo on 2 cores
     "quick": EvalProtocol(
         "quick",
-        probe_windows=4,
+        probe_windows=8,
         seed_frames=32,
         horizon=80,
         rollouts=2,
