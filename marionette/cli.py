@@ -784,9 +784,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = command("demo", "run the pipeline end to end on synthetic data")
     s.add_argument("--out", type=Path, default=Path("demo-run"), help="directory for everything the demo writes")
-    # six minutes of play: the dynamics model needs them to beat its baselines (80 s did not: docs/tradeoffs.md, "The
-    # demo's ten minutes"); at 160×90 they synthesise in about the time 80 s took at 320×180
-    _synthetic_arguments(s, recordings=12, workers=2, seconds=30.0, size=(160, 90))
+    # ten minutes of play: the dynamics model needs minutes to beat its baselines and to show control (80 s did not;
+    # docs/tradeoffs.md, "The demo's ten minutes"); at 160×90 they synthesise in about twice the time 80 s took at 320×180
+    _synthetic_arguments(s, recordings=20, workers=2, seconds=30.0, size=(160, 90))
     s.add_argument(
         "--scan-stride", type=positive_int, default=4, help="scan every Nth depth frame (docs/tradeoffs.md: 4 keeps the RMSE)"
     )
