@@ -37,7 +37,8 @@ from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filen
 
 MANIFEST_FORMAT = "marionette-terrain-stage"
 MANIFEST_VERSION = 1
-DERIVE_VERSION = 2  # 2: ALIAS_FRACTION 0.25; bump when merge, the alias rule or the hole fill change: the next rebuild derives every chunk
+# bump when merge, the alias rule or the hole fill change: the next rebuild derives every chunk (2: ALIAS_FRACTION 0.25)
+DERIVE_VERSION = 2
 FILL_ROUNDS = 2
 CHUNK_NAME = re.compile(r"(-?\d{1,9})_(-?\d{1,9})")
 REBUILD_MODES = ("incremental", "full", "whole")

@@ -226,26 +226,19 @@ class DynamicsConfig:
 
     def __post_init__(self) -> None:
         n = len(self.entities)
-        if self.clip_frames and (
-            len(self.clip_frames) != n
-            or any(len(t) != v for t, v in zip(self.clip_frames, self.vocab_sizes))
-            or any(not (x >= 1 or x == 0) for t in self.clip_frames for x in t)
-        ):
-            raise ValueError(
-                f"dynamics config: clip_frames must give each of the {n} entities one length (≥ 1, or 0) per token "
-                f"(vocab sizes {self.vocab_sizes})"
-            )
+        for name in ("clip_frames", "events_end"):  # per entity, per token: a length in source frames, or 0
+            table = getattr(self, name)
+            if table and (
+                len(table) != n
+                or any(len(t) != v for t, v in zip(table, self.vocab_sizes))
+                or any(not (x >= 1 or x == 0) for t in table for x in t)
+            ):
+                raise ValueError(
+                    f"dynamics config: {name} must give each of the {n} entities one length (≥ 1, or 0) per token "
+                    f"(vocab sizes {self.vocab_sizes})"
+                )
         if not self.source_fps > 0 or not self.model_fps > 0:
             raise ValueError(f"dynamics config: source_fps {self.source_fps} and model_fps {self.model_fps} must be > 0")
-        if self.events_end and (
-            len(self.events_end) != n
-            or any(len(t) != v for t, v in zip(self.events_end, self.vocab_sizes))
-            or any(not (x >= 1 or x == 0) for t in self.events_end for x in t)
-        ):
-            raise ValueError(
-                f"dynamics config: events_end must give each of the {n} entities one length (≥ 1, or 0) per token "
-                f"(vocab sizes {self.vocab_sizes})"
-            )
         if self.token_classes and (
             len(self.token_classes) != n
             or any(len(t) != v for t, v in zip(self.token_classes, self.vocab_sizes))
