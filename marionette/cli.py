@@ -431,8 +431,8 @@ def cmd_eval(a: argparse.Namespace) -> int:
     return 0
 
 
-# The demo's video chunks: half the default size, so six minutes of play ingest and render their pose targets in the
-# time 80 s took at full size; the tiny observation models paint 22 × 40 either way.
+# The demo's video chunks: half the default size, so its ten minutes of play ingest and render their pose targets in
+# under twice the time 80 s took at full size; the tiny observation models paint 22 × 40 either way.
 DEMO_VIDEO_SIZE = (88, 160)  # (height, width)
 
 
