@@ -123,7 +123,15 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from marionette import geometry as geo
 from marionette.corpus import RESAMPLE_VERSION, Corpus, fixed_rows, world_of_rows
 from marionette.corpus.vocab import ActionTokens, entity_type_key  # noqa: F401 — the models' token tables
-from marionette.dynamics.model import N_CLEARANCES, PATCH_SIZE, TERRAIN_FEATURES, Frames, body_index, root_index
+from marionette.dynamics.model import (
+    N_CLEARANCES,
+    PATCH_SIZE,
+    PLAYED_OUT_SLACK,
+    TERRAIN_FEATURES,
+    Frames,
+    body_index,
+    root_index,
+)
 from marionette.io import read_ipc, text_sha256, write_ipc, write_json
 from marionette.schema import Layout, SchemaError
 from terrain_scan.field import LayeredField, egocentric_patch, joint_clearances, open_stage
@@ -562,7 +570,7 @@ def ended_events(data: WindowData, lengths: tuple[tuple[float, ...], ...], step:
             if len(tok) < 2:
                 continue
             cur, nxt = tok[:-1, i], tok[1:, i]
-            ended = (L[cur] > 0) & ((1.0 - prog[:-1, i].astype(np.float64)) * L[cur] <= step + 1e-3)
+            ended = (L[cur] > 0) & ((1.0 - prog[:-1, i].astype(np.float64)) * L[cur] <= step + PLAYED_OUT_SLACK)
             for t in np.unique(cur[ended & (nxt == cur)]):
                 out[i][int(t)] = 0.0
     return tuple(tuple(t) for t in out)

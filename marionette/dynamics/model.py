@@ -213,11 +213,10 @@ class DynamicsConfig:
     # learned class embedding is added to every token's, so a rarely played token starts from its class's motion
     token_classes: tuple[tuple[int, ...], ...] = ()
     # per entity, per token: the clip length in source frames of a token that ends on its own (an event; the vocab's
-    # clip_length), 0 for one that does not (a loop, token 0); when given with ``reads_time_left``, ActionGPT reads each
-    # entity's time left in its event (``time_left``), which is when the next action starts
+    # clip_length), 0 for one that does not (a loop, token 0); when given, ActionGPT reads each entity's time left
+    # in its event (``time_left``), which is when the next action starts
     clip_frames: tuple[tuple[float, ...], ...] = ()
     source_fps: float = 30.0  # the rate clip_frames count at (the corpus's)
-    reads_time_left: bool = True  # with clip_frames: ActionGPT reads the time left (configs before events_end did)
     # a played-out event ends: where an entity's current token has clip_frames L > 0 and at most source_fps / model_fps
     # source frames left, (1 − progress) · L ≤ that, the next token is another (its logit is dropped); per entity, per
     # token, the lengths this rule uses: clip_frames, 0 where the train split saw the token run on (``ended_events``)
@@ -659,6 +658,9 @@ class _FrameGPT(nn.Module, ABC):
         return self.transformer.cache_empty(batch, p.device, p.dtype)
 
 
+# source frames of float32 progress rounding allowed when an event's frames left are compared with a model step
+# (``ActionGPT.ending`` and the train split's check of the rule, ``data.ended_events``)
+PLAYED_OUT_SLACK = 1e-3
 GATE_INIT = 2.0  # the displacement gate's initial logit: g = 0.88, mostly the current displacement
 
 
@@ -679,7 +681,7 @@ class ActionGPT(_FrameGPT):
         c, s = config, config.action_gpt
         with torch.device("meta"):
             # root, progress, weapon, and with clip_frames each entity's time left (2 per entity)
-            own = c.root_dim + c.n_entities + c.weapon_dim + (2 * c.n_entities if c.clip_frames and c.reads_time_left else 0)
+            own = c.root_dim + c.n_entities + c.weapon_dim + (2 * c.n_entities if c.clip_frames else 0)
             self._build_encoders(s, c, own_dims=own)
             self.root_head = nn.Linear(s.width, c.root_dim)
             self.action_heads = nn.ModuleDict({e: nn.Linear(s.width, v) for e, v in zip(c.entities, c.vocab_sizes)})
@@ -706,7 +708,7 @@ class ActionGPT(_FrameGPT):
             raise ValueError("ActionGPT reads the actions' progress; frames.progress is None")
         weapon = frames.body[..., c.weapon[0] : c.weapon[1]]
         progress = frames.progress.to(frames.root.dtype)
-        left = [self.time_left(frames.tokens, progress)] if c.clip_frames and c.reads_time_left else []
+        left = [self.time_left(frames.tokens, progress)] if c.clip_frames else []
         return torch.cat([frames.root, progress, weapon, *left, *self._shared_features(frames)], dim=-1)
 
     def _frames_left(self, field: str, tokens: Tensor, progress: Tensor) -> Tensor:
@@ -728,7 +730,7 @@ class ActionGPT(_FrameGPT):
         """(B, T, N) bool: where an entity's event has played out by the next model frame (``events_end``)."""
         c = self.config
         step = c.source_fps / c.model_fps
-        return self._frames_left("events_end", frames.tokens, frames.progress) <= step + 1e-3
+        return self._frames_left("events_end", frames.tokens, frames.progress) <= step + PLAYED_OUT_SLACK
 
     def time_left(self, tokens: Tensor, progress: Tensor) -> Tensor:
         """Each entity's time left in its event (B, T, 2N): seconds, (1 − progress) · clip length / source fps capped
