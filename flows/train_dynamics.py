@@ -66,8 +66,10 @@ def train_dynamics(
     checkpoint_every: int = 500,
     eval_every: int = 0,
     nproc: int = 1,
+    loader_workers: int = 0,
 ) -> dict:
-    """Train both dynamics models on ``corpus`` into ``out``; returns the summary (checkpoint, eval, baselines)."""
+    """Train both dynamics models on ``corpus`` into ``out``; returns the summary (checkpoint, eval, baselines).
+    ``loader_workers`` DataLoader processes per rank stack the batches (0: the training process does)."""
     config = TrainConfig(
         preset=preset,
         steps=steps,
@@ -78,6 +80,7 @@ def train_dynamics(
         relative=relative,
         checkpoint_every=checkpoint_every,
         eval_every=eval_every,
+        loader_workers=loader_workers,
     )
     summary = train_models(corpus, out, config, nproc)
     create_markdown_artifact(key="train-dynamics-report", markdown=report_markdown(corpus, out, summary))
