@@ -291,6 +291,29 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
     return _strict_status(a.strict, {"terrain": len(failed["terrain"]), "pose": len(failed["pose"])})
 
 
+def cmd_terrain_import(a: argparse.Namespace) -> int:
+    """Make a directory of TRN2 chunks (the upstream release's ``c_<cx>_<cz>.bin``, or a stage's) a contribution
+    of one of the corpus's stages, rebuild the stage, then bring the pose targets up to date."""
+    from marionette.corpus import paths
+    from marionette.corpus.lock import corpus_lock
+    from marionette.pipeline import refresh
+    from terrain_scan.store import Stage, import_chunks
+
+    check_stage(a.corpus, a.stage)
+    with corpus_lock(a.corpus, "terrain import"):
+        r = import_chunks(Stage(paths.stage_dir(a.corpus, a.stage)), a.src, a.name)
+    rb = r.rebuild
+    what = "already imported, unchanged" if r.unchanged else f"{r.layers} measured layers"
+    print(
+        f"{r.name}: {r.chunks} chunk files from {a.src}, {what} ({r.skipped_filled} hole-filled layers left to the "
+        f"rebuild); stage {a.stage!r}: {len(rb.written)} chunks written, {len(rb.unchanged)} unchanged, {rb.layers} layers"
+    )
+    if a.pose:
+        for line in refresh(a.corpus, a.stage, terrain=False, pose=True, progress=not a.quiet).lines():
+            print(line)
+    return 0
+
+
 def cmd_terrain_export(a: argparse.Namespace) -> int:
     """Export a stage's scanned terrain as a mesh, its vertices relative to the terrain's middle."""
     import numpy as np
@@ -615,6 +638,15 @@ def scene_name(s: str) -> str:
     return s
 
 
+def id_string(s: str) -> str:
+    """An argparse type: a name of 1–200 letters, digits, '_' or '-' (a corpus id)."""
+    from marionette.corpus.paths import ID_PATTERN
+
+    if not ID_PATTERN.fullmatch(s):
+        raise argparse.ArgumentTypeError(f"{s!r}: a name is 1-200 letters, digits, '_' or '-'")
+    return s
+
+
 def mesh_path(s: str) -> Path:
     """An argparse type: an output path ending in .ply or .glb."""
     if Path(s).suffix.lower() not in (".ply", ".glb"):
@@ -710,6 +742,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.add_argument("--strict", action="store_true", help="exit 1 when any recording's scan or any pose target fails")
     s.set_defaults(fn=cmd_terrain_scan)
+    s = command("import", "make a directory of TRN2 chunks (upstream c_<cx>_<cz>.bin) part of a corpus's stage", tsub)
+    s.add_argument("src", type=Path, help="a directory of TRN2 chunk files")
+    s.add_argument("corpus", type=Path, help="a corpus directory")
+    s.add_argument("--stage", required=True, help="the stage id they belong to (`marionette inspect CORPUS` lists them)")
+    s.add_argument("--name", type=id_string, default=None, help="the contribution's name (default: the directory's)")
+    s.add_argument("--no-pose", dest="pose", action="store_false", help="do not bring the pose-control targets up to date")
+    s.add_argument("--quiet", action="store_true", help="no progress bars")
+    s.set_defaults(fn=cmd_terrain_import)
     s = command("export", "export a stage's terrain as a PLY or GLB mesh", tsub)
     s.add_argument("corpus", type=Path, help="a corpus directory")
     s.add_argument("--stage", default="default", help="stage id")

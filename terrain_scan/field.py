@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from terrain_scan import _kernel
-from terrain_scan.trn2 import CELL_COUNT, CELLS, Chunk, TerrainFormatError, chunk_filename, read_chunk
+from terrain_scan.trn2 import CELL_COUNT, CELLS, Chunk, TerrainFormatError, find_chunks, read_chunk
 
 if TYPE_CHECKING:
     import torch
@@ -298,12 +298,14 @@ class LayeredField:
 
 
 def open_stage(stage_dir: Path) -> LayeredField:
-    """A field over ``stage_dir/chunks/chunk_<cx>_<cz>.trn2``; a missing file is an empty chunk."""
-    chunk_dir = Path(stage_dir) / "chunks"
+    """A read-only field over a stage directory's chunks, in our naming (``chunks/chunk_<cx>_<cz>.trn2``) or the
+    upstream release's (``c_<cx>_<cz>.bin``, no manifest): ``trn2.find_chunks``, which names a missing, empty or
+    foreign directory. A chunk the directory does not hold is empty."""
+    files = find_chunks(stage_dir)
 
     def load(cx: int, cz: int) -> Chunk | None:
-        path = chunk_dir / chunk_filename(cx, cz)
-        if not path.exists():
+        path = files.get((cx, cz))
+        if path is None:
             return None
         chunk = read_chunk(path)
         if (chunk.cx, chunk.cz) != (cx, cz):

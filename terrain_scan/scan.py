@@ -20,7 +20,7 @@ from marionette.ingest.wildworld import SampleError, SampleRef
 from marionette.io import file_sha256, text_sha256
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
-from terrain_scan.store import Stage
+from terrain_scan.store import IMPORT_PREFIX, Stage
 
 SCAN_VERSION = "3"  # 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped
 
@@ -162,7 +162,8 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
     jobs: list[ScanJob] = []
     for st, recs in stages.items():
         S = held[st]
-        for gone in sorted(set(S.recordings()) - {r["sample"] for r in recs}):  # no longer in the corpus
+        kept = {r["sample"] for r in recs}
+        for gone in sorted(n for n in S.recordings() if n not in kept and not n.startswith(IMPORT_PREFIX)):  # left the corpus
             S.remove(gone)
         jobs += [
             ScanJob(st, r["sample"], r["source"], r["input_hash"], S.input_hash(r["sample"]) if incremental else None)

@@ -42,6 +42,9 @@ DERIVE_VERSION = 2
 FILL_ROUNDS = 2
 CHUNK_NAME = re.compile(r"(-?\d{1,9})_(-?\d{1,9})")
 REBUILD_MODES = ("incremental", "full", "whole")
+# a contribution imported from chunk files (``import_chunks``) rather than scanned from a recording: a recording id
+# cannot hold ':', so a scan never mistakes one for a recording that left the corpus
+IMPORT_PREFIX = "import:"
 
 ChunkKey = tuple[int, int]
 
@@ -187,10 +190,14 @@ class Stage:
     def input_hash(self, recording: str) -> str | None:
         return self.manifest["recordings"].get(recording, {}).get("input_hash")
 
-    def put(self, recording: str, obs: Observations, input_hash: str, ts: int) -> None:
+    def put(self, recording: str, obs: Observations, input_hash: str, ts: int | None) -> None:
         """Store (or replace) one recording's observations, all stamped with the recording's time
-        ``ts`` (unix seconds); takes effect at the next rebuild."""
-        obs = Observations(obs.gx, obs.gz, obs.h, obs.n, obs.hits, np.full(len(obs), int(ts), np.int64))
+        ``ts`` (unix seconds; None: each keeps its own, the newest is the recording's); takes effect at the next
+        rebuild."""
+        if ts is None:
+            ts = int(obs.ts.max()) if len(obs) else 0
+        else:
+            obs = Observations(obs.gx, obs.gz, obs.h, obs.n, obs.hits, np.full(len(obs), int(ts), np.int64))
         obs = merge(obs, max_layers=self.max_layers)
         path = self.dir / contribution_file(recording)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
@@ -408,6 +415,66 @@ class ChunkPieces:
                 )
             if self.waiting.get(c):
                 self.pieces.setdefault(c, []).append(obs.take(order[start:end]))
+
+
+def chunk_observations(chunk: Chunk) -> Observations:
+    """A chunk's measured layers as observations (gx, gz, h, n, hits, ts), sorted by cell and height: its valid
+    slots with a finite height, less those the hole fill made (a rebuild fills holes again)."""
+    flags = chunk.cells["flags"]
+    keep = ((flags & FLAG_VALID) != 0) & ((flags & FLAG_FILLED) == 0) & np.isfinite(chunk.cells["h"])
+    cell, slot = np.nonzero(keep)
+    rec = chunk.cells[cell, slot]
+    obs = Observations(
+        (chunk.cx * CELLS + cell % CELLS).astype(np.int64),
+        (chunk.cz * CELLS + cell // CELLS).astype(np.int64),
+        rec["h"].astype(np.float64),
+        rec["n"].astype(np.float64),
+        np.maximum(rec["hits"].astype(np.int64), 1),
+        rec["ts"].astype(np.int64),
+    )
+    return obs.take(np.lexsort((obs.h, obs.gz, obs.gx)))
+
+
+@dataclass
+class ImportReport:
+    """What ``import_chunks`` did: the contribution's name, the chunk files read, the layers taken (and the
+    hole-filled ones left to the rebuild), whether the same files were imported before, and the rebuild."""
+
+    name: str
+    chunks: int
+    layers: int
+    skipped_filled: int
+    unchanged: bool
+    rebuild: RebuildReport
+
+
+def import_chunks(stage: Stage, src: Path, name: str | None = None, mode: str = "incremental") -> ImportReport:
+    """Make a directory of TRN2 chunks (ours or the upstream release's naming: ``trn2.find_chunks``) one
+    contribution of ``stage``, called ``import:<name>`` (default: the directory's name), then rebuild the stage.
+    The chunks' measured layers are taken with their hit counts and times; hole-filled ones are left out (the
+    rebuild fills holes from every contribution). Importing the same files again changes nothing."""
+    from terrain_scan.trn2 import find_chunks, read_chunk
+
+    src = Path(src)
+    files = find_chunks(src)
+    label = IMPORT_PREFIX + (name if name is not None else src.resolve().name)
+    digest = hashlib.sha256()
+    parts, filled = [], 0
+    for (cx, cz), path in sorted(files.items()):
+        chunk = read_chunk(path)
+        if (chunk.cx, chunk.cz) != (cx, cz):
+            raise ValueError(f"{path}: header says chunk ({chunk.cx}, {chunk.cz}), the file name ({cx}, {cz})")
+        digest.update(f"{cx}_{cz}:".encode())
+        digest.update(chunk.to_bytes())
+        flags = chunk.cells["flags"]
+        filled += int((((flags & FLAG_VALID) != 0) & ((flags & FLAG_FILLED) != 0)).sum())
+        parts.append(chunk_observations(chunk))
+    obs = Observations.concat(parts) if parts else Observations.empty()
+    input_hash = digest.hexdigest()
+    unchanged = stage.input_hash(label) == input_hash
+    if not unchanged:
+        stage.put(label, obs, input_hash, ts=None)
+    return ImportReport(label, len(files), len(obs), filled, unchanged, stage.rebuild(mode))
 
 
 def _split_by_chunk(layers: Observations, filled: np.ndarray) -> Iterator[tuple[ChunkKey, Observations, np.ndarray]]:

@@ -14,6 +14,7 @@ Cell index = row × 100 + col; world x = cx·100 + col, world z = cz·100 + row;
 from __future__ import annotations
 
 import os
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -156,3 +157,42 @@ def write_chunk(path: Path, chunk: Chunk) -> None:
 def chunk_filename(cx: int, cz: int) -> str:
     """File name of a chunk in a stage directory, e.g. ``chunk_-10_8.trn2``."""
     return f"chunk_{cx}_{cz}.trn2"
+
+
+# Chunk file names: ours (a stage's ``chunks/`` directory) and the upstream release's (``c_<cx>_<cz>.bin`` in
+# the directory itself, no manifest); the same TRN2 bytes either way.
+OWN_NAME = re.compile(r"chunk_(-?\d{1,9})_(-?\d{1,9})\.trn2")
+UPSTREAM_NAME = re.compile(r"c_(-?\d{1,9})_(-?\d{1,9})\.bin")
+
+
+def find_chunks(stage_dir: Path) -> dict[tuple[int, int], Path]:
+    """(cx, cz) → chunk file of a stage directory in either naming: ours (``chunks/chunk_<cx>_<cz>.trn2``) or
+    the upstream release's (``c_<cx>_<cz>.bin`` in the directory itself). Only regular files whose names match
+    and that resolve inside the directory are taken. A missing directory, one holding no chunk file in either
+    naming, or one holding both is a ``TerrainFormatError`` naming it."""
+    stage_dir = Path(stage_dir)
+    if not stage_dir.is_dir():
+        raise TerrainFormatError(f"{stage_dir}: no such stage directory")
+    root = stage_dir.resolve()
+    found: dict[str, dict[tuple[int, int], Path]] = {}
+    for naming, folder, pattern in (("ours", stage_dir / "chunks", OWN_NAME), ("upstream", stage_dir, UPSTREAM_NAME)):
+        if not folder.is_dir():
+            continue
+        for entry in sorted(os.scandir(folder), key=lambda e: e.name):
+            m = pattern.fullmatch(entry.name)
+            if m is None or not entry.is_file():
+                continue
+            path = Path(entry.path)
+            if root not in path.resolve().parents:
+                raise TerrainFormatError(f"{path}: resolves to {path.resolve()}, outside the stage directory {root}")
+            found.setdefault(naming, {})[(int(m[1]), int(m[2]))] = path
+    if len(found) > 1:
+        raise TerrainFormatError(
+            f"{stage_dir}: holds chunks in both namings (chunks/chunk_<cx>_<cz>.trn2 and c_<cx>_<cz>.bin); keep one"
+        )
+    if not found:
+        raise TerrainFormatError(
+            f"{stage_dir}: no terrain chunk in it (neither chunks/chunk_<cx>_<cz>.trn2 nor c_<cx>_<cz>.bin): "
+            "not a stage directory, or one never scanned"
+        )
+    return next(iter(found.values()))

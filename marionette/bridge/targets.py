@@ -70,16 +70,24 @@ class TerrainScene:
     @staticmethod
     def of_stage(stage) -> TerrainScene:
         """A stage's TRN2 chunks (as its checked manifest lists them) as a mesh, boxes and hashes; ``stage`` is a
-        ``terrain_scan.store.Stage`` (``Corpus.terrain``), a stage directory, or None (no terrain)."""
+        ``terrain_scan.store.Stage`` (``Corpus.terrain``), a stage directory (with a manifest, or the upstream
+        release's ``c_<cx>_<cz>.bin`` chunks: ``trn2.find_chunks``, which names a directory holding neither), or
+        None (no terrain)."""
         from terrain_scan.layers import Observations
         from terrain_scan.mesh import tessellate
         from terrain_scan.store import Stage
-        from terrain_scan.trn2 import CELLS, read_chunk
+        from terrain_scan.trn2 import CELLS, find_chunks, read_chunk
 
-        if stage is None or (not isinstance(stage, Stage) and not (Path(stage) / "manifest.json").exists()):
+        if stage is None:
             return TerrainScene.empty()
+        if isinstance(stage, Stage) or (Path(stage) / "manifest.json").exists():
+            files = (stage if isinstance(stage, Stage) else Stage(stage)).chunk_files()
+        else:
+            found = find_chunks(Path(stage))
+            files = {f"{cx}_{cz}": (p, file_sha256(p)) for (cx, cz), p in found.items()}
+            files = dict(sorted(files.items()))
         parts, boxes, hashes = [], {}, {}
-        for name, (file, digest) in (stage if isinstance(stage, Stage) else Stage(stage)).chunk_files().items():
+        for name, (file, digest) in files.items():
             ch = read_chunk(file)
             ok = ch.valid() & np.isfinite(ch.cells["h"])
             cell, slot = np.nonzero(ok)
