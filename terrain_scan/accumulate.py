@@ -44,7 +44,7 @@ from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, 
 from marionette.schema import Layout
 
 from .depth import DepthDecoder, depth_edges, smooth_codes
-from .layers import MERGE_M, DenseGrid, Observations, layer_labels, merge
+from .layers import AWAY, MERGE_M, Observations, aliases, layer_labels, merge
 
 
 @dataclass
@@ -265,15 +265,15 @@ def edge_leaks(points: np.ndarray, edge_m: float = 0.1, merge_m: float = MERGE_M
     few centimetres into the next cell (depth error along the ray; measured up to 6 cm on the
     synthetic terraces), where they would make a layer metres from that cell's own surface. Points
     are grouped into per-cell layers by the merge rule (``layers.layer_labels``, each point one hit);
-    a layer is a leak when all its points lie within ``edge_m`` of one edge of its cell and the cell
-    across that edge holds a layer within ``merge_m`` of its height that does not itself lie wholly
-    within ``edge_m`` of that edge. Only the layer's position tells it apart: its hits can match the
-    cell's own surface where that is seen sparsely.
+    a layer is a leak when all its points lie within ``edge_m`` of its cell's edges and the cell across
+    one of those edges holds a layer within ``merge_m`` of its height with points away from every edge
+    (``layers.aliases`` by position, as the stage applies it to the merged layers). Only the layer's
+    position tells it apart: its hits can match the cell's own surface where that is seen sparsely.
     """
     if not len(points):
         return np.zeros(0, bool)
     gx, gz = np.floor(points[:, 0]).astype(np.int64), np.floor(points[:, 2]).astype(np.int64)
-    fx, fz = points[:, 0] - gx, points[:, 2] - gz
+    bits = edge_bits(points, edge_m)
     order = np.lexsort((points[:, 1], gz, gx))
     label = np.empty(len(points), np.int64)
     label[order] = layer_labels(gx[order], gz[order], points[:, 1][order], np.ones(len(points)), merge_m)
@@ -281,20 +281,22 @@ def edge_leaks(points: np.ndarray, edge_m: float = 0.1, merge_m: float = MERGE_M
     hits = np.bincount(label, minlength=n)
     h = np.bincount(label, weights=points[:, 1], minlength=n) / hits
     _, first = np.unique(label, return_index=True)  # a point of each layer, for its cell
-    layers = Observations(gx[first], gz[first], h, np.tile([0.0, 1.0, 0.0], (n, 1)), hits, np.zeros(n, np.int64))
-    # edges as (dx, dz) to the cell across them, with the points near each: west, east, south, north
-    edges = (((-1, 0), fx < edge_m), ((1, 0), fx >= 1 - edge_m), ((0, -1), fz < edge_m), ((0, 1), fz >= 1 - edge_m))
-    hugs = np.stack([np.bincount(label, weights=near, minlength=n) == hits for _, near in edges], axis=1)  # (n, 4)
-    g = DenseGrid.of(layers)  # its one-cell margin keeps neighbours in range
-    H = g.scatter(h, np.nan)  # (X, Z, L)
-    leak = np.zeros(n, bool)
-    for e, ((dx, dz), _) in enumerate(edges):
-        across = e ^ 1  # the same edge seen from the other cell
-        Hug = g.scatter(hugs[:, across], False)
-        i = np.flatnonzero(hugs[:, e])
-        Hn, Un = H[g.cx[i] + dx, g.cz[i] + dz], Hug[g.cx[i] + dx, g.cz[i] + dz]  # (k, L)
-        leak[i] |= ((np.abs(Hn - h[i, None]) <= merge_m) & ~Un).any(axis=1)  # NaN compares False
-    return leak[label]
+    hugs = np.zeros(n, np.uint8)
+    np.bitwise_or.at(hugs, label, bits)
+    layers = Observations(gx[first], gz[first], h, np.tile([0.0, 1.0, 0.0], (n, 1)), hits, np.zeros(n, np.int64), hugs)
+    return aliases(layers, merge_m, fraction=0.0)[label]  # by position only: the stage's rule on this recording's layers
+
+
+def edge_bits(points: np.ndarray, edge_m: float) -> np.ndarray:
+    """(P,) uint8 ``Observations.hugs`` of each point (x, y, z): the edges of its cell (floor(x), floor(z)) it lies
+    within ``edge_m`` of, as ``layers.EDGES`` bits (west x, east x + 1, south z, north z + 1), or ``AWAY``."""
+    fx, fz = points[:, 0] - np.floor(points[:, 0]), points[:, 2] - np.floor(points[:, 2])
+    near = (fx < edge_m, fx >= 1 - edge_m, fz < edge_m, fz >= 1 - edge_m)
+    out = np.zeros(len(points), np.uint8)
+    for e, m in enumerate(near):
+        out |= m.astype(np.uint8) << e
+    out[out == 0] = AWAY
+    return out
 
 
 def voxel_reduce(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -462,6 +464,7 @@ def scan_sample(
         nrm,
         np.ones(len(p), np.int64),
         np.full(len(p), ts, np.int64),
+        edge_bits(p, edge_m),
     )
     contacts = Observations.empty()
     if n and sample.entities:

@@ -1,10 +1,10 @@
 """Layers from observations: the deterministic merge rule of the layered height field.
 
-An observation is (global cell, height, normal, hits, last_ts). Within a cell, observations sorted
+An observation is (global cell, height, normal, hits, last_ts, hugs). Within a cell, observations sorted
 by height are merged greedily: one joins the current layer while it lies within ``MERGE_M`` of that
 layer's hit-weighted mean height, else it opens a new layer. A merged layer's height is the
 hit-weighted mean, its normal the hit-weighted mean direction, its hits the sum, its last_ts the
-newest. At most ``max_layers`` layers per cell are kept (the least-hit dropped; ties keep the
+newest, its hugs those of all its observations (bitwise or). At most ``max_layers`` layers per cell are kept (the least-hit dropped; ties keep the
 lower). Sorting first makes the result independent of the order observations arrive in, so adding
 recordings in any order gives the same layers; a recording's observations are kept apart (its
 *contribution*) so that re-scanning it replaces them instead of counting its hits twice.
@@ -18,8 +18,14 @@ import numpy as np
 
 MERGE_M = 0.5
 MAX_LAYERS = 8
+# the four cell edges as bits of ``Observations.hugs``, each with the step to the cell across it: west, east,
+# south, north (edge e's opposite, the same edge seen from the other cell, is e ^ 1)
+EDGES = ((-1, 0), (1, 0), (0, -1), (0, 1))
+AWAY = 1 << 4  # an ``Observations.hugs`` bit: some point lies away from every edge of its cell
+SURFACE = 1 << 5  # an ``Observations.hugs`` bit: a surface by other evidence (a contact, a hole fill, an imported chunk)
 ALIAS_FRACTION = 0.25  # a layer with under this share of its cell's strongest layer's hits ...
-ALIAS_DOMINANCE = 5  # ... that a 4-neighbour holds at the same height with this many times its hits is an alias
+ALIAS_DOMINANCE = 5  # ... that a 4-neighbour holds at the same height with this many times its hits ...
+ALIAS_SUPPORT = 16  # ... is an alias while it has fewer hits than this (one recording's 4 × 4 voxels of a cell at 0.25 m)
 
 
 @dataclass
@@ -32,6 +38,16 @@ class Observations:
     n: np.ndarray
     hits: np.ndarray
     ts: np.ndarray
+    # uint8 bits: the cell edges (``EDGES``) its points lie close to, and ``AWAY`` when some point lies away from
+    # all four (a scan's measure, ``accumulate.edge_bits``); ``SURFACE`` (the default) where there are no points
+    # to tell (a contact, a hole fill, an imported chunk): never an alias
+    hugs: np.ndarray | None = None
+
+    FIELDS = ("gx", "gz", "h", "n", "hits", "ts", "hugs")
+
+    def __post_init__(self) -> None:
+        if self.hugs is None:
+            self.hugs = np.full(len(self.h), SURFACE, np.uint8)
 
     @staticmethod
     def empty() -> Observations:
@@ -52,10 +68,10 @@ class Observations:
         parts = [p for p in parts if len(p)]
         if not parts:
             return Observations.empty()
-        return Observations(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("gx", "gz", "h", "n", "hits", "ts")))
+        return Observations(*(np.concatenate([getattr(p, f) for p in parts]) for f in Observations.FIELDS))
 
     def take(self, idx: np.ndarray) -> Observations:
-        return Observations(self.gx[idx], self.gz[idx], self.h[idx], self.n[idx], self.hits[idx], self.ts[idx])
+        return Observations(*(getattr(self, f)[idx] for f in Observations.FIELDS))
 
     def finite(self) -> Observations:
         """Drop observations with a non-finite height or normal (nothing NaN ever reaches a layer)."""
@@ -69,7 +85,7 @@ def merge(obs: Observations, merge_m: float = MERGE_M, max_layers: int = MAX_LAY
     if not len(obs):
         return Observations.empty()
     # total order: cell, height, then the other fields, so equal heights merge identically in any input order
-    order = np.lexsort((obs.ts, obs.hits, obs.n[:, 2], obs.n[:, 1], obs.n[:, 0], obs.h, obs.gz, obs.gx))
+    order = np.lexsort((obs.hugs, obs.ts, obs.hits, obs.n[:, 2], obs.n[:, 1], obs.n[:, 0], obs.h, obs.gz, obs.gx))
     o = obs.take(order)
     h, w = o.h, o.hits.astype(np.float64)
     label = layer_labels(o.gx, o.gz, h, w, merge_m)
@@ -82,7 +98,8 @@ def merge(obs: Observations, merge_m: float = MERGE_M, max_layers: int = MAX_LAY
     ts = np.zeros(n_layers, np.int64)
     np.maximum.at(ts, label, o.ts)
     first = np.flatnonzero(np.r_[True, label[1:] != label[:-1]])
-    layers = Observations(o.gx[first], o.gz[first], hm, normal, np.rint(hits).astype(np.int64), ts)
+    hugs = np.bitwise_or.reduceat(o.hugs, first)
+    layers = Observations(o.gx[first], o.gz[first], hm, normal, np.rint(hits).astype(np.int64), ts, hugs)
     return _cap(layers, max_layers)
 
 
@@ -116,31 +133,61 @@ def _cap(layers: Observations, max_layers: int) -> Observations:
 
 
 def drop_aliases(
-    layers: Observations, fraction: float = ALIAS_FRACTION, dominance: float = ALIAS_DOMINANCE, merge_m: float = MERGE_M
+    layers: Observations,
+    merge_m: float = MERGE_M,
+    fraction: float = ALIAS_FRACTION,
+    dominance: float = ALIAS_DOMINANCE,
+    support: int = ALIAS_SUPPORT,
 ) -> Observations:
-    """Drop the layers that are a neighbouring cell's surface seen a few centimetres across a cell edge.
+    """Drop the layers that are a neighbouring cell's surface seen across a cell edge (``aliases``). Rows keep
+    their (cell, h) order."""
+    return layers.take(np.flatnonzero(~aliases(layers, merge_m, fraction, dominance, support)))
+
+
+def aliases(
+    layers: Observations,
+    merge_m: float = MERGE_M,
+    fraction: float = ALIAS_FRACTION,
+    dominance: float = ALIAS_DOMINANCE,
+    support: int = ALIAS_SUPPORT,
+) -> np.ndarray:
+    """(n,) bool: the layers that are a neighbouring cell's surface seen across a cell edge (any row order).
 
     A surface that ends on a cell edge (a wall's side, a deck's rim) leaks points a few cm into the
-    next cell, which then holds a weak second layer at the neighbour's height. A layer is dropped when
-    both hold: its hits are below ``fraction`` of the strongest layer of its own cell, and one of the
-    four edge-neighbour cells holds a layer within ``merge_m`` of its height with at least
-    ``dominance`` times its hits. A weakly seen floor under a deck survives unless a neighbour's floor
-    dominates it *and* its own deck holds five times its hits; the rule reads only merged layers, so
-    it is as order-independent as ``merge``. Rows keep their (cell, h) order.
+    next cell, which then holds a layer at the neighbour's height. Two tests, on merged layers (so as
+    order-independent as ``merge``):
+
+    - **By position** (any hits): every point merged into the layer, from every recording, lay near its
+      cell's border (within the scan's ``edge_m`` of an edge: ``hugs`` without ``AWAY`` or ``SURFACE``)
+      and the cell across one of the edges it hugs holds a layer within ``merge_m`` of its height that is
+      a surface in its own right (points away from every edge, or ``SURFACE``). Each recording applies
+      it to its own layers (``accumulate.edge_leaks``); here it catches a leak whose source cell another
+      recording saw.
+    - **By hits**, for what position cannot tell (a lip seen past at a grazing angle leaks inside the
+      cell): a weakly supported layer — under ``support`` hits, under ``fraction`` of its cell's
+      strongest layer's — that an edge neighbour holds at the same height ``dominance`` times over.
+
+    A layer with ``support`` hits or more and points inside its cell — a ledge or a deck reaching into
+    the cell, however weakly seen beside a stronger neighbour — is never dropped, nor is a ``SURFACE``
+    layer (contacts, hole fills, imported chunks, whose hit counts come from elsewhere).
     """
     if not len(layers):
-        return layers
-    g = DenseGrid.of(layers)
+        return np.zeros(0, bool)
+    hugs = layers.hugs
+    own = (hugs & (AWAY | SURFACE)) != 0
+    g = DenseGrid.of(layers)  # its one-cell margin keeps neighbours in range
     H = g.scatter(layers.h, np.nan)  # (X, Z, L)
+    S = g.scatter(own, False)
     W = g.scatter(layers.hits.astype(np.float64), 0.0)
-    cell_max = W.max(axis=2)[g.cx, g.cz]
-    weak = layers.hits < fraction * cell_max
-    dominated = np.zeros(len(layers), bool)
-    for dx, dz in ((1, 0), (-1, 0), (0, 1), (0, -1)):  # DenseGrid.of's one-cell margin keeps neighbours in range
-        Hn, Wn = H[g.cx + dx, g.cz + dz], W[g.cx + dx, g.cz + dz]  # (n, L)
+    weak = (layers.hits < fraction * W.max(axis=2)[g.cx, g.cz]) & (layers.hits < support) & ((hugs & SURFACE) == 0)
+    alias = np.zeros(len(layers), bool)
+    for e, (dx, dz) in enumerate(EDGES):
+        Hn, Sn, Wn = H[g.cx + dx, g.cz + dz], S[g.cx + dx, g.cz + dz], W[g.cx + dx, g.cz + dz]  # (n, L)
         same = np.abs(Hn - layers.h[:, None]) <= merge_m  # NaN compares False
-        dominated |= (same & (Wn >= dominance * layers.hits[:, None])).any(axis=1)
-    return layers.take(np.flatnonzero(~(weak & dominated)))
+        hugged = ~own & ((hugs & (1 << e)) != 0)
+        alias |= hugged & (same & Sn).any(axis=1)
+        alias |= weak & (same & (Wn >= dominance * layers.hits[:, None])).any(axis=1)
+    return alias
 
 
 @dataclass

@@ -37,8 +37,9 @@ from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filen
 
 MANIFEST_FORMAT = "marionette-terrain-stage"
 MANIFEST_VERSION = 1
-# bump when merge, the alias rule or the hole fill change: the next rebuild derives every chunk (2: ALIAS_FRACTION 0.25)
-DERIVE_VERSION = 2
+# bump when merge, the alias rule or the hole fill change: the next rebuild derives every chunk (2: ALIAS_FRACTION 0.25;
+# 3: the alias rule by position, layers.drop_aliases)
+DERIVE_VERSION = 3
 FILL_ROUNDS = 2
 CHUNK_NAME = re.compile(r"(-?\d{1,9})_(-?\d{1,9})")
 REBUILD_MODES = ("incremental", "full", "whole")
@@ -119,7 +120,7 @@ def derive(obs: Observations, max_layers: int, fill_rounds: int) -> tuple[Observ
 def contribution_sha256(obs: Observations) -> str:
     """sha256 of a contribution's columns (dtype, shape and bytes): equal observations, equal hash."""
     h = hashlib.sha256()
-    for name in ("gx", "gz", "h", "n", "hits", "ts"):
+    for name in Observations.FIELDS:
         a = np.ascontiguousarray(getattr(obs, name))
         h.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
         h.update(a.tobytes())
@@ -197,11 +198,11 @@ class Stage:
         if ts is None:
             ts = int(obs.ts.max()) if len(obs) else 0
         else:
-            obs = Observations(obs.gx, obs.gz, obs.h, obs.n, obs.hits, np.full(len(obs), int(ts), np.int64))
+            obs = Observations(obs.gx, obs.gz, obs.h, obs.n, obs.hits, np.full(len(obs), int(ts), np.int64), obs.hugs)
         obs = merge(obs, max_layers=self.max_layers)
         path = self.dir / contribution_file(recording)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, gx=obs.gx, gz=obs.gz, h=obs.h, n=obs.n, hits=obs.hits, ts=obs.ts)
+            np.savez(fh, gx=obs.gx, gz=obs.gz, h=obs.h, n=obs.n, hits=obs.hits, ts=obs.ts, hugs=obs.hugs)
         cx, cz, _ = split_cell(obs.gx, obs.gz)
         chunks = sorted({(int(a), int(b)) for a, b in zip(cx, cz)})
         self.manifest["recordings"][recording] = {
@@ -223,7 +224,8 @@ class Stage:
 
     def _load(self, rec: dict) -> Observations:
         with np.load(self.file(rec["file"]), allow_pickle=False) as z:
-            return Observations(z["gx"], z["gz"], z["h"], z["n"], z["hits"], z["ts"])
+            hugs = z["hugs"] if "hugs" in z.files else None  # stored before scans measured it: never an alias
+            return Observations(z["gx"], z["gz"], z["h"], z["n"], z["hits"], z["ts"], hugs)
 
     def _contributors(self) -> dict[ChunkKey, list[str]]:
         """Chunk → the recordings whose contribution holds cells in it, in name order."""

@@ -49,7 +49,7 @@ def test_scan_incremental_equals_full(corpus, tmp_path):
         with np.load(sdir / rec["file"], allow_pickle=False) as z:
             from terrain_scan.layers import Observations
 
-            st.put(name, Observations(z["gx"], z["gz"], z["h"], z["n"], z["hits"], z["ts"]), rec["input_hash"], rec["ts"])
+            st.put(name, Observations(*(z[f] for f in Observations.FIELDS)), rec["input_hash"], rec["ts"])
         st.rebuild()
     assert {k: v[1] for k, v in _files(stage_dir(other, "default")).items()} == {k: v[1] for k, v in first.items()}
     # chunk contents are sane: finite, recording times from 2026, the stage ~1000 m from the origin

@@ -179,9 +179,12 @@ def _spread(ox, oz):
         "p/c": _obs(rng, ox + 88, oz - 12, 24, 19.0, 1767225800, deck=True),
         "p/d": _obs(rng, ox - 8, oz - 30, 25, 26.0, 1767225900),
     }
-    leak = recs["p/a"]  # a weak copy of the deck one cell over: the alias rule drops it
+    leak = recs["p/a"]  # the deck seen across its cells' north edge, hugging the south edge of the cell beyond: an alias
     on = (leak.h - 0.05 * leak.gx > 24.0) & (leak.gz % 7 == 1)
-    recs["p/e"] = Observations(leak.gx[on], leak.gz[on] + 1, leak.h[on], leak.n[on], np.ones(on.sum(), np.int64), leak.ts[on])
+    south = np.full(on.sum(), 1 << 2, np.uint8)  # layers.EDGES: west, east, south, north
+    recs["p/e"] = Observations(
+        leak.gx[on], leak.gz[on] + 1, leak.h[on], leak.n[on], np.ones(on.sum(), np.int64), leak.ts[on], south
+    )
     return recs
 
 
@@ -203,17 +206,17 @@ def test_chunk_by_chunk_equals_the_whole_stage(tmp_path, ox, oz):
     assert touched == {(-1, -1), (0, -1), (1, -1), (-1, 0), (0, 0), (1, 0), (-1, 1), (0, 1)} and re_.filled > 0
     lw, fw = whole.layers(whole=True)
     le, fe = each.layers()
-    assert all(np.array_equal(getattr(lw, f), getattr(le, f)) for f in ("gx", "gz", "h", "n", "hits", "ts"))
+    assert all(np.array_equal(getattr(lw, f), getattr(le, f)) for f in Observations.FIELDS)
     assert np.array_equal(fw, fe)
 
 
 def test_a_chunk_needs_its_whole_halo(tmp_path):
     """Cell (0, 2) of chunk (0, 0) depends on an observation three cells west, in chunk (-1, 0):
-    (-3, 2)'s strong layer makes (-2, 2)'s weak one an edge alias; without it, round 1 of the hole fill
-    gives (-1, 3) another height, which round 2's fill of (0, 2) reads."""
-    rows = [(-2, 2, 0.2, 10), (-1, 2, 0.2, 10), (0, 3, 0.3, 10), (-2, 2, 1.8, 1), (-3, 2, 1.8, 50)]
-    gx, gz, h, hits = (np.array(c) for c in zip(*rows))
-    o = Observations(gx, gz, h, np.tile([0.0, 1.0, 0.0], (len(h), 1)), hits, np.zeros(len(h), np.int64))
+    (-3, 2)'s layer makes (-2, 2)'s one at its height, hugging their shared edge, an edge alias; without it,
+    round 1 of the hole fill gives (-1, 3) another height, which round 2's fill of (0, 2) reads."""
+    rows = [(-2, 2, 0.2, 10, 0), (-1, 2, 0.2, 10, 0), (0, 3, 0.3, 10, 0), (-2, 2, 1.8, 1, 1), (-3, 2, 1.8, 50, 0)]
+    gx, gz, h, hits, hugs = (np.array(c) for c in zip(*rows))
+    o = Observations(gx, gz, h, np.tile([0.0, 1.0, 0.0], (len(h), 1)), hits, np.zeros(len(h), np.int64), hugs.astype(np.uint8))
     each, _ = _stage(tmp_path / "each", {"r": o}, "full")
     _stage(tmp_path / "whole", {"r": o}, "whole")
     assert _chunk_bytes(tmp_path / "each") == _chunk_bytes(tmp_path / "whole")
