@@ -22,7 +22,9 @@ from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.store import IMPORT_PREFIX, Stage
 
-SCAN_VERSION = "4"  # 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug
+SCAN_VERSION = (
+    "4"  # 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug
+)
 
 
 @dataclass(frozen=True)
