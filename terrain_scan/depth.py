@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 KINDS = ("inverse", "linear")
@@ -97,6 +98,13 @@ def smooth_codes(codes: np.ndarray, radius: int = 3, tol: float = 1.0) -> np.nda
     c = np.asarray(codes, dtype=np.float64)
     if radius <= 0:
         return c
+    if c.ndim == 2 and np.asarray(codes).dtype == np.uint8:
+        return _smooth_u8(np.ascontiguousarray(codes), int(radius), float(tol))
+    return smooth_codes_reference(c, radius, tol)
+
+
+def smooth_codes_reference(c: np.ndarray, radius: int, tol: float) -> np.ndarray:
+    """``smooth_codes`` in plain numpy over float codes: the definition the compiled kernel equals bit for bit."""
     H, W = c.shape
     pad = np.pad(c, radius, mode="constant")  # padding is 0: invalid, never averaged
     total = np.zeros_like(c)
@@ -108,6 +116,29 @@ def smooth_codes(codes: np.ndarray, radius: int = 3, tol: float = 1.0) -> np.nda
             total += np.where(ok, nb, 0.0)
             count += ok
     return np.where(c > 0, total / np.maximum(count, 1), 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _smooth_u8(codes: np.ndarray, radius: int, tol: float) -> np.ndarray:  # pragma: no cover - compiled
+    """``smooth_codes`` of 8-bit codes, per pixel over its window: the sums are of integers, so exact in any
+    order, and the one division per pixel is the reference's."""
+    H, W = codes.shape
+    out = np.zeros((H, W))
+    for i in range(H):
+        for j in range(W):
+            c = codes[i, j]
+            if c == 0:
+                continue
+            total = 0.0
+            count = 0.0
+            for a in range(max(i - radius, 0), min(i + radius + 1, H)):
+                for b in range(max(j - radius, 0), min(j + radius + 1, W)):
+                    nb = codes[a, b]
+                    if nb > 0 and abs(float(nb) - float(c)) <= tol:
+                        total += nb
+                        count += 1.0
+            out[i, j] = total / max(count, 1.0)
+    return out
 
 
 def depth_edges(z: np.ndarray, rel: float = 0.1) -> np.ndarray:
