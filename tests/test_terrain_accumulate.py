@@ -13,6 +13,7 @@ from marionette.synth import generate, load_truth, terrain
 from marionette.synth.render import decode_depth, encode_depth
 from terrain_scan.accumulate import (
     backproject,
+    character_mask,
     depth_frames,
     edge_leaks,
     entity_bones,
@@ -20,8 +21,9 @@ from terrain_scan.accumulate import (
     scan_recording,
     scan_sample,
     segment_distance,
+    voxel_reduce,
 )
-from terrain_scan.depth import DepthDecoder
+from terrain_scan.depth import DepthDecoder, smooth_codes, smooth_codes_reference
 from terrain_scan.field import open_stage
 from terrain_scan.layers import Observations
 from terrain_scan.store import Stage
@@ -266,3 +268,30 @@ def test_subsampled_depth_keeps_pixels_and_maps_the_intrinsics(f):
     assert ScanOptions().key() == ScanOptions(depth_subsample=1).key() != ScanOptions(depth_subsample=f).key()
     with pytest.raises(ValueError, match="depth_subsample"):
         ScanOptions(depth_subsample=0)
+
+
+def test_fast_paths_equal_their_definitions():
+    """The scan's compiled and packed paths give their plain definitions' values bit for bit: the smoothing of
+    8-bit codes, the per-frame voxel means (one packed 1-D sort against ``np.unique(axis=0)``) and the character
+    mask (bones tested where their grown boxes hold a point, against every point × every bone) — on random data,
+    at negative and far-out coordinates."""
+    rng = np.random.default_rng(5)
+    codes = rng.integers(0, 256, (37, 53)).astype(np.uint8)
+    codes[rng.random(codes.shape) < 0.2] = 0
+    smooth = np.cumsum(rng.integers(-1, 2, (40, 61)), axis=1) % 200 + 30  # plane-like runs of near codes
+    for c in (codes, smooth.astype(np.uint8)):
+        for radius, tol in ((3, 1.0), (1, 0.5), (2, 4.0)):
+            np.testing.assert_array_equal(smooth_codes(c, radius, tol), smooth_codes_reference(c.astype(float), radius, tol))
+    for origin in (np.zeros(3), np.array([-4321.7, -12.3, 98765.4])):
+        pts = origin + rng.normal(0, 3, (5000, 3))
+        key = np.floor(pts / 0.125).astype(np.int64)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        want = np.stack([np.bincount(inv.reshape(-1), weights=pts[:, k]) / cnt for k in range(3)], axis=1)
+        np.testing.assert_array_equal(voxel_reduce(pts, 0.125), want)
+        a, b = origin + rng.normal(0, 2, (40, 3)), origin + rng.normal(0, 2, (40, 3))
+        bones = [(a[:25], b[:25], 0.8), (a[25:], a[25:], 0.4)]  # a rig, and single points
+        brute = np.zeros(len(pts), bool)
+        for sa, sb, r in bones:
+            brute |= (segment_distance(pts, sa, sb) <= r).any(1)
+        assert 0 < brute.sum() < len(pts)
+        np.testing.assert_array_equal(character_mask(pts, bones), brute)
