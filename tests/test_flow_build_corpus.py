@@ -275,16 +275,19 @@ def test_flow_in_process_reports_quarantined_sample(synth_small, tmp_path):
 
 @pytest.mark.timeout(600)
 def test_train_dynamics_deployment_trains_under_ddp_resumes_and_reports(local_prefect, corpus, tmp_path):
-    """The train-dynamics/weekly deployment (schedule declared, off) run by the worker with nproc=2."""
+    """The train-dynamics/weekly deployment (schedule declared, off) run by the worker with nproc=2, each rank's
+    batches stacked by a DataLoader worker process."""
     dep = httpx.get(f"{local_prefect['api']}/deployments/name/train-dynamics/weekly", timeout=10).json()
     assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 3 * * 0", False)]
     out = tmp_path / "dynamics"
     params = {"corpus": corpus, "out": out, "steps": 4, "batch_size": 4, "window": 16, "checkpoint_every": 2, "nproc": 2}
+    params["loader_workers"] = 1
     run_id = run_deployment(local_prefect, deployment="train-dynamics/weekly", **params)
     from marionette.dynamics.checkpoint import latest_checkpoint
 
     ckpt = latest_checkpoint(out)
     assert ckpt is not None and ckpt.name == "step-00000004"
+    assert json.loads((ckpt / "meta.json").read_text())["train_config"]["loader_workers"] == 1
     assert (out / "tensorboard").is_dir() and any((out / "tensorboard").iterdir())
     artifacts = httpx.post(
         f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-dynamics-report"]}}}
