@@ -181,7 +181,8 @@ def build_corpus(
     dask_address: str | None = None,
     n_workers: int = 2,
     scan_terrain: bool = True,
-    terrain_frame_stride: int = 1,
+    terrain_frame_stride: int | None = None,
+    scan: dict | None = None,
 ) -> dict:
     """Ingest every WildWorld sample under ``source`` into ``corpus`` and finalize it.
 
@@ -189,7 +190,8 @@ def build_corpus(
     scan and render), or on the existing scheduler
     at ``dask_address`` (its workers must be able to import ``marionette`` and ``flows`` and see both
     paths). After finalize, each stage's terrain is scanned incrementally (the ``rescan-stage``
-    subflow, its recordings fanned out on the same cluster) unless ``scan_terrain`` is false. Returns the build report, also written to
+    subflow, its recordings fanned out on the same cluster, with the corpus's last scan options and ``scan`` /
+    ``terrain_frame_stride`` over them) unless ``scan_terrain`` is false. Returns the build report, also written to
     ``<corpus>/meta/builds/<flow-run-id>.json``.
     """
     options = IngestOptions(
@@ -211,7 +213,12 @@ def build_corpus(
             from flows.rescan_stage import rescan_stage
 
             terrain = rescan_stage(
-                corpus, incremental=True, frame_stride=terrain_frame_stride, dask_address=address, n_workers=n_workers
+                corpus,
+                incremental=True,
+                frame_stride=terrain_frame_stride,
+                scan=scan,
+                dask_address=address,
+                n_workers=n_workers,
             )
         report = build_report(str(flow_run.id), source, corpus, options, results, info)
         report["terrain"] = terrain

@@ -64,19 +64,26 @@ def rescan_stage(
     corpus: str,
     stage: str | None = None,
     incremental: bool = True,
-    frame_stride: int = 1,
-    voxel_m: float = 0.25,
+    frame_stride: int | None = None,
+    voxel_m: float | None = None,
     depth_decoder: dict | None = None,
+    scan: dict | None = None,
     render_targets: bool = True,
     dask_address: str | None = None,
     n_workers: int = 2,
 ) -> dict:
     """Scan one stage (or every stage) of ``corpus``, its recordings fanned out on Dask (a local cluster of
     ``n_workers`` processes, or the scheduler at ``dask_address``); returns per stage what was scanned and
-    written, and the pose pass under ``"_pose_targets"``."""
+    written, and the pose pass under ``"_pose_targets"``. The scan options are the corpus's last (its
+    ``meta/scan.json``, else the defaults) with ``scan`` (any ``terrain_scan.scan.KNOBS``), ``depth_decoder``,
+    ``frame_stride`` and ``voxel_m`` laid over them; they are kept for the next scan."""
     logger = get_run_logger()
-    decoder = DepthDecoder.synthetic() if depth_decoder is None else DepthDecoder.from_json(depth_decoder)
-    options = ScanOptions(decoder=decoder.to_json(), frame_stride=frame_stride, voxel_m=voxel_m)
+    base = ScanOptions.stored(Path(corpus)) or ScanOptions()
+    if scan:
+        base = ScanOptions.from_json({**base.to_json(), **scan}, "rescan-stage parameter scan")
+    decoder = None if depth_decoder is None else DepthDecoder.from_json(depth_decoder).to_json()
+    options = base.updated(decoder=decoder, frame_stride=frame_stride, voxel_m=voxel_m)
+    logger.info("scan options: %s", options.changed() or "the defaults")
     with dask_cluster(dask_address, n_workers) as address:  # one cluster for the scan and the render
         done = pipeline.refresh(
             Path(corpus),

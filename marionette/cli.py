@@ -136,6 +136,18 @@ def inspect_text(corpus_path: Path, play_shards: int = 64) -> str:
     if info.total_segments:
         lines += play_stats_lines(play_stats(c, max_shards=play_shards))
     lines.append(f"shards   {len(info.shards)} state + video: {c.path / 'state'}, {c.path / 'video'}")
+    from terrain_scan.scan import ScanOptions
+
+    scanned = ScanOptions.stored(c.path)
+    if scanned is None:
+        lines.append("terrain  not scanned yet")
+    else:
+        changed = scanned.changed()
+        lines.append(
+            "terrain  scanned with "
+            + (", ".join(f"{k}={json.dumps(v, sort_keys=True)}" for k, v in changed.items()) or "the defaults")
+            + f" ({c.path / 'meta' / 'scan.json'})"
+        )
     q = c.quarantine.to_pylist()
     lines.append(f"quarantine {len(q)}")
     for r in q:
@@ -278,12 +290,20 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
     from terrain_scan.depth import DepthDecoder
     from terrain_scan.scan import ScanOptions
 
-    decoder = DepthDecoder.synthetic() if a.depth_decoder is None else DepthDecoder.from_json(read_json(a.depth_decoder))
-    options = ScanOptions(
-        decoder=decoder.to_json(), frame_stride=a.frame_stride, voxel_m=a.voxel, depth_subsample=a.depth_subsample
-    )
+    options = ScanOptions.stored(a.corpus) or ScanOptions()
+    if a.scan_config is not None:
+        options = ScanOptions.from_json({**options.to_json(), **read_json(a.scan_config)}, str(a.scan_config))
+    decoder = None if a.depth_decoder is None else DepthDecoder.from_json(read_json(a.depth_decoder)).to_json()
+    given = {"decoder": decoder, "frame_stride": a.frame_stride, "voxel_m": a.voxel, "depth_subsample": a.depth_subsample}
+    given["max_depth_m"] = a.max_depth
+    options = options.updated(**{**dict(a.scan_option), **{k: v for k, v in given.items() if v is not None}})
     if a.stage is not None:
         check_stage(a.corpus, a.stage)
+    changed = options.changed()
+    if not a.quiet:
+        print(
+            "scanning with " + (", ".join(f"{k}={json.dumps(v, sort_keys=True)}" for k, v in changed.items()) or "the defaults")
+        )
     report = refresh(a.corpus, a.stage, a.incremental, options, pose=a.pose, progress=not a.quiet, workers=a.workers)
     for line in report.lines():
         print(line)
@@ -297,11 +317,13 @@ def cmd_terrain_import(a: argparse.Namespace) -> int:
     from marionette.corpus import paths
     from marionette.corpus.lock import corpus_lock
     from marionette.pipeline import refresh
+    from terrain_scan.scan import ScanOptions
     from terrain_scan.store import Stage, import_chunks
 
     check_stage(a.corpus, a.stage)
+    alias = (ScanOptions.stored(a.corpus) or ScanOptions()).alias()  # the stage's derivation as its scans set it
     with corpus_lock(a.corpus, "terrain import"):
-        r = import_chunks(Stage(paths.stage_dir(a.corpus, a.stage)), a.src, a.name)
+        r = import_chunks(Stage(paths.stage_dir(a.corpus, a.stage), alias=alias), a.src, a.name)
     rb = r.rebuild
     what = "already imported, unchanged" if r.unchanged else f"{r.layers} measured layers"
     print(
@@ -638,6 +660,25 @@ def scene_name(s: str) -> str:
     return s
 
 
+def scan_option(s: str) -> tuple[str, float | int]:
+    """An argparse type: ``KNOB=VALUE`` for one of ``terrain_scan.scan.KNOBS``, the value checked as the knob needs."""
+    from terrain_scan.knobs import KNOBS, knob_ok
+
+    name, eq, raw = s.partition("=")
+    if not eq or name not in KNOBS:
+        raise argparse.ArgumentTypeError(
+            f"{s!r}: give KNOB=VALUE with KNOB one of {', '.join(KNOBS)}{near_ids(list(KNOBS), name)}"
+        )
+    check = KNOBS[name][0]
+    try:
+        value: float | int = int(raw) if check.startswith("an int") else float(raw)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r}: {name} must be {check}") from None
+    if not knob_ok(check, value):
+        raise argparse.ArgumentTypeError(f"{s!r}: {name} must be {check}")
+    return name, value
+
+
 def id_string(s: str) -> str:
     """An argparse type: a name of 1–200 letters, digits, '_' or '-' (a corpus id)."""
     from marionette.corpus.paths import ID_PATTERN
@@ -668,6 +709,8 @@ def _synthetic_arguments(
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``marionette`` command line: every subcommand, each option validated as it is parsed and its default shown."""
+    from terrain_scan.knobs import KNOBS
+
     p = Parser(prog="marionette", description=DESCRIPTION)
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
@@ -726,15 +769,36 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("corpus", type=Path, help="a corpus directory")
     s.add_argument("--stage", default=None, help="one stage id (default: every stage)")
     s.add_argument("--incremental", action="store_true", help="scan only recordings that are new or changed")
-    s.add_argument("--frame-stride", type=positive_int, default=1, help="use every Nth depth frame")
+    s.add_argument(
+        "--frame-stride", type=positive_int, default=None, help="use every Nth depth frame (default: as last scanned, else 1)"
+    )
     s.add_argument(
         "--depth-subsample",
         type=positive_int,
-        default=1,
-        help="use every Nth depth pixel of every Nth row (a 1280x720 depth video at 4 is scanned at 320x180)",
+        default=None,
+        help="use every Nth depth pixel of every Nth row (a 1280x720 depth video at 4 is scanned at 320x180; default: as "
+        "last scanned, else 1)",
     )
-    s.add_argument("--voxel", type=positive_float, default=0.25, help="voxel size of the point down-sampling, metres")
-    s.add_argument("--depth-decoder", type=Path, default=None, help="8-bit depth mapping JSON (default: the synthetic game's)")
+    s.add_argument(
+        "--voxel", type=positive_float, default=None, help="voxel size of the point down-sampling, metres (default: 0.25)"
+    )
+    s.add_argument("--max-depth", type=positive_float, default=None, help="depth pixels beyond this are dropped, metres (20)")
+    s.add_argument(
+        "--depth-decoder",
+        type=Path,
+        default=None,
+        help="8-bit depth mapping JSON (default: as last scanned, else the synthetic game's)",
+    )
+    s.add_argument("--scan-config", type=Path, default=None, help="a JSON object of scan options (the keys of --scan-option)")
+    s.add_argument(
+        "--scan-option",
+        type=scan_option,
+        action="append",
+        default=[],
+        metavar="KNOB=VALUE",
+        help="set one scan knob (repeatable): " + ", ".join(KNOBS) + "; the corpus keeps what its last scan used "
+        "(meta/scan.json, shown by `marionette inspect`)",
+    )
     s.add_argument(
         "--workers", type=positive_int, default=1, help="parallel processes: recordings scanned, video shards rendered"
     )

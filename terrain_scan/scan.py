@@ -17,9 +17,11 @@ from pathlib import Path
 from marionette.corpus import paths
 from marionette.fanout import Mapper, pool_mapper, worker_identity
 from marionette.ingest.wildworld import SampleError, SampleRef
-from marionette.io import file_sha256, text_sha256
+from marionette.io import file_sha256, text_sha256, write_json
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
+from terrain_scan.knobs import DERIVE_KNOBS, KNOBS, knob_ok
+from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT
 from terrain_scan.store import IMPORT_PREFIX, Stage
 
 SCAN_VERSION = (
@@ -29,26 +31,102 @@ SCAN_VERSION = (
 
 @dataclass(frozen=True)
 class ScanOptions:
-    """How depth becomes observations: the depth decoder, frame stride, voxel size and depth subsampling (every
-    ``depth_subsample``-th pixel of every such row, ``accumulate.subsampled``)."""
+    """How depth becomes observations and observations a stage: the depth decoder and every knob of ``KNOBS``
+    (defaults: the values tuned on the synthetic game, ``docs/tradeoffs.md``). A corpus keeps the options its
+    last scan used (``meta/scan.json``: ``stored``), so a later scan, ingest's and the flows' included, scans
+    with them unless told otherwise."""
 
     decoder: dict = field(default_factory=lambda: DepthDecoder.synthetic().to_json())
     frame_stride: int = 1
-    voxel_m: float = 0.25
     depth_subsample: int = 1
+    voxel_m: float = 0.25
+    max_depth_m: float = 20.0
+    min_normal_y: float = 0.5
+    image_normal_y: float = 0.8
+    edge_rel: float = 0.1
+    edge_m: float = 0.1
+    smooth_radius: int = 3
+    smooth_tol: float = 1.0
+    normal_radius_voxels: float = 2.0
+    mask_radius_scale: float = 3.0
+    mask_margin_m: float = 0.3
+    contact_speed: float = 0.2
+    contact_window: int = 2
+    contact_tol_m: float = 0.05
+    contact_hits: int = 1
+    alias_fraction: float = ALIAS_FRACTION
+    alias_dominance: float = ALIAS_DOMINANCE
+    alias_support: int = ALIAS_SUPPORT
 
     def __post_init__(self) -> None:
-        if self.frame_stride < 1 or self.depth_subsample < 1 or not self.voxel_m > 0:
-            raise ValueError(
-                f"ScanOptions: frame_stride and depth_subsample must be at least 1 and voxel_m positive, not "
-                f"{self.frame_stride}, {self.depth_subsample}, {self.voxel_m}"
-            )
+        for name, (check, _) in KNOBS.items():
+            v = getattr(self, name)
+            if not knob_ok(check, v):
+                raise ValueError(f"scan option {name} must be {check}, not {v!r}")
+        try:
+            DepthDecoder.from_json(self.decoder)
+        except (TypeError, ValueError, KeyError) as exc:
+            raise ValueError(f"scan option decoder: {exc}") from None
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(d: object, where: str = "scan options") -> ScanOptions:
+        """Options from JSON (a subset of the fields; the rest default); an unknown key or a bad value is an error
+        naming it and ``where``."""
+        if not isinstance(d, dict):
+            raise ValueError(f"{where}: scan options are a JSON object, not {type(d).__name__}")
+        unknown = sorted(set(d) - set(KNOBS) - {"decoder"})
+        if unknown:
+            raise ValueError(f"{where}: unknown scan option(s) {unknown}; known: decoder, {', '.join(KNOBS)}")
+        try:
+            return ScanOptions(**d)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+    def updated(self, **changes) -> ScanOptions:
+        """These options with ``changes`` (None values ignored), checked."""
+        return ScanOptions.from_json({**self.to_json(), **{k: v for k, v in changes.items() if v is not None}})
+
+    def scan_kwargs(self) -> dict:
+        """``scan_recording``'s keyword arguments (every knob a recording's scan reads)."""
+        return {k: getattr(self, k) for k in KNOBS if k not in DERIVE_KNOBS}
+
+    def alias(self) -> tuple[float, float, int]:
+        """The stage's edge-alias rule by hits: (fraction, dominance, support)."""
+        return (self.alias_fraction, self.alias_dominance, self.alias_support)
 
     def key(self) -> str:
-        d = asdict(self)
-        if d["depth_subsample"] == 1:  # the key of a scan made before the knob existed
-            del d["depth_subsample"]
+        """Hash of what a recording's contribution depends on (the decoder and every knob but the stage's)."""
+        d = {k: v for k, v in asdict(self).items() if k not in DERIVE_KNOBS}
         return text_sha256(json.dumps(d, sort_keys=True), SCAN_VERSION)[:16]
+
+    def changed(self) -> dict:
+        """The knobs (and decoder) that differ from the defaults."""
+        base = ScanOptions().to_json()
+        return {k: v for k, v in self.to_json().items() if v != base[k]}
+
+    @staticmethod
+    def stored(corpus: Path) -> ScanOptions | None:
+        """The options of the corpus's last scan (``meta/scan.json``), or None before its first."""
+        path = Path(corpus) / SCAN_CONFIG
+        if not path.is_file():
+            return None
+        if path.stat().st_size > SCAN_CONFIG_MAX_BYTES:
+            raise ValueError(f"{path}: {path.stat().st_size} bytes, more than scan options take ({SCAN_CONFIG_MAX_BYTES})")
+        try:
+            data = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: not JSON ({exc})") from None
+        return ScanOptions.from_json(data, str(path))
+
+    def store(self, corpus: Path) -> None:
+        write_json(Path(corpus) / SCAN_CONFIG, self.to_json())
+
+
+SCAN_CONFIG = "meta/scan.json"
+SCAN_CONFIG_MAX_BYTES = 1 << 16
 
 
 def corpus_stages(corpus: Path) -> dict[str, list[dict]]:
@@ -111,14 +189,7 @@ def scan_job(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
         if job.stored_hash == out.input_hash:
             return out
         decoder = DepthDecoder.from_json(options.decoder)
-        out.result = scan_recording(
-            ref,
-            layout,
-            decoder,
-            frame_stride=options.frame_stride,
-            voxel_m=options.voxel_m,
-            depth_subsample=options.depth_subsample,
-        )
+        out.result = scan_recording(ref, layout, decoder, **options.scan_kwargs())
     except Exception as exc:  # one recording's failure never stops the others
         out.reason = _reason(exc, ref)
     return out
@@ -136,6 +207,9 @@ def scan_stages(
 ) -> dict:
     """Scan one stage (or all) of a corpus; returns per stage what was scanned, what failed and which chunks changed.
 
+    ``options`` default to those of the corpus's last scan (``ScanOptions.stored``), else the defaults; the
+    options used are stored for the next.
+
     The recordings are scanned as independent jobs (``scan_job``) by ``mapper`` (``marionette.fanout``;
     default: ``pool_mapper(workers)``; the ``rescan-stage`` flow passes one that runs them on Dask) and
     committed to their stage in the stage's recording order, whatever order they finish in, so any number of
@@ -147,7 +221,11 @@ def scan_stages(
 
     with corpus_lock(corpus, "terrain scan"):
         run = mapper or pool_mapper(workers)
-        return _scan_stages(corpus, stage, incremental, options or ScanOptions(), log, progress, run)
+        if options is None:
+            options = ScanOptions.stored(corpus) or ScanOptions()
+        report = _scan_stages(corpus, stage, incremental, options, log, progress, run)
+        options.store(corpus)
+        return report
 
 
 def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: ScanOptions, log, progress: bool, mapper) -> dict:
@@ -160,7 +238,7 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
         if stage not in stages:
             raise ValueError(f"{corpus}: no ingested recording on stage {stage!r}; stages: {sorted(stages)}")
         stages = {stage: stages[stage]}
-    held = {st: Stage(paths.stage_dir(corpus, st)) for st in stages}
+    held = {st: Stage(paths.stage_dir(corpus, st), alias=options.alias()) for st in stages}
     jobs: list[ScanJob] = []
     for st, recs in stages.items():
         S = held[st]

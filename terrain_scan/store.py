@@ -32,7 +32,7 @@ import numpy as np
 from marionette.corpus.paths import CorpusPathError, inside
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
-from terrain_scan.layers import MAX_LAYERS, Observations, drop_aliases, merge
+from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT, MAX_LAYERS, Observations, drop_aliases, merge
 from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, split_cell
 
 MANIFEST_FORMAT = "marionette-terrain-stage"
@@ -41,6 +41,7 @@ MANIFEST_VERSION = 1
 # 3: the alias rule by position, layers.drop_aliases)
 DERIVE_VERSION = 3
 FILL_ROUNDS = 2
+DEFAULT_ALIAS = (ALIAS_FRACTION, ALIAS_DOMINANCE, ALIAS_SUPPORT)
 CHUNK_NAME = re.compile(r"(-?\d{1,9})_(-?\d{1,9})")
 REBUILD_MODES = ("incremental", "full", "whole")
 # a contribution imported from chunk files (``import_chunks``) rather than scanned from a recording: a recording id
@@ -111,10 +112,15 @@ def halo_cells(fill_rounds: int) -> int:
     return 1 + max(fill_rounds, 0)
 
 
-def derive(obs: Observations, max_layers: int, fill_rounds: int) -> tuple[Observations, np.ndarray]:
-    """Layers of observations (merged, edge aliases dropped, then hole fill) and the filled mask, sorted by
-    (gx, gz, h). A cell's result depends only on the observations within ``halo_cells(fill_rounds)`` of it."""
-    return fill_holes(drop_aliases(merge(obs, max_layers=max_layers)), rounds=fill_rounds)
+def derive(
+    obs: Observations, max_layers: int, fill_rounds: int, alias: tuple[float, float, int] = DEFAULT_ALIAS
+) -> tuple[Observations, np.ndarray]:
+    """Layers of observations (merged, edge aliases dropped — ``alias`` the rule's (fraction, dominance,
+    support) — then hole fill) and the filled mask, sorted by (gx, gz, h). A cell's result depends only on the
+    observations within ``halo_cells(fill_rounds)`` of it."""
+    fraction, dominance, support = alias
+    layers = drop_aliases(merge(obs, max_layers=max_layers), fraction=fraction, dominance=dominance, support=support)
+    return fill_holes(layers, rounds=fill_rounds)
 
 
 def contribution_sha256(obs: Observations) -> str:
@@ -145,10 +151,17 @@ class RebuildReport:
 class Stage:
     """One game stage's terrain: contributions in, chunks out."""
 
-    def __init__(self, stage_dir: Path, max_layers: int = MAX_LAYERS, fill_rounds: int = FILL_ROUNDS):
+    def __init__(
+        self,
+        stage_dir: Path,
+        max_layers: int = MAX_LAYERS,
+        fill_rounds: int = FILL_ROUNDS,
+        alias: tuple[float, float, int] = DEFAULT_ALIAS,
+    ):
         self.dir = Path(stage_dir)
         self.max_layers = max_layers
         self.fill_rounds = fill_rounds
+        self.alias = tuple(alias)
         path = self.dir / "manifest.json"
         if path.exists():
             try:
@@ -250,7 +263,7 @@ class Stage:
         not the stage."""
         pieces = ChunkPieces(self, keys) if pieces is None else pieces
         for key in keys:
-            layers, filled = derive(pieces.window(key), self.max_layers, self.fill_rounds)
+            layers, filled = derive(pieces.window(key), self.max_layers, self.fill_rounds, self.alias)
             cx, cz, _ = split_cell(layers.gx, layers.gz)
             own = np.flatnonzero((cx == key[0]) & (cz == key[1]))
             yield key, layers.take(own), filled[own]
@@ -261,7 +274,7 @@ class Stage:
         grids span the stage's bounding box)."""
         if whole:
             parts = [self._load(r) for _, r in sorted(self.manifest["recordings"].items())]
-            return derive(Observations.concat(parts), self.max_layers, self.fill_rounds)
+            return derive(Observations.concat(parts), self.max_layers, self.fill_rounds, self.alias)
         chunks = [(layers, filled) for _, layers, filled in self.chunk_layers(self.covered())]
         if not chunks:
             return Observations.empty(), np.zeros(0, bool)
@@ -333,6 +346,7 @@ class Stage:
             "derive_version": DERIVE_VERSION,
             "max_layers": self.max_layers,
             "fill_rounds": self.fill_rounds,
+            "alias": list(self.alias),
             "recordings": {
                 name: {"sha256": rec["sha256"], "chunks": rec["chunks"]} for name, rec in self.manifest["recordings"].items()
             },
@@ -343,7 +357,9 @@ class Stage:
         whose file is missing; None when the manifest cannot tell (no, or a malformed, record of the last
         rebuild, or one made by another derivation or other settings)."""
         last, now = self.manifest.get("rebuilt"), self._inputs()
-        if not isinstance(last, dict) or any(last.get(k) != now[k] for k in ("derive_version", "max_layers", "fill_rounds")):
+        if not isinstance(last, dict) or any(
+            last.get(k) != now[k] for k in ("derive_version", "max_layers", "fill_rounds", "alias")
+        ):
             return None
         before = last.get("recordings")
         if not isinstance(before, dict) or not all(
