@@ -132,16 +132,10 @@ def _cap(layers: Observations, max_layers: int) -> Observations:
     return kept.take(np.lexsort((kept.h, kept.gz, kept.gx)))
 
 
-def drop_aliases(
-    layers: Observations,
-    merge_m: float = MERGE_M,
-    fraction: float = ALIAS_FRACTION,
-    dominance: float = ALIAS_DOMINANCE,
-    support: int = ALIAS_SUPPORT,
-) -> Observations:
-    """Drop the layers that are a neighbouring cell's surface seen across a cell edge (``aliases``). Rows keep
-    their (cell, h) order."""
-    return layers.take(np.flatnonzero(~aliases(layers, merge_m, fraction, dominance, support)))
+def drop_aliases(layers: Observations, **rule) -> Observations:
+    """Drop the layers that are a neighbouring cell's surface seen across a cell edge (``aliases``, whose keywords
+    ``rule`` passes on). Rows keep their (cell, h) order."""
+    return layers.take(np.flatnonzero(~aliases(layers, **rule)))
 
 
 def aliases(

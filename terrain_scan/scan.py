@@ -24,9 +24,8 @@ from terrain_scan.knobs import DERIVE_KNOBS, KNOBS, knob_ok
 from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT
 from terrain_scan.store import IMPORT_PREFIX, Stage
 
-SCAN_VERSION = (
-    "4"  # 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug
-)
+# 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug
+SCAN_VERSION = "4"
 
 
 @dataclass(frozen=True)
@@ -63,6 +62,8 @@ class ScanOptions:
             v = getattr(self, name)
             if not knob_ok(check, v):
                 raise ValueError(f"scan option {name} must be {check}, not {v!r}")
+            if check.startswith("a number"):  # 1 and 1.0 are one setting, with one key
+                object.__setattr__(self, name, float(v))
         try:
             DepthDecoder.from_json(self.decoder)
         except (TypeError, ValueError, KeyError) as exc:
