@@ -51,9 +51,66 @@ def cmd_synth(a: argparse.Namespace) -> int:
 
     t0 = time.time()
     dirs = generate(
-        a.out, recordings=a.recordings, seconds=a.seconds, seed=a.seed, width=a.width, height=a.height, workers=a.workers
+        a.out,
+        recordings=a.recordings,
+        seconds=a.seconds,
+        seed=a.seed,
+        width=a.width,
+        height=a.height,
+        workers=a.workers,
+        hidden_depth=a.hidden_depth,
     )
     print(f"wrote {len(dirs)} recordings under {a.out} in {time.time() - t0:.1f} s")
+    return 0
+
+
+def cmd_calibrate_depth(a: argparse.Namespace) -> int:
+    """Fit the 8-bit depth mapping from a recording tree's skeletons and depth (``terrain_scan.calibrate``); write
+    it as JSON, plot it, and make it the scan decoder of a corpus."""
+    from marionette.ingest.wildworld import discover
+    from marionette.io import write_json
+    from marionette.schema import load_scene
+    from terrain_scan import calibrate
+
+    refs = discover(a.source)
+    if not refs:
+        raise ValueError(f"{a.source}: no recordings (data_part*/<id>/ with state.csv) under it")
+    refs = refs[: a.max_recordings] if a.max_recordings else refs
+    layout = load_scene(a.scene)
+    parts, failed = [], []
+    bar = None
+    if not a.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(refs), desc="calibrate-depth", unit="recording")
+    for got in calibrate.iter_pairs(refs, layout, a.frame_stride):
+        if bar is not None:
+            bar.update(1)
+        (failed if isinstance(got, str) else parts).append(got)
+    if bar is not None:
+        bar.close()
+    for why in failed:
+        print(f"skipped: {why}")
+    cal = calibrate.fit(calibrate.Pairs.concat(parts), a.family)
+    for line in cal.lines():
+        print(line)
+    if a.out is not None:
+        write_json(a.out, {"decoder": cal.chosen.to_json(), "report": cal.report()})
+        print(f"wrote {a.out}")
+    if a.plot is not None:
+        print(f"plotted {calibrate.plot(cal, a.plot)}")
+    if a.corpus is not None:
+        from marionette.corpus import Corpus
+        from marionette.corpus.lock import corpus_lock
+        from terrain_scan.scan import ScanOptions
+
+        Corpus(a.corpus)  # a corpus, or a clear error
+        with corpus_lock(a.corpus, "calibrate-depth"):
+            options = (ScanOptions.stored(a.corpus) or ScanOptions()).updated(decoder=cal.chosen.to_json())
+            options.store(a.corpus)
+        print(
+            f"{a.corpus}: its scans decode depth with this mapping now (meta/scan.json); rescan with `marionette terrain scan {a.corpus}`"
+        )
     return 0
 
 
@@ -688,6 +745,13 @@ def id_string(s: str) -> str:
     return s
 
 
+def png_path(s: str) -> Path:
+    """An argparse type: an output path ending in .png."""
+    if Path(s).suffix.lower() != ".png":
+        raise argparse.ArgumentTypeError(f"{s!r}: a plot is written as .png")
+    return Path(s)
+
+
 def mesh_path(s: str) -> Path:
     """An argparse type: an output path ending in .ply or .glb."""
     if Path(s).suffix.lower() not in (".ply", ".glb"):
@@ -717,9 +781,32 @@ def build_parser() -> argparse.ArgumentParser:
     def command(name: str, help: str, group=sub) -> argparse.ArgumentParser:
         return group.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".")
 
+    s = command("calibrate-depth", "fit the unpublished 8-bit depth mapping from recorded skeletons and cameras")
+    s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
+    s.add_argument("--scene", type=scene_name, default="duel", help="scene layout: which rigs the skeletons are")
+    s.add_argument("--frame-stride", type=positive_int, default=5, help="use every Nth frame")
+    s.add_argument("--max-recordings", type=positive_int, default=None, help="use the first N recordings (default: all)")
+    s.add_argument(
+        "--family",
+        choices=("auto", "inverse", "log", "linear", "table"),
+        default="auto",
+        help="the mapping's form (auto: the parametric one whose inliers scatter least)",
+    )
+    s.add_argument("--out", type=Path, default=None, help="write the mapping and the fit's report here (JSON)")
+    s.add_argument("--plot", type=png_path, default=None, help="plot the pairs, the fits and the residuals here (.png)")
+    s.add_argument("--corpus", type=Path, default=None, help="make the mapping this corpus's scan decoder (meta/scan.json)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(fn=cmd_calibrate_depth)
+
     s = command("synth", "write synthetic WildWorld-format recordings")
     s.add_argument("out", type=Path, help="directory to write the recordings under")
     _synthetic_arguments(s, recordings=2, workers=1)
+    s.add_argument(
+        "--hidden-depth",
+        action="store_true",
+        help="encode depth with a mapping drawn from a family by --seed, written only to the truth (calibrate it with "
+        "`marionette calibrate-depth`)",
+    )
     s.set_defaults(fn=cmd_synth)
 
     s = command("ingest", "ingest WildWorld recordings into a corpus (then finalize, scan terrain, render pose targets)")

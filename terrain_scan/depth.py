@@ -1,13 +1,18 @@
 """Decoding 8-bit depth codes into metres: a configurable mapping.
 
 WildWorld's depth.mkv stores 8-bit codes whose mapping to metres is not published, so the mapping
-is data (``DepthDecoder.to_json()``), never a constant in the scanner. Code 0 always means "no
-depth" (nothing hit, or beyond the far plane) and decodes to NaN. Kinds:
+is data (``DepthDecoder.to_json()``), never a constant in the scanner, and ``terrain_scan.calibrate``
+recovers it from the recordings themselves. Code 0 always means "no depth" (nothing hit, or beyond
+the far plane) and decodes to NaN. Kinds (the parametric ones: the code affine in g(z) between
+``z_near`` and ``z_far``):
 
-- ``"inverse"``: the code is affine in inverse depth between ``z_near`` and ``z_far`` —
-  ``code = 1 + 254 (1/z − 1/z_far) / (1/z_near − 1/z_far)`` — the synthetic game's mapping
+- ``"inverse"``: g = 1/z, code 255 at ``z_near`` and 1 at ``z_far`` —
+  ``code = 1 + 254 (1/z − 1/z_far) / (1/z_near − 1/z_far)`` — the synthetic game's default mapping
   (``marionette.synth.render.DEPTH_ENCODING``, also stored in its truth JSON as ``depth_encoding``);
-- ``"linear"``: the code is affine in depth — ``code = 1 + 254 (z − z_near) / (z_far − z_near)``.
+- ``"linear"``: g = z, code 1 at ``z_near`` and 255 at ``z_far``;
+- ``"log"``: g = ln z, code 1 at ``z_near`` and 255 at ``z_far`` (a constant share of z per code);
+- ``"table"``: any monotone mapping, given as the depth of each code 1..255 (``table``; fractional
+  codes interpolate linearly between their neighbours).
 
 The decoded value is the z-depth along the camera's optical axis (m), as the synthetic game stores.
 """
@@ -19,30 +24,58 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-KINDS = ("inverse", "linear")
+KINDS = ("inverse", "linear", "log", "table")
+PARAMETRIC = ("inverse", "linear", "log")
 # the names the synthetic game (and possibly other writers) use for the kinds above
-_ALIASES = {"inverse_depth_u8": "inverse", "linear_depth_u8": "linear", "inverse": "inverse", "linear": "linear"}
+_ALIASES = {"inverse_depth_u8": "inverse", "linear_depth_u8": "linear", "log_depth_u8": "log", **{k: k for k in KINDS}}
+CODES = np.arange(1, 256, dtype=np.float64)  # the codes that carry a depth
+
+
+def _g(kind: str, z):
+    return 1.0 / z if kind == "inverse" else np.log(z) if kind == "log" else z
+
+
+def _g_inv(kind: str, g):
+    return 1.0 / g if kind == "inverse" else np.exp(g) if kind == "log" else g
 
 
 @dataclass(frozen=True)
 class DepthDecoder:
     """An 8-bit depth mapping: ``kind`` in KINDS over [z_near, z_far] metres (inverse: code 255 = z_near, 1 = z_far;
-    linear: code 1 = z_near, 255 = z_far)."""
+    linear and log: code 1 = z_near, 255 = z_far; table: ``table[c − 1]`` is the depth of code c, monotone)."""
 
     kind: str = "inverse"
     z_near: float = 2.0
     z_far: float = 300.0
+    table: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"depth kind {self.kind!r}: expected one of {KINDS}")
+        if self.kind == "table":
+            t = np.asarray(self.table if self.table is not None else (), dtype=np.float64)
+            d = np.diff(t)
+            if t.shape != (255,) or not np.isfinite(t).all() or not (t > 0).all() or not ((d > 0).all() or (d < 0).all()):
+                raise ValueError("depth table: need 255 finite positive depths (codes 1..255), strictly monotone")
+            object.__setattr__(self, "table", tuple(float(v) for v in t))
+            object.__setattr__(self, "z_near", float(t.min()))
+            object.__setattr__(self, "z_far", float(t.max()))
+        elif self.table is not None:
+            raise ValueError(f"depth kind {self.kind!r} takes no table")
         if not (0 < self.z_near < self.z_far):
             raise ValueError(f"depth range: need 0 < z_near < z_far, got {self.z_near}, {self.z_far}")
 
     @staticmethod
     def from_json(d: dict) -> DepthDecoder:
         """From ``to_json()`` or from the synthetic game's ``depth_encoding`` dict (``z_near_m``, ``z_far_m``)."""
+        if not isinstance(d, dict):
+            raise ValueError(f"depth mapping {d!r}: expected a JSON object")
         kind = _ALIASES.get(d.get("kind", ""), d.get("kind", ""))
+        if kind == "table":
+            table = d.get("table")
+            if not isinstance(table, list) or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in table):
+                raise ValueError("depth mapping of kind 'table': needs 'table', a list of 255 depths (codes 1..255)")
+            return DepthDecoder("table", table=tuple(table))
         z_near = d.get("z_near", d.get("z_near_m"))
         z_far = d.get("z_far", d.get("z_far_m"))
         if z_near is None or z_far is None:
@@ -50,24 +83,33 @@ class DepthDecoder:
         return DepthDecoder(kind, float(z_near), float(z_far))
 
     def to_json(self) -> dict:
+        if self.kind == "table":
+            return {"kind": "table", "table": list(self.table)}
         return {"kind": self.kind, "z_near": self.z_near, "z_far": self.z_far}
 
     @staticmethod
     def synthetic() -> DepthDecoder:
-        """The synthetic game's mapping (read from its renderer, so the two cannot drift apart)."""
+        """The synthetic game's default mapping (read from its renderer, so the two cannot drift apart)."""
         from marionette.synth.render import DEPTH_ENCODING
 
         return DepthDecoder.from_json(DEPTH_ENCODING)
+
+    def code_of(self, z: np.ndarray) -> np.ndarray:
+        """The unrounded code (float64) of depths z (m) within [z_near, z_far]: the mapping's inverse."""
+        z = np.asarray(z, dtype=np.float64)
+        if self.kind == "table":
+            t = np.asarray(self.table)
+            return np.interp(z, t, CODES) if t[0] < t[-1] else np.interp(z, t[::-1], CODES[::-1])
+        gn, gf = _g(self.kind, self.z_near), _g(self.kind, self.z_far)
+        if self.kind == "inverse":
+            return 1 + 254 * (_g(self.kind, z) - gf) / (gn - gf)
+        return 1 + 254 * (_g(self.kind, z) - gn) / (gf - gn)
 
     def encode(self, z: np.ndarray) -> np.ndarray:
         """z-depth (m; inf/nan = nothing) → uint8 code; 0 where nothing or beyond z_far (for tests and tools)."""
         z = np.asarray(z, dtype=np.float64)
         ok = np.isfinite(z) & (z > 0) & (z <= self.z_far)
-        zz = np.where(ok, z, self.z_far)
-        if self.kind == "inverse":
-            c = 1 + 254 * (1 / zz - 1 / self.z_far) / (1 / self.z_near - 1 / self.z_far)
-        else:
-            c = 1 + 254 * (zz - self.z_near) / (self.z_far - self.z_near)
+        c = self.code_of(np.clip(np.where(ok, z, self.z_far), self.z_near, self.z_far))
         return np.where(ok, np.clip(np.round(c), 1, 255), 0).astype(np.uint8)
 
     def decode(self, codes: np.ndarray) -> np.ndarray:
@@ -76,13 +118,18 @@ class DepthDecoder:
         Fractional codes (e.g. smoothed ones) decode along the same curve.
         """
         c = np.asarray(codes, dtype=np.float64)
+        return np.where(c > 0, self.depth_of(c), np.nan).astype(np.float32)
+
+    def depth_of(self, c: np.ndarray) -> np.ndarray:
+        """The depth (float64, m) of codes c in [1, 255], fractional ones along the curve."""
+        c = np.asarray(c, dtype=np.float64)
+        if self.kind == "table":
+            return np.interp(c, CODES, np.asarray(self.table))
         t = (c - 1) / 254  # 0 at code 1, 1 at code 255
+        gn, gf = _g(self.kind, self.z_near), _g(self.kind, self.z_far)
         if self.kind == "inverse":
-            inv = t * (1 / self.z_near - 1 / self.z_far) + 1 / self.z_far
-            z = 1.0 / np.maximum(inv, 1e-12)
-        else:
-            z = self.z_near + t * (self.z_far - self.z_near)
-        return np.where(c > 0, z, np.nan).astype(np.float32)
+            return 1.0 / np.maximum(t * (gn - gf) + gf, 1e-12)
+        return _g_inv(self.kind, gn + t * (gf - gn))
 
 
 def smooth_codes(codes: np.ndarray, radius: int = 3, tol: float = 1.0) -> np.ndarray:

@@ -80,9 +80,13 @@ def test_decoder_matches_synth_exactly():
     assert DepthDecoder.from_json(dec.to_json()) == dec
 
 
-@pytest.mark.parametrize("kind", ["inverse", "linear"])
+@pytest.mark.parametrize("kind", ["inverse", "linear", "log", "table"])
 def test_decoder_round_trips(kind):
-    dec = DepthDecoder(kind, 1.0, 100.0)
+    if kind == "table":  # a monotone curve no parametric kind has, decreasing like the inverse one
+        dec = DepthDecoder("table", table=tuple(1.0 + 99.0 * (1 - np.linspace(0, 1, 255)) ** 1.7))
+        assert (dec.z_near, dec.z_far) == (1.0, 100.0) and DepthDecoder.from_json(dec.to_json()) == dec
+    else:
+        dec = DepthDecoder(kind, 1.0, 100.0)
     codes = np.arange(1, 256, dtype=np.uint8)
     np.testing.assert_array_equal(dec.encode(dec.decode(codes)), codes)
     z = np.linspace(1.0, 100.0, 1000)
@@ -90,8 +94,10 @@ def test_decoder_round_trips(kind):
     lo, hi = np.sort(np.stack([dec.decode(c - 0.5), dec.decode(np.minimum(c + 0.5, 255.5))]), axis=0)
     assert np.all((z >= lo * (1 - 1e-6)) & (z <= hi * (1 + 1e-6)))
     assert dec.encode(np.array([np.nan, np.inf, 150.0])).tolist() == [0, 0, 0]
-    with pytest.raises(ValueError):
-        DepthDecoder("log", 1.0, 100.0)
+    with pytest.raises(ValueError, match="expected one of"):
+        DepthDecoder("cubic", 1.0, 100.0)
+    with pytest.raises(ValueError, match="strictly monotone"):
+        DepthDecoder("table", table=(5.0,) * 255)
 
 
 def test_backprojection_lands_on_ground(rec):

@@ -148,8 +148,19 @@ def _write_video(
     _atomic(path, write)
 
 
-def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: float, width: int, height: int, fps: int) -> Path:
-    """Simulate, render and write one recording; returns its sample directory."""
+def write_recording(
+    out_dir: Path,
+    part: str,
+    index: int,
+    seed: int,
+    seconds: float,
+    width: int,
+    height: int,
+    fps: int,
+    depth_mapping: dict | None = None,
+) -> Path:
+    """Simulate, render and write one recording (its depth in ``depth_mapping``, a ``DepthDecoder`` JSON; default
+    the game's ``DEPTH_ENCODING``); returns its sample directory."""
     sample_id = f"rec{index:04d}"
     d = Path(out_dir) / part / sample_id
     d.mkdir(parents=True, exist_ok=True)
@@ -187,12 +198,17 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
             )
         radii[e] = r.capsule_radius_m * scale
     renderer = Renderer(width, height, edges, radii)
+    encode = encode_depth
+    if depth_mapping is not None:
+        from terrain_scan.depth import DepthDecoder
+
+        encode = DepthDecoder.from_json(depth_mapping).encode
     rgb, depth = [], []
     for i in range(N):
         bodies = {"hunter": sk["hunter"][i], "weapon": sk["weapon"][i], "monster": sk["monster"][i] if present[i] else None}
         img, z = renderer.render(cam_pos[i], cam_rot[i], bodies)
         rgb.append(img)
-        depth.append(encode_depth(z))
+        depth.append(encode(z))
     # One thread and no lookahead / macroblock tree: measured to make the bitstream byte-stable across runs.
     x264 = {
         "crf": "20",
@@ -308,7 +324,7 @@ def write_recording(out_dir: Path, part: str, index: int, seed: int, seconds: fl
         "width": width,
         "height": height,
         "recording_time": RECORDING_EPOCH + 86400 * index,
-        "depth_encoding": DEPTH_ENCODING,
+        "depth_encoding": DEPTH_ENCODING if depth_mapping is None else depth_mapping,
         "camera_K": list(K),
         "monster_absent_frames": list(plan.absent),
         "camera_invalid_frames": list(plan.camera_invalid),
@@ -346,18 +362,30 @@ def generate(
     fps: int = 30,
     part: str = "data_part1",
     workers: int = 1,
+    hidden_depth: bool = False,
 ) -> list[Path]:
     """Write ``recordings`` synthetic recordings of ``seconds`` s each (in ``workers`` processes);
-    returns the sample directories. Each recording depends only on (seed, index), never on ``workers``."""
+    returns the sample directories. Each recording depends only on (seed, index), never on ``workers``.
+    With ``hidden_depth`` the game encodes depth with a mapping drawn from a family by ``seed``
+    (``hidden_depth_mapping``), written only to the truth, as WildWorld does not publish its own."""
     out_dir = Path(out_dir)
     write_edges(out_dir, part)
-    args = [(out_dir, part, k, seed, seconds, width, height, fps) for k in range(recordings)]
+    mapping = hidden_depth_mapping(seed) if hidden_depth else None
+    args = [(out_dir, part, k, seed, seconds, width, height, fps, mapping) for k in range(recordings)]
     if workers <= 1 or recordings <= 1:
         return [write_recording(*a) for a in args]
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(write_recording, *zip(*args)))
+
+
+def hidden_depth_mapping(seed: int) -> dict:
+    """A depth mapping of the family real games use, drawn by ``seed``: the code affine in inverse depth (a
+    perspective depth buffer) or in log depth, near plane 1–3 m, far plane 150–500 m (``DepthDecoder`` JSON)."""
+    rng = np.random.default_rng([seed, 0xDE7])
+    kind = ("inverse", "log")[int(rng.integers(2))]
+    return {"kind": kind, "z_near": round(float(rng.uniform(1.0, 3.0)), 3), "z_far": round(float(rng.uniform(150.0, 500.0)), 1)}
 
 
 def load_truth(out_dir, part: str, sample_id: str) -> dict:
