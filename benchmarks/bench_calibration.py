@@ -79,39 +79,17 @@ def main() -> None:
                     kept = kept[rng.random(len(kept)) >= share]
                     pairs = every.take(np.isin(every.frame, kept))
                     pairs.offset = pairs.offset.copy()
+                    head = [str(seed), label, str(stride), f"{share:.0%}", str(len(kept)), f"{len(pairs):,}"]
                     t = time.perf_counter()
                     try:
                         cal = calibrate.fit(pairs)
                     except ValueError as exc:
-                        rows.append(
-                            [
-                                str(seed),
-                                label,
-                                str(stride),
-                                f"{share:.0%}",
-                                str(len(kept)),
-                                str(len(pairs)),
-                                str(exc)[:40],
-                                "",
-                                "",
-                            ]
-                        )
+                        rows.append([*head, str(exc)[:40], "", ""])
                         continue
                     secs = time.perf_counter() - t
-                    rows.append(
-                        [
-                            str(seed),
-                            label,
-                            str(stride),
-                            f"{share:.0%}",
-                            str(len(kept)),
-                            f"{len(pairs):,}",
-                            f"{cal.chosen.kind} {100 * max_error(cal.chosen, truth, 2, 20):.2f} % / "
-                            f"{100 * max_error(cal.chosen, truth, 2, 100):.2f} %",
-                            f"{secs:.2f}",
-                            f"{terrain_rmse(refs[0], layout, cal.chosen):.4f}",
-                        ]
-                    )
+                    errors = [100 * max_error(cal.chosen, truth, 2, hi) for hi in (20, 100)]
+                    rmse = terrain_rmse(refs[0], layout, cal.chosen)
+                    rows.append([*head, f"{cal.chosen.kind} {errors[0]:.2f} % / {errors[1]:.2f} %", f"{secs:.2f}", f"{rmse:.4f}"])
                     print(rows[-1], file=sys.stderr, flush=True)
     print(preamble("Depth calibration: error against frames and invalid cameras; terrain error against it"))
     header = ["seed", "hidden mapping", "frame stride", "invalid cameras", "frames", "pairs"]
