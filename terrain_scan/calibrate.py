@@ -289,7 +289,9 @@ class Calibration:
         }
 
     def lines(self) -> list[str]:
-        out = [f"{len(self.pairs):,} (code, joint) pairs from {self.pairs.frames:,} frames of {self.pairs.recordings} recordings"]
+        out = [
+            f"{len(self.pairs):,} (code, joint) pairs from {self.pairs.frames:,} frames of {self.pairs.recordings} recording(s)"
+        ]
         for k, f in self.fits.items():
             s = f.summary()
             planes = f"near {s['z_near']:.3f} m, far {s['z_far']:.1f} m" if "z_near" in s else s["unusable"]
@@ -353,7 +355,9 @@ def iter_pairs(refs: list[SampleRef], layout: Layout, frame_stride: int) -> Iter
     for ref in refs:
         try:
             yield recording_pairs(ref, layout, frame_stride)
-        except (SampleError, OSError, ValueError) as exc:
+        except SampleError as exc:  # its message names the file
+            yield str(exc)
+        except (OSError, ValueError) as exc:
             yield f"{ref.path}: {exc}"
 
 
