@@ -78,12 +78,12 @@ def rescan_stage(
     ``meta/scan.json``, else the defaults) with ``scan`` (any ``terrain_scan.scan.KNOBS``), ``depth_decoder``,
     ``frame_stride`` and ``voxel_m`` laid over them; they are kept for the next scan."""
     logger = get_run_logger()
-    base = ScanOptions.stored(Path(corpus)) or ScanOptions()
+    base = ScanOptions.of_corpus(Path(corpus))
     if scan:
-        base = ScanOptions.from_json({**base.to_json(), **scan}, "rescan-stage parameter scan")
+        base = base.merged(scan, "rescan-stage parameter scan")
     decoder = None if depth_decoder is None else DepthDecoder.from_json(depth_decoder).to_json()
     options = base.updated(decoder=decoder, frame_stride=frame_stride, voxel_m=voxel_m)
-    logger.info("scan options: %s", options.changed() or "the defaults")
+    logger.info("scan options: %s", options.describe())
     with dask_cluster(dask_address, n_workers) as address:  # one cluster for the scan and the render
         done = pipeline.refresh(
             Path(corpus),

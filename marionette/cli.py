@@ -106,8 +106,7 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
 
         Corpus(a.corpus)  # a corpus, or a clear error
         with corpus_lock(a.corpus, "calibrate-depth"):
-            options = (ScanOptions.stored(a.corpus) or ScanOptions()).updated(decoder=cal.chosen.to_json())
-            options.store(a.corpus)
+            ScanOptions.of_corpus(a.corpus).updated(decoder=cal.chosen.to_json()).store(a.corpus)
         print(
             f"{a.corpus}: its scans decode depth with this mapping now (meta/scan.json); rescan with `marionette terrain scan {a.corpus}`"
         )
@@ -199,12 +198,7 @@ def inspect_text(corpus_path: Path, play_shards: int = 64) -> str:
     if scanned is None:
         lines.append("terrain  not scanned yet")
     else:
-        changed = scanned.changed()
-        lines.append(
-            "terrain  scanned with "
-            + (", ".join(f"{k}={json.dumps(v, sort_keys=True)}" for k, v in changed.items()) or "the defaults")
-            + f" ({c.path / 'meta' / 'scan.json'})"
-        )
+        lines.append(f"terrain  scanned with {scanned.describe()} ({c.path / 'meta' / 'scan.json'})")
     q = c.quarantine.to_pylist()
     lines.append(f"quarantine {len(q)}")
     for r in q:
@@ -347,20 +341,17 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
     from terrain_scan.depth import DepthDecoder
     from terrain_scan.scan import ScanOptions
 
-    options = ScanOptions.stored(a.corpus) or ScanOptions()
+    options = ScanOptions.of_corpus(a.corpus)
     if a.scan_config is not None:
-        options = ScanOptions.from_json({**options.to_json(), **read_json(a.scan_config)}, str(a.scan_config))
+        options = options.merged(read_json(a.scan_config), str(a.scan_config))
     decoder = None if a.depth_decoder is None else DepthDecoder.from_json(read_json(a.depth_decoder)).to_json()
     given = {"decoder": decoder, "frame_stride": a.frame_stride, "voxel_m": a.voxel, "depth_subsample": a.depth_subsample}
     given["max_depth_m"] = a.max_depth
     options = options.updated(**{**dict(a.scan_option), **{k: v for k, v in given.items() if v is not None}})
     if a.stage is not None:
         check_stage(a.corpus, a.stage)
-    changed = options.changed()
     if not a.quiet:
-        print(
-            "scanning with " + (", ".join(f"{k}={json.dumps(v, sort_keys=True)}" for k, v in changed.items()) or "the defaults")
-        )
+        print(f"scanning with {options.describe()}")
     report = refresh(a.corpus, a.stage, a.incremental, options, pose=a.pose, progress=not a.quiet, workers=a.workers)
     for line in report.lines():
         print(line)
@@ -378,7 +369,7 @@ def cmd_terrain_import(a: argparse.Namespace) -> int:
     from terrain_scan.store import Stage, import_chunks
 
     check_stage(a.corpus, a.stage)
-    alias = (ScanOptions.stored(a.corpus) or ScanOptions()).alias()  # the stage's derivation as its scans set it
+    alias = ScanOptions.of_corpus(a.corpus).alias()  # the stage's derivation as its scans set it
     with corpus_lock(a.corpus, "terrain import"):
         r = import_chunks(Stage(paths.stage_dir(a.corpus, a.stage), alias=alias), a.src, a.name)
     rb = r.rebuild

@@ -29,7 +29,7 @@ from marionette.geometry import quat_to_matrix
 from marionette.ingest.wildworld import SampleRef, read_sample
 from marionette.schema import Layout
 from terrain_scan.accumulate import depth_frames
-from terrain_scan.depth import CODES, PARAMETRIC, DepthDecoder, _g, _g_inv
+from terrain_scan.depth import CODES, PARAMETRIC, DepthDecoder, curve, curve_inverse
 
 TUKEY_C = 2.0  # the biweight's cut-off in robust standard deviations: tight, as what contaminates is one-sided (another
 # part of the body in front of the joint, always nearer); 4.685, the textbook choice, left a 0.7 % bias (docs/tradeoffs.md)
@@ -181,12 +181,12 @@ def _biweight_line(x: np.ndarray, y: np.ndarray, iters: int = 30) -> tuple[float
 
 def fit_kind(pairs: Pairs, kind: str) -> FamilyFit:
     """Fit one parametric kind to the pairs (module docstring)."""
-    x = _g(kind, pairs.z)
+    x = curve(kind, pairs.z)
     a, b, scale, inl = _biweight_line(x, pairs.code)
     rms = float(np.sqrt(np.mean((pairs.code[inl] - a - b * x[inl]) ** 2))) if inl.any() else float("inf")
     # the decoder's planes: the depths of codes 1 and 255 (inverse: 255 is the near plane)
     with np.errstate(all="ignore"):
-        z1, z255 = (float(_g_inv(kind, (c - a) / b)) if b != 0 else float("nan") for c in (1.0, 255.0))
+        z1, z255 = (float(curve_inverse(kind, (c - a) / b)) if b != 0 else float("nan") for c in (1.0, 255.0))
     near, far = (z255, z1) if kind == "inverse" else (z1, z255)
     try:
         return FamilyFit(kind, a, b, DepthDecoder(kind, near, far), scale, rms, inl)
@@ -216,7 +216,7 @@ def steady_joints(pairs: Pairs, best: FamilyFit) -> np.ndarray:
     median joint's, with ``MIN_TABLE_PAIRS`` inliers or more. A joint inside a thick body whose depth toward the
     camera changes with the view (a torso seen from the front, then the side) scatters more than its mapping does:
     its offset is no constant, and it would bend the fit."""
-    resid = pairs.code - best.a - best.b * _g(best.kind, pairs.z)
+    resid = pairs.code - best.a - best.b * curve(best.kind, pairs.z)
     scale = np.full(len(pairs.names), np.inf)
     for j in range(len(pairs.names)):
         r = resid[(pairs.joint == j) & best.inliers]
@@ -308,6 +308,16 @@ class Calibration:
         return out
 
 
+def _fit_every_kind(pairs: Pairs, when: str) -> tuple[dict[str, FamilyFit], dict[str, FamilyFit], str]:
+    """Every parametric kind fitted, those that give a depth range, and the one whose inliers scatter least."""
+    fits = {k: fit_kind(pairs, k) for k in PARAMETRIC}
+    usable = {k: f for k, f in fits.items() if f.decoder is not None}
+    if not usable:
+        why = "; ".join(f"{k}: {f.reason}" for k, f in fits.items())
+        raise ValueError(f"no parametric depth mapping fits the pairs{when}: {why}")
+    return fits, usable, min(usable, key=lambda k: usable[k].rms_inliers)
+
+
 def fit(pairs: Pairs, family: str = "auto") -> Calibration:
     """Fit every parametric kind, pick the best (``family`` "auto") or the one asked for (a kind, or "table")."""
     if len(pairs) < 50:
@@ -315,11 +325,7 @@ def fit(pairs: Pairs, family: str = "auto") -> Calibration:
             f"{len(pairs)} (code, joint) pairs: too few to calibrate (need 50; more recordings, a smaller "
             "--frame-stride, or recordings whose characters are in view)"
         )
-    fits = {k: fit_kind(pairs, k) for k in PARAMETRIC}
-    usable = {k: f for k, f in fits.items() if f.decoder is not None}
-    if not usable:
-        raise ValueError("no parametric depth mapping fits the pairs: " + "; ".join(f"{k}: {f.reason}" for k, f in fits.items()))
-    best = min(usable, key=lambda k: usable[k].rms_inliers)
+    fits, usable, best = _fit_every_kind(pairs, "")
     notes = []
     for round_ in range(2 * OFFSET_ROUNDS):  # each joint's body offset from the mapping, then the mapping again
         if round_ == OFFSET_ROUNDS:  # halfway: keep the joints whose pairs agree (a thin, rigid part of a body)
@@ -327,11 +333,7 @@ def fit(pairs: Pairs, family: str = "auto") -> Calibration:
             notes.append(f"{int(steady.sum())} of {len(pairs.names)} joints kept: those whose pairs scatter least")
             pairs = pairs.take(steady[pairs.joint])
         refine_offsets(pairs, usable[best] if round_ != OFFSET_ROUNDS else fit_kind(pairs, best))
-        fits = {k: fit_kind(pairs, k) for k in PARAMETRIC}
-        usable = {k: f for k, f in fits.items() if f.decoder is not None}
-        if not usable:
-            raise ValueError("no parametric depth mapping fits the pairs once the body offsets are measured")
-        best = min(usable, key=lambda k: usable[k].rms_inliers)
+        fits, usable, best = _fit_every_kind(pairs, " once the body offsets are measured")
     if usable[best].inliers.mean() < 0.5:
         notes.append(f"only {100 * usable[best].inliers.mean():.0f} % of the pairs are inliers: check the rigs and the cameras")
     table = table_fit(pairs, usable[best])

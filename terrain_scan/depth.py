@@ -31,11 +31,13 @@ _ALIASES = {"inverse_depth_u8": "inverse", "linear_depth_u8": "linear", "log_dep
 CODES = np.arange(1, 256, dtype=np.float64)  # the codes that carry a depth
 
 
-def _g(kind: str, z):
+def curve(kind: str, z):
+    """g(z) of a parametric kind: the quantity its code is affine in (1/z, ln z or z)."""
     return 1.0 / z if kind == "inverse" else np.log(z) if kind == "log" else z
 
 
-def _g_inv(kind: str, g):
+def curve_inverse(kind: str, g):
+    """z of g(z) for a parametric kind."""
     return 1.0 / g if kind == "inverse" else np.exp(g) if kind == "log" else g
 
 
@@ -100,10 +102,10 @@ class DepthDecoder:
         if self.kind == "table":
             t = np.asarray(self.table)
             return np.interp(z, t, CODES) if t[0] < t[-1] else np.interp(z, t[::-1], CODES[::-1])
-        gn, gf = _g(self.kind, self.z_near), _g(self.kind, self.z_far)
+        gn, gf = curve(self.kind, self.z_near), curve(self.kind, self.z_far)
         if self.kind == "inverse":
-            return 1 + 254 * (_g(self.kind, z) - gf) / (gn - gf)
-        return 1 + 254 * (_g(self.kind, z) - gn) / (gf - gn)
+            return 1 + 254 * (curve(self.kind, z) - gf) / (gn - gf)
+        return 1 + 254 * (curve(self.kind, z) - gn) / (gf - gn)
 
     def encode(self, z: np.ndarray) -> np.ndarray:
         """z-depth (m; inf/nan = nothing) → uint8 code; 0 where nothing or beyond z_far (for tests and tools)."""
@@ -126,10 +128,10 @@ class DepthDecoder:
         if self.kind == "table":
             return np.interp(c, CODES, np.asarray(self.table))
         t = (c - 1) / 254  # 0 at code 1, 1 at code 255
-        gn, gf = _g(self.kind, self.z_near), _g(self.kind, self.z_far)
+        gn, gf = curve(self.kind, self.z_near), curve(self.kind, self.z_far)
         if self.kind == "inverse":
             return 1.0 / np.maximum(t * (gn - gf) + gf, 1e-12)
-        return _g_inv(self.kind, gn + t * (gf - gn))
+        return curve_inverse(self.kind, gn + t * (gf - gn))
 
 
 def smooth_codes(codes: np.ndarray, radius: int = 3, tol: float = 1.0) -> np.ndarray:

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from terrain_scan import _kernel
-from terrain_scan.trn2 import CELL_COUNT, CELLS, Chunk, TerrainFormatError, find_chunks, read_chunk
+from terrain_scan.trn2 import CELL_COUNT, CELLS, Chunk, find_chunks, read_chunk
 
 if TYPE_CHECKING:
     import torch
@@ -305,12 +305,7 @@ def open_stage(stage_dir: Path) -> LayeredField:
 
     def load(cx: int, cz: int) -> Chunk | None:
         path = files.get((cx, cz))
-        if path is None:
-            return None
-        chunk = read_chunk(path)
-        if (chunk.cx, chunk.cz) != (cx, cz):
-            raise TerrainFormatError(f"{path}: header says chunk ({chunk.cx}, {chunk.cz}), the file name ({cx}, {cz})")
-        return chunk
+        return None if path is None else read_chunk(path, at=(cx, cz))
 
     return LayeredField(load)
 

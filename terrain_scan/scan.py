@@ -88,7 +88,14 @@ class ScanOptions:
 
     def updated(self, **changes) -> ScanOptions:
         """These options with ``changes`` (None values ignored), checked."""
-        return ScanOptions.from_json({**self.to_json(), **{k: v for k, v in changes.items() if v is not None}})
+        return self.merged({k: v for k, v in changes.items() if v is not None})
+
+    def merged(self, changes: object, where: str = "scan options") -> ScanOptions:
+        """These options with a JSON object of changes laid over them (a --scan-config file, a flow's ``scan``),
+        checked; errors name ``where``."""
+        if not isinstance(changes, dict):
+            raise ValueError(f"{where}: scan options are a JSON object, not {type(changes).__name__}")
+        return ScanOptions.from_json({**self.to_json(), **changes}, where)
 
     def scan_kwargs(self) -> dict:
         """``scan_recording``'s keyword arguments (every knob a recording's scan reads)."""
@@ -107,6 +114,15 @@ class ScanOptions:
         """The knobs (and decoder) that differ from the defaults."""
         base = ScanOptions().to_json()
         return {k: v for k, v in self.to_json().items() if v != base[k]}
+
+    def describe(self) -> str:
+        """One line of what differs from the defaults ("the defaults" when nothing does)."""
+        return ", ".join(f"{k}={json.dumps(v, sort_keys=True)}" for k, v in self.changed().items()) or "the defaults"
+
+    @staticmethod
+    def of_corpus(corpus: Path) -> ScanOptions:
+        """The options of the corpus's last scan, else the defaults: what a scan given none uses."""
+        return ScanOptions.stored(corpus) or ScanOptions()
 
     @staticmethod
     def stored(corpus: Path) -> ScanOptions | None:
@@ -223,7 +239,7 @@ def scan_stages(
     with corpus_lock(corpus, "terrain scan"):
         run = mapper or pool_mapper(workers)
         if options is None:
-            options = ScanOptions.stored(corpus) or ScanOptions()
+            options = ScanOptions.of_corpus(corpus)
         report = _scan_stages(corpus, stage, incremental, options, log, progress, run)
         options.store(corpus)
         return report

@@ -435,11 +435,13 @@ class ChunkPieces:
                 self.pieces.setdefault(c, []).append(obs.take(order[start:end]))
 
 
-def chunk_observations(chunk: Chunk) -> Observations:
-    """A chunk's measured layers as observations (gx, gz, h, n, hits, ts), sorted by cell and height: its valid
-    slots with a finite height, less those the hole fill made (a rebuild fills holes again)."""
+def chunk_observations(chunk: Chunk, filled: bool = False) -> Observations:
+    """A chunk's layers as observations (gx, gz, h, n, hits, ts), sorted by cell and height: its valid slots with a
+    finite height, those the hole fill made only with ``filled`` (an import leaves them to its rebuild)."""
     flags = chunk.cells["flags"]
-    keep = ((flags & FLAG_VALID) != 0) & ((flags & FLAG_FILLED) == 0) & np.isfinite(chunk.cells["h"])
+    keep = ((flags & FLAG_VALID) != 0) & np.isfinite(chunk.cells["h"])
+    if not filled:
+        keep &= (flags & FLAG_FILLED) == 0
     cell, slot = np.nonzero(keep)
     rec = chunk.cells[cell, slot]
     obs = Observations(
@@ -479,9 +481,7 @@ def import_chunks(stage: Stage, src: Path, name: str | None = None, mode: str = 
     digest = hashlib.sha256()
     parts, filled = [], 0
     for (cx, cz), path in sorted(files.items()):
-        chunk = read_chunk(path)
-        if (chunk.cx, chunk.cz) != (cx, cz):
-            raise ValueError(f"{path}: header says chunk ({chunk.cx}, {chunk.cz}), the file name ({cx}, {cz})")
+        chunk = read_chunk(path, at=(cx, cz))
         digest.update(f"{cx}_{cz}:".encode())
         digest.update(chunk.to_bytes())
         flags = chunk.cells["flags"]

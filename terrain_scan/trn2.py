@@ -131,8 +131,9 @@ def decode(data: bytes, where: str = "<bytes>") -> Chunk:
     return Chunk(cx, cz, _cells(memoryview(data)[HEADER.size :], max_layers, where))
 
 
-def read_chunk(path: Path) -> Chunk:
-    """Read one chunk file: its size is checked against the header before the body is read."""
+def read_chunk(path: Path, at: tuple[int, int] | None = None) -> Chunk:
+    """Read one chunk file: its size is checked against the header before the body is read; with ``at`` (the
+    (cx, cz) its file name gives) the header must say the same."""
     path = Path(path)
     where = str(path)
     try:
@@ -144,6 +145,8 @@ def read_chunk(path: Path) -> Chunk:
     except FileNotFoundError:
         raise TerrainFormatError(f"{path}: no such chunk file") from None
     _check_size(HEADER.size + len(body), max_layers, where)  # the file changed while it was read
+    if at is not None and (cx, cz) != tuple(at):
+        raise TerrainFormatError(f"{path}: header says chunk ({cx}, {cz}), the file name ({at[0]}, {at[1]})")
     return Chunk(cx, cz, _cells(body, max_layers, where))
 
 

@@ -75,7 +75,7 @@ class TerrainScene:
         None (no terrain)."""
         from terrain_scan.layers import Observations
         from terrain_scan.mesh import tessellate
-        from terrain_scan.store import Stage
+        from terrain_scan.store import Stage, chunk_observations, parse_chunk_name
         from terrain_scan.trn2 import CELLS, find_chunks, read_chunk
 
         if stage is None:
@@ -88,22 +88,12 @@ class TerrainScene:
             files = dict(sorted(files.items()))
         parts, boxes, hashes = [], {}, {}
         for name, (file, digest) in files.items():
-            ch = read_chunk(file)
-            ok = ch.valid() & np.isfinite(ch.cells["h"])
-            cell, slot = np.nonzero(ok)
-            if not len(cell):
+            ch = read_chunk(file, at=parse_chunk_name(name, str(file)))
+            layers = chunk_observations(ch, filled=True)
+            if not len(layers):
                 continue
-            h = ch.cells["h"][cell, slot].astype(np.float64)
-            parts.append(
-                Observations(
-                    ch.cx * CELLS + cell % CELLS,
-                    ch.cz * CELLS + cell // CELLS,
-                    h,
-                    ch.cells["n"][cell, slot].astype(np.float64),
-                    np.ones(len(h), np.int64),
-                    np.zeros(len(h), np.int64),
-                )
-            )
+            parts.append(layers)
+            h = layers.h
             boxes[name] = (
                 np.array([ch.cx * CELLS, h.min(), ch.cz * CELLS]),
                 np.array([(ch.cx + 1) * CELLS, h.max(), (ch.cz + 1) * CELLS]),
