@@ -170,6 +170,7 @@ def build_corpus(
     source: str,
     corpus: str,
     scene: str = "duel",
+    rigs: str | None = None,
     monster_species: int | None = None,
     weapon: int | None = None,
     video_height: int = 176,
@@ -191,11 +192,13 @@ def build_corpus(
     at ``dask_address`` (its workers must be able to import ``marionette`` and ``flows`` and see both
     paths). After finalize, each stage's terrain is scanned incrementally (the ``rescan-stage``
     subflow, its recordings fanned out on the same cluster, with the corpus's last scan options and ``scan`` /
-    ``terrain_frame_stride`` over them) unless ``scan_terrain`` is false. Returns the build report, also written to
+    ``terrain_frame_stride`` over them) unless ``scan_terrain`` is false. ``rigs`` is a directory of user rigs and
+    scenes (``marionette survey --rigs-out``) where ``scene`` is looked up first. Returns the build report, also written to
     ``<corpus>/meta/builds/<flow-run-id>.json``.
     """
     options = IngestOptions(
         scene=scene,
+        rigs=rigs,
         monster_species=monster_species,
         weapon=weapon,
         min_segment_frames=min_segment_frames,

@@ -15,6 +15,9 @@ from marionette.options import (
     chunk_frames,
     even_int,
     even_size_hxw,
+    int_at_least,
+    int_in,
+    non_negative_float,
     non_negative_int,
     positive_float,
     positive_int,
@@ -59,9 +62,52 @@ def cmd_synth(a: argparse.Namespace) -> int:
         height=a.height,
         workers=a.workers,
         hidden_depth=a.hidden_depth,
+        species=a.species,
+        players=a.players,
+        weapons=a.weapons,
+        stages=a.stages,
     )
     print(f"wrote {len(dirs)} recordings under {a.out} in {time.time() - t0:.1f} s")
     return 0
+
+
+def cmd_survey(a: argparse.Namespace) -> int:
+    """Report what a recording tree holds (``marionette.ingest.survey``) and, with --rigs-out, draft its rigs and scenes."""
+    from marionette.ingest.survey import DraftRules, draft_rigs, survey, write_drafts
+    from marionette.io import write_json
+
+    bars = None if a.quiet else ProgressBars()
+    report = survey(a.source, progress=bars)
+    for line in report.lines():
+        print(line)
+    out = report.to_json()
+    status = 0
+    if a.rigs_out is not None:
+        rules = DraftRules(drop_shorter_than=a.drop_shorter_than, frames_per_type=a.frames_per_type)
+        rigs, scenes, problems = draft_rigs(a.source, report, rules, progress=bars)
+        written = write_drafts(a.rigs_out, rigs, scenes)
+        for name, rig in sorted(rigs.items()):
+            m = rig["measured"]
+            agree = m.get("forward_agreement")
+            print(
+                f"rig      {name:<8} {len(rig['keep']):>3} of {len(rig['source_joints'])} joints kept, root {rig['root']}, "
+                f"forward {rig['forward_axis']}"
+                + (f" (motion agrees {agree:.2f})" if agree is not None else "")
+                + f", contacts {' '.join(rig['contact_joints']) or '-'}, radius {rig['capsule_radius_m']} m, {m['frames']} frames"
+            )
+        for name in sorted(scenes):
+            print(f"scene    {name}")
+        for key, why in sorted(problems.items()):
+            print(f"no draft {key}: {why}")
+        print(
+            f"wrote {len(written)} drafts under {a.rigs_out}: review them, then `marionette ingest --rigs {a.rigs_out} --scene NAME`"
+        )
+        out["drafts"] = {"rigs": sorted(rigs), "scenes": sorted(scenes), "problems": problems}
+        status = 1 if problems and a.strict else 0
+    if a.out is not None:
+        write_json(a.out, out)
+        print(f"wrote {a.out}")
+    return 1 if a.strict and report.problems else status
 
 
 def cmd_calibrate_depth(a: argparse.Namespace) -> int:
@@ -69,14 +115,13 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     it as JSON, plot it, and make it the scan decoder of a corpus."""
     from marionette.ingest.wildworld import discover
     from marionette.io import write_json
-    from marionette.schema import load_scene
     from terrain_scan import calibrate
 
     refs = discover(a.source)
     if not refs:
         raise ValueError(f"{a.source}: no recordings (data_part*/<id>/ with state.csv) under it")
     refs = refs[: a.max_recordings] if a.max_recordings else refs
-    layout = load_scene(a.scene)
+    layout = checked_scene(a)
     parts, failed = [], []
     bar = None
     if not a.quiet:
@@ -117,8 +162,10 @@ def _options(a: argparse.Namespace):
     from marionette.ingest import IngestOptions, VideoSettings
 
     h, w = a.video_size
+    checked_scene(a)
     return IngestOptions(
         scene=a.scene,
+        rigs=None if a.rigs is None else str(a.rigs),
         monster_species=a.monster_species,
         weapon=a.weapon,
         min_segment_frames=a.min_segment_frames,
@@ -698,14 +745,44 @@ def _train_quietly(corpus: str, out: str, config: dict) -> list[str]:
 
 
 def scene_name(s: str) -> str:
-    """An argparse type: the name of a scene under the schema directory's ``scenes/``."""
-    from marionette.schema import SCHEMA_DIR
+    """An argparse type: the name of a scene, built in (``schemas/scenes/``) or among a user's (``--rigs DIR``;
+    ``checked_scene`` looks it up once both options are parsed)."""
+    from marionette.schema import NAME_PATTERN, SCHEMA_DIR
 
-    names = sorted(f.stem for f in (SCHEMA_DIR / "scenes").glob("*.json"))
-    if s not in names:
-        where = SCHEMA_DIR / "scenes"
-        raise argparse.ArgumentTypeError(f"no scene {s!r} in {where}{near_ids(names, s)} (scenes: {', '.join(names)})")
+    if not NAME_PATTERN.fullmatch(s):
+        names = sorted(f.stem for f in (SCHEMA_DIR / "scenes").glob("*.json"))
+        raise argparse.ArgumentTypeError(f"{s!r} is not a scene name{near_ids(names, s)} (built-in scenes: {', '.join(names)})")
     return s
+
+
+def rigs_dir(s: str) -> Path:
+    """An argparse type: a directory of user rigs and scenes (``rigs/``, ``scenes/``, as ``marionette survey`` drafts)."""
+    p = Path(s)
+    if not p.is_dir():
+        raise argparse.ArgumentTypeError(f"{s}: not a directory")
+    if not (p / "rigs").is_dir() and not (p / "scenes").is_dir():
+        raise argparse.ArgumentTypeError(
+            f"{s}: holds neither rigs/ nor scenes/ (write one with `marionette survey SOURCE --rigs-out {s}`)"
+        )
+    return p
+
+
+def scene_missing(a: argparse.Namespace) -> str | None:
+    """A parser check: why ``--scene`` names no scene, built in or under ``--rigs``, or None."""
+    from marionette.schema import scene_names
+
+    names = scene_names(rigs=getattr(a, "rigs", None))
+    if a.scene in names:
+        return None
+    where = "built in" + (f" or under {a.rigs}/scenes" if getattr(a, "rigs", None) is not None else "")
+    return f"argument --scene: no scene {a.scene!r} {where}{near_ids(names, a.scene)} (scenes: {', '.join(names)})"
+
+
+def checked_scene(a: argparse.Namespace):
+    """The layout of ``--scene`` with ``--rigs``; an unknown scene or a bad rig is an error naming the file."""
+    from marionette.schema import load_scene
+
+    return load_scene(a.scene, rigs=getattr(a, "rigs", None))
 
 
 def scan_option(s: str) -> tuple[str, float | int]:
@@ -772,9 +849,31 @@ def build_parser() -> argparse.ArgumentParser:
     def command(name: str, help: str, group=sub) -> argparse.ArgumentParser:
         return group.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".")
 
+    s = command("survey", "report what a recording tree holds without building anything; draft rigs for its skeletons")
+    s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
+    s.add_argument("--rigs-out", type=Path, default=None, help="draft a rig per skeleton type and a scene per combination here")
+    s.add_argument(
+        "--drop-shorter-than",
+        type=non_negative_float,
+        default=0.0,
+        help="drafts drop helper joints whose median distance to their parent is below this, metres (0: keep all)",
+    )
+    s.add_argument("--frames-per-type", type=int_at_least(10), default=3000, help="frames of each skeleton type read to draft it")
+    s.add_argument("--out", type=Path, default=None, help="write the report (and the drafts' names) as JSON here")
+    s.add_argument("--strict", action="store_true", help="exit 1 when a sample has missing or unreadable files or a draft failed")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(fn=cmd_survey)
+
     s = command("calibrate-depth", "fit the unpublished 8-bit depth mapping from recorded skeletons and cameras")
     s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
     s.add_argument("--scene", type=scene_name, default="duel", help="scene layout: which rigs the skeletons are")
+    s.add_argument(
+        "--rigs",
+        type=rigs_dir,
+        default=None,
+        help="user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)",
+    )
+    s.add_check(scene_missing)
     s.add_argument("--frame-stride", type=positive_int, default=5, help="use every Nth frame")
     s.add_argument("--max-recordings", type=positive_int, default=None, help="use the first N recordings (default: all)")
     s.add_argument(
@@ -798,12 +897,37 @@ def build_parser() -> argparse.ArgumentParser:
         help="encode depth with a mapping drawn from a family by --seed, written only to the truth (calibrate it with "
         "`marionette calibrate-depth`)",
     )
+    s.add_argument(
+        "--species",
+        type=int_in(0, 20),
+        default=0,
+        help="monster species with generated skeletons (40–80 joints, recorded in no tree order); 0: the drake alone",
+    )
+    s.add_argument("--players", type=int_in(1, 4), default=1, help="player characters (one npc skeleton, each its own size)")
+    s.add_argument(
+        "--weapons", type=int_in(1, 2), default=1, help="weapon types: the 5-point greatsword, then a 2-point short blade"
+    )
+    s.add_argument(
+        "--stages", type=int_in(1, 4), default=1, help="stages: each further one the first's map turned 90° and raised 1.5 m"
+    )
     s.set_defaults(fn=cmd_synth)
 
     s = command("ingest", "ingest WildWorld recordings into a corpus (then finalize, scan terrain, render pose targets)")
     s.add_argument("src", type=Path, help="the source tree: a directory holding sample directories")
     s.add_argument("corpus", type=Path, help="the corpus directory (created, or updated incrementally)")
-    s.add_argument("--scene", type=scene_name, default="duel", help="the scene layout (schemas/scenes/NAME.json)")
+    s.add_argument(
+        "--scene",
+        type=scene_name,
+        default="duel",
+        help="the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs)",
+    )
+    s.add_argument(
+        "--rigs",
+        type=rigs_dir,
+        default=None,
+        help="user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)",
+    )
+    s.add_check(scene_missing)
     species_help = "ingest only recordings whose monster has this species id (default: every species the rig declares)"
     s.add_argument("--monster-species", type=non_negative_int, help=species_help)
     s.add_argument("--weapon", type=non_negative_int, help="ingest only recordings whose hunter has this weapon (default: any)")
@@ -936,7 +1060,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = command("eval", "evaluate a dynamics checkpoint: the paper's three tables, long-horizon curves, state metrics")
     from marionette.eval.protocol import PROTOCOLS
-    from marionette.options import int_at_least
 
     at_least_two = int_at_least(2)
     s.add_argument("dynamics", type=Path, help="a dynamics checkpoint or training directory")

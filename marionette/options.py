@@ -76,6 +76,19 @@ def int_at_least(lo: int) -> Callable[[str], int]:
     return parse
 
 
+def int_in(lo: int, hi: int) -> Callable[[str], int]:
+    """An argparse type: an integer in [``lo``, ``hi``]."""
+
+    def parse(s: str) -> int:
+        v = _integer(s)
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be in {lo}..{hi}, not {v}")
+        return v
+
+    parse.__name__ = f"integer in {lo}..{hi}"
+    return parse
+
+
 positive_int = int_at_least(1)
 non_negative_int = int_at_least(0)
 

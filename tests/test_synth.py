@@ -302,11 +302,11 @@ def test_depth_is_lossless_and_metric(synth):
     assert truth["depth_encoding"]["kind"] == "inverse_depth_u8"
     codes = _frames(d / "depth.mkv")
     f = 20
-    from marionette.synth.game import RIGS, _edges
+    from marionette.synth.game import RIGS, rig_edges
     from marionette.synth.render import Renderer, encode_depth
 
     rigs = {e: load_rig(r) for e, r in RIGS.items()}
-    edges = {e: _edges(r) for e, r in rigs.items()}
+    edges = {e: rig_edges(r) for e, r in rigs.items()}
     radii = {e: np.full(len(edges[e]), r.capsule_radius_m) for e, r in rigs.items()}
     ren = Renderer(GEN["width"], GEN["height"], edges, radii)
     pos, R = truth["camera_pos_world"][f], truth["camera_rot_cw"][f]

@@ -21,7 +21,6 @@ from marionette.corpus.info import CorpusInfo
 from marionette.corpus.vocab import classify
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
 from marionette.io import text_sha256, write_json, write_parquet
-from marionette.schema import load_scene
 
 
 def build_vocab(records: list[dict]) -> dict:
@@ -236,7 +235,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     stages = dict(stages or {})
     if old_info:
         stages = {**old_info.stages, **stages}
-    layout = load_scene(options.scene)
+    layout = options.layout
     records = _load_records(meta / "samples")
     ingested = [r for r in records if r["status"] == "ingested"]
 

@@ -40,6 +40,7 @@ class IngestOptions:
     """What a build ingests and how: scene, slice (species, weapon), segmenting, video, Arrow codec."""
 
     scene: str = "duel"
+    rigs: str | None = None  # a directory of user rigs and scenes (schemas/'s layout) looked in before the built-in ones
     monster_species: int | None = None
     weapon: int | None = None
     min_segment_frames: int = 30
@@ -50,7 +51,7 @@ class IngestOptions:
 
     @property
     def layout(self) -> Layout:
-        return load_scene(self.scene)
+        return load_scene(self.scene, rigs=None if self.rigs is None else Path(self.rigs))
 
     def type_filter(self) -> dict[str, set[int]]:
         """Accepted type ids per entity name: the requested slice, else what the rigs declare."""
@@ -67,13 +68,16 @@ class IngestOptions:
     def key(self) -> str:
         """Hash of everything that changes what ingest writes."""
         d = asdict(self)
-        d["layout_hash"] = self.layout.hash
+        d["layout_hash"] = self.layout.hash  # what the rigs say, wherever they are
+        d.pop("rigs")
         d["ingest_version"] = INGEST_VERSION
         return text_sha256(json.dumps(d, sort_keys=True, default=str))[:16]
 
     def to_json(self) -> dict:
         d = asdict(self)
         d["split_fractions"] = list(self.split_fractions)
+        if d["rigs"] is None:  # as corpora built before user rigs existed have it
+            del d["rigs"]
         return d
 
     @staticmethod

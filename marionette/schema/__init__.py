@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -249,11 +250,30 @@ def rig_from_json(d: dict, where: str = "<rig>") -> Rig:
     return rig
 
 
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,100}")
+
+
+def _schema_file(kind: str, name: str, schema_dir: Path, rigs: Path | None) -> Path:
+    """``<rigs>/<kind>/<name>.json`` when a user's directory holds it, else ``<schema_dir>/<kind>/<name>.json``."""
+    if not NAME_PATTERN.fullmatch(name):
+        raise SchemaError(f"{name!r} is not a {kind[:-1]} name (letters, digits, '_' and '-', at most 100)")
+    if rigs is not None and (Path(rigs) / kind / f"{name}.json").is_file():
+        return Path(rigs) / kind / f"{name}.json"
+    return Path(schema_dir) / kind / f"{name}.json"
+
+
 @cache
-def load_rig(name: str, schema_dir: Path = SCHEMA_DIR) -> Rig:
-    """Load ``schemas/rigs/<name>.json``."""
-    path = Path(schema_dir) / "rigs" / f"{name}.json"
+def load_rig(name: str, schema_dir: Path = SCHEMA_DIR, rigs: Path | None = None) -> Rig:
+    """Load ``<rigs>/rigs/<name>.json`` (a user's rigs, e.g. drafted by ``marionette survey``) or, without one,
+    the built-in ``schemas/rigs/<name>.json``."""
+    path = _schema_file("rigs", name, schema_dir, rigs)
     return rig_from_json(_read_json(path), str(path))
+
+
+def scene_names(schema_dir: Path = SCHEMA_DIR, rigs: Path | None = None) -> list[str]:
+    """The scenes there are: the built-in ones and a user's (``<rigs>/scenes/*.json``)."""
+    dirs = [Path(schema_dir)] + ([Path(rigs)] if rigs is not None else [])
+    return sorted({f.stem for d in dirs for f in (d / "scenes").glob("*.json") if NAME_PATTERN.fullmatch(f.stem)})
 
 
 def build_layout(scene: str, entities: list[Entity]) -> Layout:
@@ -269,6 +289,14 @@ def build_layout(scene: str, entities: list[Entity]) -> Layout:
                 )
         elif not e.articulated:
             raise SchemaError(f"scene {scene!r}: attachment {e.name!r} needs an owner")
+    banded = [e for e in entities if e.rig.id_band is not None]
+    for i, a in enumerate(banded):  # two rigs' bones must never share a render id (the bridge's id channel)
+        for b in banded[i + 1 :]:
+            (a0, a1), (b0, b1) = a.rig.id_band, b.rig.id_band
+            if a.rig.name != b.rig.name and a0 <= b1 and b0 <= a1:
+                raise SchemaError(
+                    f"scene {scene!r}: the render ids of {a.name!r} [{a0}, {a1}] and {b.name!r} [{b0}, {b1}] overlap"
+                )
     slices: dict[str, tuple[int, int]] = {}
     at = 0
 
@@ -291,9 +319,13 @@ def build_layout(scene: str, entities: list[Entity]) -> Layout:
 
 
 @cache
-def load_scene(name: str, schema_dir: Path = SCHEMA_DIR) -> Layout:
-    """Load ``schemas/scenes/<name>.json`` and generate its layout."""
-    path = Path(schema_dir) / "scenes" / f"{name}.json"
+def load_scene(name: str, schema_dir: Path = SCHEMA_DIR, rigs: Path | None = None) -> Layout:
+    """Load ``schemas/scenes/<name>.json`` — or ``<rigs>/scenes/<name>.json``, its rigs looked up in ``<rigs>/rigs/``
+    before the built-in ones — and generate its layout."""
+    path = _schema_file("scenes", name, schema_dir, rigs)
+    if not path.is_file():
+        names = scene_names(schema_dir, rigs)
+        raise SchemaError(f"no scene {name!r} in {path.parent} (scenes: {', '.join(names)})")
     d = _read_json(path)
     ents = []
     for i, ed in enumerate(d["entities"]):
@@ -301,7 +333,7 @@ def load_scene(name: str, schema_dir: Path = SCHEMA_DIR) -> Layout:
             ents.append(
                 Entity(
                     name=ed["name"],
-                    rig=load_rig(ed["rig"], schema_dir),
+                    rig=load_rig(ed["rig"], schema_dir, rigs),
                     source_kind=ed["source"]["kind"],
                     source_index=int(ed["source"]["index"]),
                     owner=ed.get("owner"),

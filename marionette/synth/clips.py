@@ -389,7 +389,6 @@ def _monster() -> dict[str, Clip]:
 HUNTER_CLIPS: dict[str, Clip] = _hunter()
 MONSTER_CLIPS: dict[str, Clip] = _monster()
 CLIPS = {"hunter": HUNTER_CLIPS, "monster": MONSTER_CLIPS}
-TYPE_IDS = {"hunter": 0, "monster": 25, "weapon": 3}
 
 
 def clip_table(entity: str) -> dict[int, dict]:

@@ -21,7 +21,8 @@ from marionette.geometry import matrix_to_quat, yaw_quat
 from marionette.schema import load_rig
 
 from . import sim
-from .clips import CLIPS, TYPE_IDS, clip_table
+from .cast import GREATSWORD, Cast, make_cast
+from .clips import CLIPS, clip_table
 from .render import DEPTH_ENCODING, Renderer, encode_depth, follow_camera, intrinsics
 
 RECORDING_EPOCH = 1767225600  # 2026-01-01T00:00:00Z; recording k starts k days later
@@ -83,7 +84,8 @@ def _atomic(path: Path, write) -> None:
     os.replace(tmp, path)
 
 
-def _edges(rig) -> np.ndarray:
+def rig_edges(rig) -> np.ndarray:
+    """A rig's source edges as [[parent, child], ...] (its skeleton_edges.json entry)."""
     return np.array([(p, c) for c, p in enumerate(rig.source_parents) if p >= 0], dtype=np.int64)
 
 
@@ -158,16 +160,19 @@ def write_recording(
     height: int,
     fps: int,
     depth_mapping: dict | None = None,
+    cast: dict | None = None,
 ) -> Path:
     """Simulate, render and write one recording (its depth in ``depth_mapping``, a ``DepthDecoder`` JSON; default
-    the game's ``DEPTH_ENCODING``); returns its sample directory."""
+    the game's ``DEPTH_ENCODING``; who plays and where from ``make_cast(seed, **cast)``, default the drake, player 0
+    and the greatsword on the first stage); returns its sample directory."""
     sample_id = f"rec{index:04d}"
     d = Path(out_dir) / part / sample_id
     d.mkdir(parents=True, exist_ok=True)
     N = int(round(seconds * fps))
     plan = sim.simulate(seed, index, N, float(fps))
+    role = make_cast(seed, **(cast or {})).role(index)
     times = np.arange(N) / fps
-    sk = sim.skeletons_at(plan, times)
+    sk = sim.skeletons_at(plan, times, role)
     roots, yaws = {}, {}
     for ent in ("hunter", "monster"):
         roots[ent], yaws[ent], _ = sim.roots_at(plan, ent, times)
@@ -178,9 +183,15 @@ def write_recording(
     cam_pos, cam_rot = follow_camera(roots["hunter"], yaws["hunter"], roots["monster"], present)
 
     rigs = {e: load_rig(r) for e, r in RIGS.items()}
-    edges = {e: _edges(r) for e, r in rigs.items()}
+    edges = {e: rig_edges(r) for e, r in rigs.items()}
+    if role.weapon != GREATSWORD:
+        edges["weapon"] = np.asarray(role.weapon.edges, dtype=np.int64)
     radii = {}
     for e, r in rigs.items():
+        if e == "monster" and role.species is not None:
+            edges[e] = np.asarray(role.species.edges, dtype=np.int64)
+            radii[e] = role.species.bone_radii()
+            continue
         scale = np.ones(len(edges[e]))
         if e == "monster":  # a thick body and neck, a tapering tail
             child = [r.source_joints[c] for c in edges[e][:, 1]]
@@ -196,7 +207,8 @@ def write_recording(
                     for n in child
                 ]
             )
-        radii[e] = r.capsule_radius_m * scale
+        radii[e] = r.capsule_radius_m * scale * (role.player.scale if e == "hunter" else 1.0)
+    radii["weapon"] = radii["weapon"][: len(edges["weapon"])]
     renderer = Renderer(width, height, edges, radii)
     encode = encode_depth
     if depth_mapping is not None:
@@ -209,6 +221,16 @@ def write_recording(
         img, z = renderer.render(cam_pos[i], cam_rot[i], bodies)
         rgb.append(img)
         depth.append(encode(z))
+    # Rendered in the first stage's frame; what the recording states in world coordinates moves into its stage.
+    stage = role.stage
+    sk = {e: stage.points(v) for e, v in sk.items()}
+    roots = {e: stage.points(v) for e, v in roots.items()}
+    yaws = {e: v + stage.turn for e, v in yaws.items()} if not stage.identity else yaws
+    cam_pos, cam_rot = stage.points(cam_pos), stage.rotations(cam_rot)
+    if role.species is not None:  # the pos columns: each body's root joint
+        roots["monster"] = sk["monster"][:, role.species.names.index(role.species.root)]
+    if role.player.scale != 1.0:
+        roots["hunter"] = sk["hunter"][:, load_rig("hunter").source_joints.index("pelvis")]
     # One thread and no lookahead / macroblock tree: measured to make the bitstream byte-stable across runs.
     x264 = {
         "crf": "20",
@@ -241,9 +263,9 @@ def write_recording(
         row = [_tuple(K), _tuple(cam_pos[i]), _tuple(cam_q[i], 8)] if cam_valid[i] else ["nan"] * 3
         row += ["1", "0"]
         npc = {
-            "type_id": 0,
+            "type_id": role.player.type_id,
             "member_id": 0,
-            "weapon_id": TYPE_IDS["weapon"],
+            "weapon_id": role.weapon.type_id,
             "pos": _tuple(roots["hunter"][i]),
             "rot": _tuple(hq[i], 8),
             "motion_bank_id": hc.bank,
@@ -272,7 +294,7 @@ def write_recording(
             frac = hp["monster"][i] / 2400.0
             cond = "angry" if frac < 0.7 else "tired" if mc.cls == "stationary" and frac < 0.9 else "none"
             mon = {
-                "type_id": TYPE_IDS["monster"],
+                "type_id": role.monster_type,
                 "pos": _tuple(roots["monster"][i]),
                 "rot": _tuple(mq[i], 8),
                 "motion_bank_id": mc.bank,
@@ -297,7 +319,11 @@ def write_recording(
 
     m = sk["monster"].astype(np.float32)
     m[~present] = np.nan
-    arrays = {"m1_25": m, "n1_0": sk["hunter"].astype(np.float32), "w1_3": sk["weapon"].astype(np.float32)}
+    arrays = {
+        f"m1_{role.monster_type}": m,
+        f"n1_{role.player.type_id}": sk["hunter"].astype(np.float32),
+        f"w1_{role.weapon.type_id}": sk["weapon"].astype(np.float32),
+    }
     _atomic(d / "skeleton.npz", lambda tmp: _savez(tmp, arrays))
 
     # Truth side file.
@@ -327,6 +353,8 @@ def write_recording(
         "depth_encoding": DEPTH_ENCODING if depth_mapping is None else depth_mapping,
         "camera_K": list(K),
         "monster_absent_frames": list(plan.absent),
+        "cast": cast or {},
+        "role": role.to_json(),
         "camera_invalid_frames": list(plan.camera_invalid),
         "clips": {e: {str(k): v for k, v in clip_table(e).items()} for e in ("monster", "hunter")},
         "segments": {
@@ -343,11 +371,12 @@ def _savez(tmp: Path, arrays: dict) -> None:
         np.savez(fh, **arrays)
 
 
-def write_edges(out_dir: Path, part: str) -> Path:
-    """``<part>/skeleton_edges.json``: edges key → [[parent, child], ...] in source joint indices."""
+def write_edges(out_dir: Path, part: str, cast: Cast | None = None) -> Path:
+    """``<part>/skeleton_edges.json``: edges key → [[parent, child], ...] in source joint indices, for every
+    skeleton type of ``cast`` (default: the drake, the player, the greatsword)."""
     path = Path(out_dir) / part / "skeleton_edges.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    data = {load_rig(r).edges_key: _edges(load_rig(r)).tolist() for r in RIGS.values()}
+    data = (cast or Cast()).edges()
     _atomic(path, lambda tmp: tmp.write_text(json.dumps(data)))
     return path
 
@@ -363,15 +392,22 @@ def generate(
     part: str = "data_part1",
     workers: int = 1,
     hidden_depth: bool = False,
+    species: int = 0,
+    players: int = 1,
+    weapons: int = 1,
+    stages: int = 1,
 ) -> list[Path]:
     """Write ``recordings`` synthetic recordings of ``seconds`` s each (in ``workers`` processes);
     returns the sample directories. Each recording depends only on (seed, index), never on ``workers``.
     With ``hidden_depth`` the game encodes depth with a mapping drawn from a family by ``seed``
-    (``hidden_depth_mapping``), written only to the truth, as WildWorld does not publish its own."""
+    (``hidden_depth_mapping``), written only to the truth, as WildWorld does not publish its own. ``species``,
+    ``players``, ``weapons`` and ``stages`` size the cast (``cast.make_cast``; recording k plays ``role(k)``)."""
     out_dir = Path(out_dir)
-    write_edges(out_dir, part)
+    spec = {"species": species, "players": players, "weapons": weapons, "stages": stages}
+    spec = {k: v for k, v in spec.items() if v != (0 if k == "species" else 1)}
+    write_edges(out_dir, part, make_cast(seed, **spec))
     mapping = hidden_depth_mapping(seed) if hidden_depth else None
-    args = [(out_dir, part, k, seed, seconds, width, height, fps, mapping) for k in range(recordings)]
+    args = [(out_dir, part, k, seed, seconds, width, height, fps, mapping, spec or None) for k in range(recordings)]
     if workers <= 1 or recordings <= 1:
         return [write_recording(*a) for a in args]
     from concurrent.futures import ProcessPoolExecutor
@@ -410,4 +446,5 @@ def world_skeletons_at(out_dir, part: str, sample_id: str, times_s) -> dict[str,
     """Analytic world source skeletons (float64) at times (s from frame 0), re-simulated from the seed."""
     meta = json.loads((Path(out_dir) / "truth" / part / f"{sample_id}.json").read_text())
     plan = sim.simulate(meta["seed"], meta["index"], meta["n_frames"], float(meta["fps"]))
-    return sim.skeletons_at(plan, times_s)
+    role = make_cast(meta["seed"], **meta.get("cast", {})).role(meta["index"])
+    return {e: role.stage.points(v) for e, v in sim.skeletons_at(plan, times_s, role).items()}

@@ -651,8 +651,9 @@ def _controls(plan: Plan, entity: str, tf: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def skeletons_at(plan: Plan, times_s) -> dict[str, np.ndarray]:
-    """World source skeletons at times (s): monster (M, 64, 3), hunter (M, 36, 3), weapon (M, 5, 3)."""
+def skeletons_at(plan: Plan, times_s, role=None) -> dict[str, np.ndarray]:
+    """World source skeletons at times (s), in the first stage's frame: monster (M, 64, 3), hunter (M, 36, 3),
+    weapon (M, 5, 3) — or, for a ``cast.Role``, its species', player's and weapon's."""
     t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
     tf = t * plan.fps
     out = {}
@@ -669,8 +670,12 @@ def skeletons_at(plan: Plan, times_s) -> dict[str, np.ndarray]:
         ctrl = _controls(plan, entity, tf)
         if entity == "hunter":
             local, weapon = hunter_skeleton(rig, ctrl, surface_local)
+            if role is not None:
+                local, weapon = role.player.derive(local), role.weapon.derive(role.player.derive(weapon))
         else:
             local, weapon = monster_skeleton(rig, ctrl, surface_local), None
+            if role is not None and role.species is not None:
+                local = role.species.derive(local)
 
         def to_world(p, root=root, c=c, s=s):
             x, y, z = p[..., 0], p[..., 1], p[..., 2]
