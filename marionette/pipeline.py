@@ -30,6 +30,8 @@ class RefreshReport:
     def lines(self) -> list[str]:
         """One summary line per stage and one for the pose pass, then one line per failure."""
         out = []
+        for r in self.terrain.values():
+            out += [f"terrain: placed {line}" for line in r.get("placed", [])]
         for st, r in self.terrain.items():
             out.append(
                 f"terrain {st}: {len(r['scanned'])} recordings scanned, {len(r['unchanged'])} unchanged, {len(r['failed'])} failed; "

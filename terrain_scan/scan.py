@@ -10,8 +10,9 @@ give identical chunk files.
 
 from __future__ import annotations
 
+import itertools
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from marionette.corpus import paths
@@ -20,9 +21,11 @@ from marionette.ingest.wildworld import SampleError, SampleRef
 from marionette.io import file_sha256, text_sha256, write_json
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
+from terrain_scan.grouping import place
 from terrain_scan.knobs import DERIVE_KNOBS, KNOBS, knob_ok
-from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT
-from terrain_scan.store import IMPORT_PREFIX, Stage
+from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT, Observations
+from terrain_scan.store import IMPORT_PREFIX, Stage, chunk_observations
+from terrain_scan.trn2 import read_chunk, split_cell
 
 # 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug
 SCAN_VERSION = "4"
@@ -250,12 +253,19 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
 
     DepthDecoder.from_json(options.decoder)  # a bad decoder is one error here, not one per recording
     c = Corpus(corpus)
+    placements, ready = _place_recordings(corpus, c, options, incremental, mapper, log)
     stages = corpus_stages(corpus)
     if stage is not None:
         if stage not in stages:
             raise ValueError(f"{corpus}: no ingested recording on stage {stage!r}; stages: {sorted(stages)}")
         stages = {stage: stages[stage]}
     held = {st: Stage(paths.stage_dir(corpus, st), alias=options.alias()) for st in stages}
+    if stage is None:  # a stage every recording left (moved by a placement): its scanned contributions go
+        for d in sorted((Path(corpus) / "terrain").glob("stage_*")):
+            st = d.name[len("stage_") :]
+            if st not in stages and paths.ID_PATTERN.fullmatch(st) and (d / "manifest.json").exists():
+                held[st] = Stage(d, alias=options.alias())
+                stages[st] = []
     jobs: list[ScanJob] = []
     for st, recs in stages.items():
         S = held[st]
@@ -277,8 +287,11 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
     order = {(j.stage, j.sample): k for k, j in enumerate(jobs)}
     waiting: dict[int, ScanOutcome] = {}
     done = 0
+    # recordings the placement has just scanned are committed from its outcomes, not scanned twice
+    ready = [o for o in ready if (o.job.stage, o.job.sample) in order]
+    todo = [j for j in jobs if (j.stage, j.sample) not in {(o.job.stage, o.job.sample) for o in ready}]
     try:
-        for out in mapper(scan_job, jobs, {"layout": c.layout, "options": options}):
+        for out in itertools.chain(ready, mapper(scan_job, todo, {"layout": c.layout, "options": options})):
             if bar is not None:
                 bar.update(1)
             waiting[order[(out.job.stage, out.job.sample)]] = out
@@ -303,8 +316,80 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
             "chunks_derived": [list(c) for c in rb.derived],
             "layers": rb.layers,
             "filled": rb.filled,
+            "placed": [p.line() for p in placements if p.stage == st],
         }
     return report
+
+
+def _near(S: Stage):
+    """A stage's observations in the chunks a recording's observations touch (its derived chunk files)."""
+
+    def near(obs: Observations) -> Observations:
+        cx, cz, _ = split_cell(obs.gx, obs.gz)
+        parts = []
+        for key in sorted({(int(a), int(b)) for a, b in zip(cx, cz, strict=True)}):
+            rec = S.manifest["chunks"].get(f"{key[0]}_{key[1]}")
+            if rec is not None:
+                parts.append(chunk_observations(read_chunk(S.file(rec["file"]), at=key)))
+        return Observations.concat(parts)
+
+    return near
+
+
+def _new_stage_name(used: set[str]) -> str:
+    """``default`` for the first stage a corpus finds (the name a corpus of one stage has always had), then
+    ``stage2``, ``stage3``, …"""
+    if "default" not in used:
+        return "default"
+    return next(f"stage{k}" for k in range(2, len(used) + 3) if f"stage{k}" not in used)
+
+
+def _place_recordings(corpus: Path, c, options: ScanOptions, incremental: bool, mapper, log) -> tuple[list, list]:
+    """Put every recording that no ``stages.json`` places onto a stage by terrain agreement (``grouping.place``),
+    write the placement to ``meta/stages.json`` and the segments' stage column; apply a user's edit of that file.
+
+    Returns the placements and the scan outcomes of the recordings scanned to place them (for the scan to commit).
+    A recording whose scan fails stays unplaced (stage ``default``) and fails again, reported, in the scan."""
+    from marionette.corpus.stages import UNPLACED, read_placements, write_placements
+    from marionette.ingest.finalize import write_metadata
+
+    given = dict(c.info.stages)  # the source tree's stages.json: the user's word
+    placed = read_placements(corpus)
+    now = {r["sample"]: (st, r) for st, recs in corpus_stages(corpus).items() for r in recs}
+    pending = sorted(s for s in now if s not in given and s not in placed)
+    placements, ready = [], []
+    if pending:
+        held = {st: Stage(paths.stage_dir(corpus, st), alias=options.alias()) for st in {now[s][0] for s in pending}}
+        jobs = [
+            ScanJob(
+                now[s][0], s, now[s][1]["source"], now[s][1]["input_hash"], held[now[s][0]].input_hash(s) if incremental else None
+            )
+            for s in pending
+        ]
+        outcomes = {o.job.sample: o for o in mapper(scan_job, jobs, {"layout": c.layout, "options": options})}
+        seen = []
+        for s in pending:
+            o = outcomes[s]
+            if o.reason is None:
+                obs = o.result.observations if o.result is not None else held[o.job.stage].contribution(s)
+                seen.append((s, obs))
+        existing = sorted(set(given.values()) | set(placed.values()))
+        near = {st: _near(Stage(paths.stage_dir(corpus, st))) for st in existing}
+        placements = place(seen, near, _new_stage_name)
+        for p in placements:
+            log(f"terrain: placed {p.line()}")
+            o = outcomes[p.recording]
+            placed[p.recording] = p.stage
+            if o.result is not None:
+                ready.append(replace(o, job=replace(o.job, stage=p.stage, stored_hash=None)))
+            elif p.stage != o.job.stage:  # unchanged, moved: its stored contribution goes with it
+                obs = dict(seen)[p.recording]
+                Stage(paths.stage_dir(corpus, p.stage), alias=options.alias()).put(p.recording, obs, o.input_hash, None)
+        write_placements(corpus, {s: st for s, st in placed.items() if s in now or s in given})
+    want = {s: given.get(s, placed.get(s, UNPLACED)) for s in now}
+    if any(want[s] != now[s][0] for s in now):
+        write_metadata(Path(corpus))
+    return placements, ready
 
 
 def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:

@@ -235,6 +235,10 @@ class Stage:
             write_json(self.dir / "manifest.json", self.manifest)
             self.file(rec["file"]).unlink(missing_ok=True)
 
+    def contribution(self, recording: str) -> Observations:
+        """One recording's stored observations."""
+        return self._load(self.manifest["recordings"][recording])
+
     def _load(self, rec: dict) -> Observations:
         with np.load(self.file(rec["file"]), allow_pickle=False) as z:
             hugs = z["hugs"] if "hugs" in z.files else None  # stored before scans measured it: never an alias

@@ -18,6 +18,7 @@ import pyarrow as pa
 
 from marionette.corpus import paths
 from marionette.corpus.info import CorpusInfo
+from marionette.corpus.stages import UNPLACED, read_placements
 from marionette.corpus.vocab import classify
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
 from marionette.io import text_sha256, write_json, write_parquet
@@ -235,6 +236,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     stages = dict(stages or {})
     if old_info:
         stages = {**old_info.stages, **stages}
+    placed = read_placements(corpus)  # the terrain scan's grouping (or a user's edit of it); the source's map wins
     layout = options.layout
     records = _load_records(meta / "samples")
     ingested = [r for r in records if r["status"] == "ingested"]
@@ -264,7 +266,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
             for k, v in (
                 ("segment", s["segment"]),
                 ("sample", r["sample"]),
-                ("stage", stages.get(r["sample"], "default")),
+                ("stage", stages.get(r["sample"], placed.get(r["sample"], UNPLACED))),
                 ("species", species),
                 ("weapon", weapon),
                 ("frames", s["frames"]),

@@ -1,0 +1,56 @@
+"""Which stage each recording plays on: ``meta/stages.json``.
+
+WildWorld's ``state.csv`` names no stage. A source tree may carry ``stages.json`` (recording → stage, the
+user's word, which always wins); every other recording is placed by the terrain scan, which groups
+recordings by the agreement of their scanned terrain (``terrain_scan.grouping``) and writes the whole
+placement here: ``{"recordings": {"part/id": "stage"}}``. A user may edit the file (move a recording, split
+or rename a stage); the next scan applies the edit. A recording listed nowhere reads as stage ``default``
+until a scan places it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from marionette.corpus.paths import ID_PATTERN
+from marionette.io import write_json
+
+STAGES_FILE = "stages.json"
+MAX_STAGES_BYTES = 64 << 20
+UNPLACED = "default"
+
+
+def _check(d: object, where: str) -> dict[str, str]:
+    if not isinstance(d, dict) or not isinstance(d.get("recordings"), dict):
+        raise ValueError(f'{where}: not a stage placement (an object {{"recordings": {{"part/id": "stage"}}}})')
+    out = {}
+    for rec, stage in d["recordings"].items():
+        part, _, sample = rec.partition("/")
+        if not (ID_PATTERN.fullmatch(part) and ID_PATTERN.fullmatch(sample)):
+            raise ValueError(f"{where}: {rec!r} is not a recording id (part/id)")
+        if not isinstance(stage, str) or not ID_PATTERN.fullmatch(stage):
+            raise ValueError(f"{where}: recording {rec!r}: stage {stage!r} is not an id ([A-Za-z0-9_-], at most 200)")
+        out[rec] = stage
+    return out
+
+
+def read_placements(corpus: Path) -> dict[str, str]:
+    """``meta/stages.json`` of a corpus (recording → stage), checked; {} when there is none."""
+    path = Path(corpus) / "meta" / STAGES_FILE
+    if not path.exists():
+        return {}
+    if path.stat().st_size > MAX_STAGES_BYTES:
+        raise ValueError(f"{path}: {path.stat().st_size} bytes, more than a stage placement may hold ({MAX_STAGES_BYTES})")
+    try:
+        d = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: invalid JSON ({exc})") from None
+    return _check(d, str(path))
+
+
+def write_placements(corpus: Path, placements: dict[str, str]) -> Path:
+    """Write ``meta/stages.json`` atomically (sorted), returning its path."""
+    path = Path(corpus) / "meta" / STAGES_FILE
+    write_json(path, {"recordings": dict(sorted(placements.items()))})
+    return path
