@@ -121,7 +121,13 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     if not refs:
         raise ValueError(f"{a.source}: no recordings (data_part*/<id>/ with state.csv) under it")
     refs = refs[: a.max_recordings] if a.max_recordings else refs
-    layout = checked_scene(a)
+    if a.scene == "auto":  # each recording's own rigs (the tree may hold many species)
+        from marionette.ingest.survey import recording_layout, rig_index
+
+        index = rig_index(a.rigs)
+        layout = lambda ref: recording_layout(ref, a.rigs, index)  # noqa: E731
+    else:
+        layout = checked_scene(a)
     parts, failed = [], []
     bar = None
     if not a.quiet:
@@ -772,7 +778,7 @@ def scene_missing(a: argparse.Namespace) -> str | None:
     from marionette.schema import scene_names
 
     names = scene_names(rigs=getattr(a, "rigs", None))
-    if a.scene in names:
+    if a.scene in names or (a.scene == "auto" and getattr(a, "auto_scene", False)):
         return None
     where = "built in" + (f" or under {a.rigs}/scenes" if getattr(a, "rigs", None) is not None else "")
     return f"argument --scene: no scene {a.scene!r} {where}{near_ids(names, a.scene)} (scenes: {', '.join(names)})"
@@ -866,7 +872,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = command("calibrate-depth", "fit the unpublished 8-bit depth mapping from recorded skeletons and cameras")
     s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
-    s.add_argument("--scene", type=scene_name, default="duel", help="scene layout: which rigs the skeletons are")
+    s.add_argument(
+        "--scene",
+        type=scene_name,
+        default="auto",
+        help="scene layout: which rigs the skeletons are (auto: each recording's own, its types' rigs found by their edges key)",
+    )
+    s.set_defaults(auto_scene=True)
     s.add_argument(
         "--rigs",
         type=rigs_dir,

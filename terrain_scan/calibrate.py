@@ -19,7 +19,7 @@ parametric kind where a code has too few pairs.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -102,7 +102,7 @@ def recording_pairs(ref: SampleRef, layout: Layout, frame_stride: int = 5) -> Pa
     names, offset, first = [], [], {}
     for e in layout.entities:
         first[e.name] = len(names)
-        names += [f"{e.name}/{j}" for j in e.rig.keep]
+        names += [f"{e.rig.name}/{j}" for j in e.rig.keep]  # by rig: recordings of other species never share a name
         offset += [e.rig.capsule_radius_m] * len(e.rig.keep)
     codes, zjs, dists, joints, at, frames = [], [], [], [], [], 0
     for i, img in enumerate(depth_frames(ref.path / "depth.mkv")):
@@ -350,15 +350,18 @@ def fit(pairs: Pairs, family: str = "auto") -> Calibration:
     return Calibration(fits, chosen, table, pairs, best, notes)
 
 
-def iter_pairs(refs: list[SampleRef], layout: Layout, frame_stride: int) -> Iterator[Pairs | str]:
-    """Each recording's pairs, or the reason it gave none (an unreadable file, named)."""
-    from marionette.ingest.wildworld import SampleError
+def iter_pairs(refs: list[SampleRef], layout: Layout | Callable[[SampleRef], Layout], frame_stride: int) -> Iterator[Pairs | str]:
+    """Each recording's pairs, or the reason it gave none (an unreadable file, named). ``layout`` is one for every
+    recording, or a function giving each its own (``marionette.ingest.survey.recording_layout``)."""
+    from marionette.ingest.wildworld import SampleError, SampleSkipped
 
     for ref in refs:
         try:
-            yield recording_pairs(ref, layout, frame_stride)
+            yield recording_pairs(ref, layout(ref) if callable(layout) else layout, frame_stride)
         except SampleError as exc:  # its message names the file
             yield str(exc)
+        except SampleSkipped as exc:  # another species or weapon than the scene's
+            yield f"{ref.path}: {exc}"
         except (OSError, ValueError) as exc:
             yield f"{ref.path}: {exc}"
 

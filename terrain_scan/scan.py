@@ -253,7 +253,7 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
 
     DepthDecoder.from_json(options.decoder)  # a bad decoder is one error here, not one per recording
     c = Corpus(corpus)
-    placements, ready = _place_recordings(corpus, c, options, incremental, mapper, log)
+    placements, ready = _place_recordings(corpus, c, options, incremental, mapper, log, progress)
     stages = corpus_stages(corpus)
     if stage is not None:
         if stage not in stages:
@@ -344,7 +344,9 @@ def _new_stage_name(used: set[str]) -> str:
     return next(f"stage{k}" for k in range(2, len(used) + 3) if f"stage{k}" not in used)
 
 
-def _place_recordings(corpus: Path, c, options: ScanOptions, incremental: bool, mapper, log) -> tuple[list, list]:
+def _place_recordings(
+    corpus: Path, c, options: ScanOptions, incremental: bool, mapper, log, progress: bool = False
+) -> tuple[list, list]:
     """Put every recording that no ``stages.json`` places onto a stage by terrain agreement (``grouping.place``),
     write the placement to ``meta/stages.json`` and the segments' stage column; apply a user's edit of that file.
 
@@ -366,7 +368,20 @@ def _place_recordings(corpus: Path, c, options: ScanOptions, incremental: bool, 
             )
             for s in pending
         ]
-        outcomes = {o.job.sample: o for o in mapper(scan_job, jobs, {"layout": c.layout, "options": options})}
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(jobs), desc="terrain scan (placing on stages)", unit="recording")
+        outcomes = {}
+        try:
+            for o in mapper(scan_job, jobs, {"layout": c.layout, "options": options}):
+                outcomes[o.job.sample] = o
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
         seen = []
         for s in pending:
             o = outcomes[s]

@@ -31,7 +31,7 @@ import numpy as np
 import pyarrow.compute as pc
 
 from marionette.io import write_json
-from marionette.schema import SchemaError, rig_from_json
+from marionette.schema import Layout, Rig, SchemaError, rig_from_json
 
 from .wildworld import (
     MAX_MEMBER_BYTES,
@@ -464,3 +464,57 @@ def write_drafts(out: Path, rigs: dict[str, dict], scenes: dict[str, dict]) -> l
             write_json(path, d)
             written.append(path)
     return written
+
+
+# ------------------------------------------------------------------------------------------------ a recording's layout
+
+
+def rig_index(rigs: Path | None = None) -> dict[str, Rig]:
+    """Every rig there is by its edges key: a user's (``<rigs>/rigs/*.json``) over the built-in ones."""
+    from marionette.schema import NAME_PATTERN, SCHEMA_DIR, load_rig
+
+    out: dict[str, Rig] = {}
+    for d in [SCHEMA_DIR] + ([Path(rigs)] if rigs is not None else []):
+        for f in sorted((Path(d) / "rigs").glob("*.json")):
+            if NAME_PATTERN.fullmatch(f.stem):
+                rig = load_rig(f.stem, SCHEMA_DIR, None if Path(d) == SCHEMA_DIR else Path(d))
+                out[rig.edges_key] = rig
+    return out
+
+
+def recording_layout(ref: SampleRef, rigs: Path | None = None, index: dict[str, Rig] | None = None) -> Layout:
+    """The layout of what one recording holds: its monster's, player's and weapon's rigs (by edges key, the type
+    recorded most often; ``rig_index``), in the duel's order. A built-in scene of the same rigs keeps its name
+    (``duel``); another is named ``<monster rig>_<weapon rig>``, as survey names its drafts. A type no rig
+    declares is a SampleError naming it."""
+    from marionette.schema import Entity, build_layout, load_scene, scene_names
+
+    index = rig_index(rigs) if index is None else index
+    cols = {"m": "monster.list.0.type_id", "n": "npc.list.0.type_id", "w": "npc.list.0.weapon_id"}
+    raw, _ = read_state_csv(ref.path / "state.csv", list(cols.values()))
+    picked = {}
+    for kind, col in cols.items():
+        t = _mode(_numbers(raw[col]))
+        if t is None:
+            raise SampleError(f"{ref.path / 'state.csv'}: column {col!r} is nan on every row")
+        key = edges_key(kind, t)
+        rig = index.get(key)
+        if rig is None or t not in rig.type_ids:
+            raise SampleError(
+                f"{ref.path}: no rig for {KIND_NAME[kind]} type {t} (edges key {key!r}); draft one with "
+                f"`marionette survey {ref.root} --rigs-out DIR` and pass --rigs DIR"
+            )
+        picked[kind] = rig
+    entities = [
+        Entity("monster", picked["m"], "m", 1),
+        Entity("hunter", picked["n"], "n", 1),
+        Entity("weapon", picked["w"], "w", 1, owner="hunter"),
+    ]
+    for name in scene_names(rigs=rigs):  # a built-in or user scene of exactly these rigs keeps its name
+        try:
+            known = load_scene(name, rigs=rigs)
+        except SchemaError:
+            continue
+        if [e.rig for e in known.entities] == [e.rig for e in entities]:
+            return known
+    return build_layout(f"{picked['m'].name}_{picked['w'].name}", entities)
