@@ -85,6 +85,19 @@ def test_survey_names_damaged_samples_and_reads_the_rest(world, tmp_path):
     assert "missing depth.mkv" in report.problems[f"{PART}/rec0001"][0]
     assert "skeleton.npz" in report.problems[f"{PART}/rec0002"][0]
     assert main(["survey", str(tree), "--quiet", "--strict"]) == 1
+    # edges missing for a recorded type, or not one fewer than its joints, are named with the file
+    edges_path = tree / PART / "skeleton_edges.json"
+    edges = json.loads(edges_path.read_text())
+    species = sorted(k for k in edges if k.startswith("em_"))
+    del edges[species[0]]
+    edges[species[1]] = edges[species[1]][:-1]
+    edges_path.write_text(json.dumps(edges))
+    said = survey(tree).problems[f"{PART}/skeleton_edges.json"]
+    assert any(f"no edges for {species[0]!r}" in p for p in said) and any(f"{species[1]!r} has" in p for p in said)
+    rigs, _, problems = draft_rigs(tree, survey(tree), DraftRules(frames_per_type=50))
+    assert species[0] in problems and species[1] in problems and "npc" in rigs  # the rest is drafted
+    edges_path.write_bytes(b"{" + b" " * (17 << 20) + b"}")  # larger than any edges file: refused unread
+    assert "more than a skeleton_edges.json may hold" in survey(tree).problems[f"{PART}/skeleton_edges.json"][0]
 
 
 def test_drafted_rigs_match_the_truth_and_ingest_takes_them_unchanged(world, tmp_path, capsys):

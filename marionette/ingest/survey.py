@@ -171,7 +171,34 @@ def survey(source: Path, progress: Progress | None = None, max_member_bytes: int
             progress("survey", i + 1, len(refs))
     for key, names in seen_samples.items():
         out.skeletons[key]["samples"] = len(names)
+    _check_edges(refs, out)
     return out
+
+
+def _check_edges(refs: list[SampleRef], out: Survey) -> None:
+    """Each part's skeleton_edges.json against the skeleton types its samples hold: a type without edges, or with
+    a number of edges other than its joints less one, is a problem named with the file."""
+    parts = {}
+    for ref in refs:
+        parts.setdefault(ref.part, ref.edges_path)
+    for part, path in sorted(parts.items()):
+        held = {k for s in out.samples if s["sample"].startswith(part + "/") for k in s["skeleton_keys"]}
+        try:
+            edges = load_edges(path)
+        except SampleError as exc:
+            out.problems.setdefault(f"{part}/skeleton_edges.json", []).append(str(exc))
+            continue
+        for key in sorted(held):
+            s = out.skeletons[key]
+            got = edges.get(s["edges_key"])
+            if not isinstance(got, list):
+                out.problems.setdefault(f"{part}/skeleton_edges.json", []).append(
+                    f"{path}: no edges for {s['edges_key']!r} ({key} is recorded)"
+                )
+            elif len(got) != s["joints"] - 1:
+                out.problems.setdefault(f"{part}/skeleton_edges.json", []).append(
+                    f"{path}: {s['edges_key']!r} has {len(got)} edges; {key}'s {s['joints']} joints need {s['joints'] - 1}"
+                )
 
 
 def _survey_sample(ref: SampleRef, out: Survey, max_member_bytes: int) -> dict:
@@ -428,7 +455,7 @@ def draft_rigs(
             )
             rig["measured"] = measured
             rigs[rig["name"]] = rig
-        except (SampleError, SchemaError, ValueError) as exc:
+        except (SampleError, SchemaError, ValueError, TypeError) as exc:  # TypeError: edges that are not pairs
             problems[ekey] = str(exc)
         if progress is not None:
             progress("draft rigs", i + 1, len(by_type))

@@ -36,6 +36,7 @@ from marionette.schema import Entity, Layout
 REQUIRED_FILES = ("rgb.mp4", "depth.mkv", "state.csv", "skeleton.npz")
 MAX_MEMBER_BYTES = 2 << 30  # default cap on one inflated skeleton.npz member (IngestOptions.max_member_bytes)
 MAX_JOINTS = 1024  # no rig comes near this; a member declaring more joints is refused unread
+MAX_EDGES_BYTES = 16 << 20  # a skeleton_edges.json (a few KiB for WildWorld's 38 types) larger than this is refused unread
 FRAME_SLACK = 64  # a member may declare this many frames beyond the state.csv rows (and is then reported as a count mismatch)
 _NPY_HEADER_ROOM = 64 << 10  # bytes an .npy member may hold besides its array (magic + header)
 
@@ -393,13 +394,19 @@ def load_skeletons(
 
 
 def load_edges(path: Path) -> dict[str, list[list[int]]]:
-    """skeleton_edges.json: skeleton type key → [[parent, child], ...]."""
+    """skeleton_edges.json: skeleton type key → [[parent, child], ...] (its size checked before it is read)."""
     try:
-        return json.loads(Path(path).read_text())
+        size = Path(path).stat().st_size
+        if size > MAX_EDGES_BYTES:
+            raise SampleError(f"{path}: {size} bytes, more than a skeleton_edges.json may hold ({MAX_EDGES_BYTES})")
+        d = json.loads(Path(path).read_text())
     except FileNotFoundError:
         raise SampleError(f"{path}: missing") from None
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise SampleError(f"{path}: invalid JSON ({exc})") from None
+    if not isinstance(d, dict):
+        raise SampleError(f"{path}: not an object of skeleton type → edges")
+    return d
 
 
 def video_info(path: Path) -> tuple[int, float, int, int]:
