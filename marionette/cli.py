@@ -168,7 +168,8 @@ def _options(a: argparse.Namespace):
     from marionette.ingest import IngestOptions, VideoSettings
 
     h, w = a.video_size
-    checked_scene(a)
+    if a.scene != "auto":
+        checked_scene(a)
     return IngestOptions(
         scene=a.scene,
         rigs=None if a.rigs is None else str(a.rigs),
@@ -212,18 +213,28 @@ def _strict_status(strict: bool, failures: dict[str, int]) -> int:
     return 0
 
 
-def inspect_text(corpus_path: Path, play_shards: int = 64) -> str:
+def inspect_text(corpus_path: Path, play_shards: int = 64, scene: str | None = None) -> str:
     """A human summary of a corpus: segments, frames, hours, splits, vocab, recorded play statistics (separation,
-    class mix, tokens played; read from the first ``play_shards`` state shards), layout, shards, quarantine."""
+    class mix, tokens played; read from the first ``play_shards`` state shards), layout, shards, quarantine. In a
+    corpus of several scenes: the scenes, and with ``scene`` that scene's layout, vocab and play."""
     from marionette.corpus import Corpus
     from marionette.corpus.play_stats import play_stats, play_stats_lines
 
-    c = Corpus(corpus_path)
+    c = Corpus(corpus_path, scene=scene)
     info, seg = c.info, c.segments
     lines = [f"corpus   {c.path}"]
-    lines.append(f"layout   {c.layout.scene} dim={c.layout.dim} hash={c.layout.hash}")
-    for name, (s0, s1) in c.layout.slices.items():
-        lines.append(f"           {name:<20} [{s0}, {s1})")
+    if c.many:
+        counts = {}
+        for sc in c.all_segments["scene"].to_pylist():
+            counts[sc] = counts.get(sc, 0) + 1
+        lines.append("scenes   " + ", ".join(f"{n} (dim {x.dim}, {counts.get(n, 0)} segments)" for n, x in c.layouts.items()))
+        if c.scene is None:
+            lines.append("           (--scene NAME shows one scene's layout, vocab and play)")
+    one = c.scene is not None
+    if one:
+        lines.append(f"layout   {c.layout.scene} dim={c.layout.dim} hash={c.layout.hash}")
+        for name, (s0, s1) in c.layout.slices.items():
+            lines.append(f"           {name:<20} [{s0}, {s1})")
     frames = info.total_frames
     lines.append(
         f"samples  {info.total_samples} ({info.total_ingested} ingested, {info.total_quarantined} quarantined, {info.total_skipped} skipped)"
@@ -237,12 +248,12 @@ def inspect_text(corpus_path: Path, play_shards: int = 64) -> str:
         splits[sp][0] += 1
         splits[sp][1] += fr
     lines.append("splits   " + ", ".join(f"{k}: {v[0]} segments / {v[1]} frames" for k, v in sorted(splits.items())))
-    for etype, v in c.vocab["entity_types"].items():
+    for etype, v in (c.vocab["entity_types"] if one else {}).items():
         kinds: dict[str, int] = {}
         for act in v["actions"][1:]:
             kinds[act["class"]] = kinds.get(act["class"], 0) + 1
         lines.append(f"vocab    {etype}: {v['size']} tokens ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})")
-    if info.total_segments:
+    if info.total_segments and one:
         lines += play_stats_lines(play_stats(c, max_shards=play_shards))
     lines.append(f"shards   {len(info.shards)} state + video: {c.path / 'state'}, {c.path / 'video'}")
     from terrain_scan.scan import ScanOptions
@@ -301,7 +312,7 @@ def cmd_inspect(a: argparse.Namespace) -> int:
 
         print(json.dumps(Corpus(a.corpus).info.to_json(), indent=1))
     else:
-        print(inspect_text(a.corpus))
+        print(inspect_text(a.corpus, scene=a.scene))
     return 0
 
 
@@ -931,7 +942,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--scene",
         type=scene_name,
         default="duel",
-        help="the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs)",
+        help="the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs); auto: each recording the "
+        "layout of what it holds (its species', player's and weapon's rigs: one corpus, many scenes)",
     )
     s.add_argument(
         "--rigs",
@@ -940,6 +952,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)",
     )
     s.add_check(scene_missing)
+    s.set_defaults(auto_scene=True)
     species_help = "ingest only recordings whose monster has this species id (default: every species the rig declares)"
     s.add_argument("--monster-species", type=non_negative_int, help=species_help)
     s.add_argument("--weapon", type=non_negative_int, help="ingest only recordings whose hunter has this weapon (default: any)")
@@ -968,6 +981,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--segments", action="store_true", help="list the segments: id, split, frames, stage, video chunks")
     s.add_argument("--split", default=None, help="list only this split's segments, e.g. test (implies --segments)")
     s.add_argument("--json", action="store_true", help="print info.json (with --segments: the segment rows) as JSON")
+    s.add_argument("--scene", type=scene_name, default=None, help="in a corpus of several scenes: show this one's")
     s.set_defaults(fn=cmd_inspect)
 
     s = command("export-chunk", "take a video chunk's pose target and first frame out of a corpus (the inputs of generate)")

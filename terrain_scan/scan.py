@@ -156,10 +156,11 @@ def corpus_stages(corpus: Path) -> dict[str, list[dict]]:
     meta = Path(corpus) / "meta"
     seg = pq.read_table(meta / "segments.parquet").to_pylist()
     stage_of = {r["sample"]: r["stage"] for r in seg}
+    scene_of = {r["sample"]: r.get("scene") for r in seg}
     out: dict[str, list[dict]] = {}
     for r in pq.read_table(meta / "samples.parquet").to_pylist():
         if r["status"] == "ingested" and r["sample"] in stage_of:
-            out.setdefault(stage_of[r["sample"]], []).append(r)
+            out.setdefault(stage_of[r["sample"]], []).append({**r, "scene": scene_of[r["sample"]]})
     return {k: sorted(v, key=lambda r: r["sample"]) for k, v in sorted(out.items())}
 
 
@@ -177,6 +178,7 @@ class ScanJob:
     source: str  # the recording's directory
     ingest_hash: str  # the ingest input hash of its files and options
     stored_hash: str | None  # the contribution's hash the stage holds now (None: none, or a full scan)
+    scene: str | None = None  # the recording's scene (its layout says which joints are bodies to mask)
 
     @property
     def name(self) -> str:
@@ -198,7 +200,7 @@ class ScanOutcome:
         return self.result is None and self.reason is None
 
 
-def scan_job(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
+def scan_job(job: ScanJob, layouts: dict, options: ScanOptions) -> ScanOutcome:
     """Hash a recording's scan inputs (ingest input, depth.mkv, scan settings) and scan it unless the stage
     already holds that hash. Never raises: a failure is the outcome's ``reason``, naming the file."""
     out = ScanOutcome(job, worker=worker_identity())
@@ -209,6 +211,7 @@ def scan_job(job: ScanJob, layout, options: ScanOptions) -> ScanOutcome:
         if job.stored_hash == out.input_hash:
             return out
         decoder = DepthDecoder.from_json(options.decoder)
+        layout = layouts[job.scene] if job.scene in layouts else next(iter(layouts.values()))
         out.result = scan_recording(ref, layout, decoder, **options.scan_kwargs())
     except Exception as exc:  # one recording's failure never stops the others
         out.reason = _reason(exc, ref)
@@ -273,7 +276,7 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
         for gone in sorted(n for n in S.recordings() if n not in kept and not n.startswith(IMPORT_PREFIX)):  # left the corpus
             S.remove(gone)
         jobs += [
-            ScanJob(st, r["sample"], r["source"], r["input_hash"], S.input_hash(r["sample"]) if incremental else None)
+            ScanJob(st, r["sample"], r["source"], r["input_hash"], S.input_hash(r["sample"]) if incremental else None, r["scene"])
             for r in recs
         ]
     reports = {st: {"scanned": [], "unchanged": [], "failed": {}} for st in stages}
@@ -291,7 +294,7 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
     ready = [o for o in ready if (o.job.stage, o.job.sample) in order]
     todo = [j for j in jobs if (j.stage, j.sample) not in {(o.job.stage, o.job.sample) for o in ready}]
     try:
-        for out in itertools.chain(ready, mapper(scan_job, todo, {"layout": c.layout, "options": options})):
+        for out in itertools.chain(ready, mapper(scan_job, todo, {"layouts": c.layouts, "options": options})):
             if bar is not None:
                 bar.update(1)
             waiting[order[(out.job.stage, out.job.sample)]] = out
@@ -352,19 +355,29 @@ def _place_recordings(
 
     Returns the placements and the scan outcomes of the recordings scanned to place them (for the scan to commit).
     A recording whose scan fails stays unplaced (stage ``default``) and fails again, reported, in the scan."""
-    from marionette.corpus.stages import UNPLACED, read_placements, write_placements
+    from marionette.corpus.stages import UNPLACED, read_stage_file, write_placements
     from marionette.ingest.finalize import write_metadata
 
     given = dict(c.info.stages)  # the source tree's stages.json: the user's word
-    placed = read_placements(corpus)
+    placed, found = read_stage_file(corpus)
     now = {r["sample"]: (st, r) for st, recs in corpus_stages(corpus).items() for r in recs}
+    key = options.key()
+    # placed by the grouping (not since moved by the user) with other scan options: compared other terrain, so again
+    stale = {s for s, f in found.items() if s in placed and placed[s] == f["stage"] and f["scan"] != key and s not in given}
+    for s in stale:
+        del placed[s]
     pending = sorted(s for s in now if s not in given and s not in placed)
     placements, ready = [], []
     if pending:
         held = {st: Stage(paths.stage_dir(corpus, st), alias=options.alias()) for st in {now[s][0] for s in pending}}
         jobs = [
             ScanJob(
-                now[s][0], s, now[s][1]["source"], now[s][1]["input_hash"], held[now[s][0]].input_hash(s) if incremental else None
+                now[s][0],
+                s,
+                now[s][1]["source"],
+                now[s][1]["input_hash"],
+                held[now[s][0]].input_hash(s) if incremental else None,
+                now[s][1]["scene"],
             )
             for s in pending
         ]
@@ -375,7 +388,7 @@ def _place_recordings(
             bar = tqdm(total=len(jobs), desc="terrain scan (placing on stages)", unit="recording")
         outcomes = {}
         try:
-            for o in mapper(scan_job, jobs, {"layout": c.layout, "options": options}):
+            for o in mapper(scan_job, jobs, {"layouts": c.layouts, "options": options}):
                 outcomes[o.job.sample] = o
                 if bar is not None:
                     bar.update(1)
@@ -395,12 +408,15 @@ def _place_recordings(
             log(f"terrain: placed {p.line()}")
             o = outcomes[p.recording]
             placed[p.recording] = p.stage
+            found[p.recording] = {"stage": p.stage, "scan": key}
             if o.result is not None:
                 ready.append(replace(o, job=replace(o.job, stage=p.stage, stored_hash=None)))
             elif p.stage != o.job.stage:  # unchanged, moved: its stored contribution goes with it
                 obs = dict(seen)[p.recording]
                 Stage(paths.stage_dir(corpus, p.stage), alias=options.alias()).put(p.recording, obs, o.input_hash, None)
-        write_placements(corpus, {s: st for s, st in placed.items() if s in now or s in given})
+        write_placements(
+            corpus, {s: st for s, st in placed.items() if s in now or s in given}, {s: f for s, f in found.items() if s in now}
+        )
     want = {s: given.get(s, placed.get(s, UNPLACED)) for s in now}
     if any(want[s] != now[s][0] for s in now):
         write_metadata(Path(corpus))

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.ipc as ipc
+import pyarrow.parquet as pq
 import pytest
 
 from marionette.cli import main
@@ -245,3 +246,68 @@ def test_the_depth_mapping_is_calibrated_over_every_species_with_drafted_rigs(wo
         # comes back 0.7 % off (their thick bodies bias the fit) and the terrain measured 1.32× and 1.16×: a bound to
         # hold, not the goal
         assert rmse["calibrated"] <= 1.5 * rmse["truth"]
+
+
+@pytest.fixture(scope="module")
+def many_scenes(world, tmp_path_factory) -> tuple[Path, Path]:
+    """The tree in one corpus (``--scene auto``): drafted rigs, the depth mapping calibrated, the stages placed by
+    the scan, pose targets rendered. Returns (corpus, drafts)."""
+    root = tmp_path_factory.mktemp("many")
+    drafts, corpus = root / "drafts", root / "corpus"
+    assert main(["survey", str(world), "--rigs-out", str(drafts), "--quiet", "--frames-per-type", "500"]) == 0
+    argv = ["ingest", str(world), str(corpus), "--rigs", str(drafts), "--scene", "auto", "--quiet", "--no-terrain"]
+    assert main([*argv, "--video-size", "32x64", "--chunk-frames", "17"]) == 0
+    assert main(["calibrate-depth", str(world), "--rigs", str(drafts), "--corpus", str(corpus), "--quiet"]) == 0
+    assert main(["terrain", "scan", str(corpus), "--quiet"]) == 0
+    return corpus, drafts
+
+
+def test_one_corpus_holds_every_species_and_recovers_the_stages(world, many_scenes):
+    from marionette.corpus import Corpus
+    from marionette.corpus.stages import read_placements
+    from marionette.observation.data import ClipSource
+
+    corpus, drafts = many_scenes
+    c = Corpus(corpus)
+    truths = {f"{PART}/rec{k:04d}": load_truth(world, PART, f"rec{k:04d}")["role"] for k in range(6)}
+    # one layout per species and weapon the tree holds, its widths the drafted rigs'
+    want = {f"em_{t['monster_type']}_wp_{t['weapon']['type_id']}" for t in truths.values()}
+    assert set(c.layouts) == want and c.many
+    for name, layout in c.layouts.items():
+        rig = json.loads((drafts / "rigs" / f"{name.split('_wp_')[0]}.json").read_text())
+        a, b = layout.slices["monster.joints"]
+        assert b - a == 3 * (len(rig["keep"]) - 1)
+    segments = pq.read_table(corpus / "meta" / "segments.parquet").to_pylist()
+    for r in segments:
+        t = truths[r["sample"]]
+        assert r["scene"] == f"em_{t['monster_type']}_wp_{t['weapon']['type_id']}"
+    with pytest.raises(SchemaError, match="choose one"):
+        c.layout  # noqa: B018 — a corpus of several scenes names them rather than pick one
+    # the stages are recovered exactly, across species: the terrain decides, not the cast
+    placed = read_placements(corpus)
+    groups = {}
+    for rec, st in placed.items():
+        groups.setdefault(st, set()).add(truths[rec]["stage"]["name"])
+    assert len(groups) == 2 and all(len(v) == 1 for v in groups.values())
+    # the observation model's loader reads the chunks of every scene
+    keys = [clip.key for split in ("train", "val", "test") for clip in ClipSource(corpus, split, 5, (16, 32)).chunks()]
+    scenes = {next(r["scene"] for r in segments if clip.startswith(r["segment"] + "__")) for clip in keys}
+    assert len(scenes) >= 2
+
+
+def test_dynamics_trains_on_one_species_slice(world, many_scenes, tmp_path):
+    from marionette.corpus import Corpus
+
+    corpus, _ = many_scenes
+    scene = sorted(Corpus(corpus).layouts)[0]
+    out = tmp_path / "dyn"
+    argv = ["train", "dynamics", str(corpus), "--out", str(out), "--scene", scene, "--steps", "4", "--batch-size", "1"]
+    assert main([*argv, "--window", "8"]) == 0
+    from marionette.eval.protocol import model_scene
+
+    assert model_scene(out) == scene
+    c = Corpus(corpus, scene=scene)
+    assert set(c.segments["scene"].to_pylist()) == {scene} and c.layout.scene == scene
+    assert all(c.layout_of_shard(s).scene == scene for s in c.shard_ids())
+    with pytest.raises(SchemaError, match="no scene"):
+        Corpus(corpus, scene="nope")

@@ -203,10 +203,11 @@ class _Pass:
 
     def target(self, vpath: Path, key: str, rec: dict) -> tuple[Path, str, list[str]]:
         """The chunk's pose target (rendered if its inputs changed): its file, its render key, the terrain chunks seen."""
-        layout, settings = self.corpus.layout, self.settings
+        settings = self.settings
         segment = paths.parse_chunk_key(key, str(vpath))[0]
         if segment not in self.segments:
             raise ValueError(f"{vpath}: chunk {key} belongs to no segment of the corpus")
+        layout = self.corpus.layout_of_shard(self.segments[segment]["shard"])  # each recording its scene's
         stage = self.segments[segment]["stage"]
         terrain = self.terrain(stage)
         if segment not in self.rows:

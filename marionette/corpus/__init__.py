@@ -21,15 +21,33 @@ RESAMPLE_VERSION = "1"
 
 
 class Corpus:
-    """A built corpus directory. ``expect`` (a Layout or scene name) makes every read check the layout."""
+    """A built corpus directory. ``expect`` (a Layout or scene name) makes every read check the layout.
 
-    def __init__(self, path: Path, expect: Layout | str | None = None):
+    A corpus may hold several scenes (``marionette ingest --scene auto``: each recording the layout of what it
+    holds). ``scene`` picks one: the corpus then reads as that scene's alone (its segments, shards, layout, vocab
+    and stats), which is what the dynamics model and the evaluation need. Without one, a corpus of one scene is
+    that scene; a corpus of several reads every segment and shard (``layout_of_shard`` gives each its layout,
+    which the terrain scan, the pose pass and the observation model use) and ``layout`` is an error naming them."""
+
+    def __init__(self, path: Path, expect: Layout | str | None = None, scene: str | None = None):
         self.path = Path(path)
         info = paths.meta(self.path, "info.json")
         if not info.exists():
             raise FileNotFoundError(f"{info}: not a corpus (run `marionette ingest` first)")
         self.info = CorpusInfo.read(info)
-        self.layout = layout_from_json({k: v for k, v in self.info.layout.items() if k != "hash"})
+        if self.info.layouts:
+            self.layouts = {
+                name: layout_from_json({k: v for k, v in d.items() if k != "hash"})
+                for name, d in sorted(self.info.layouts.items())
+            }
+        elif self.info.layout:
+            one = layout_from_json({k: v for k, v in self.info.layout.items() if k != "hash"})
+            self.layouts = {one.scene: one}
+        else:  # ingested with scene auto, nothing in it yet
+            self.layouts = {}
+        if scene is not None and scene not in self.layouts:
+            raise SchemaError(f"{self.path}: no scene {scene!r}; it holds {', '.join(self.layouts)}")
+        self.scene = scene if scene is not None else (next(iter(self.layouts)) if len(self.layouts) == 1 else None)
         self._shard_cache: dict[int, pa.Table] = {}
         if expect is not None:
             want = load_scene(expect) if isinstance(expect, str) else expect
@@ -39,9 +57,44 @@ class Corpus:
                     f"does not match the expected layout {want.scene!r} (dim {want.dim}, hash {want.hash})"
                 )
 
+    @property
+    def layout(self) -> Layout:
+        """The layout of the corpus's scene (or of the one chosen)."""
+        if self.scene is None:
+            if not self.layouts:
+                raise SchemaError(f"{self.path}: the corpus holds no recording yet, so no scene")
+            raise SchemaError(
+                f"{self.path}: the corpus holds {len(self.layouts)} scenes ({', '.join(self.layouts)}): choose one (--scene)"
+            )
+        return self.layouts[self.scene]
+
+    @property
+    def many(self) -> bool:
+        """Whether the corpus holds more than one scene."""
+        return len(self.layouts) > 1
+
+    @cached_property
+    def all_segments(self) -> pa.Table:
+        """Every segment of every scene."""
+        return pq.read_table(self.path / "meta" / "segments.parquet")
+
     @cached_property
     def segments(self) -> pa.Table:
-        return pq.read_table(self.path / "meta" / "segments.parquet")
+        """The segments (of the chosen scene, in a corpus of several)."""
+        t = self.all_segments
+        if self.many and self.scene is not None:
+            t = t.filter(pc.equal(t["scene"], self.scene))
+        return t
+
+    def layout_of_shard(self, shard: int) -> Layout:
+        """The layout of one state shard: its recording's scene."""
+        if not self.many:
+            return next(iter(self.layouts.values()))
+        t = self.all_segments
+        rows = t.filter(pc.equal(t["shard"], int(shard)))
+        if rows.num_rows == 0:
+            raise KeyError(f"{self.path}: no segment in shard {shard}")
+        return self.layouts[rows["scene"][0].as_py()]
 
     @cached_property
     def samples(self) -> pa.Table:
@@ -51,13 +104,19 @@ class Corpus:
     def quarantine(self) -> pa.Table:
         return pq.read_table(self.path / "meta" / "quarantine.parquet")
 
+    def _per_scene(self, name: str) -> dict:
+        d = json.loads((self.path / "meta" / name).read_text())
+        if self.many:
+            return d["scenes"][self.layout.scene]  # a corpus of several scenes keeps one per scene
+        return d
+
     @cached_property
     def vocab(self) -> dict:
-        return json.loads((self.path / "meta" / "vocab.json").read_text())
+        return self._per_scene("vocab.json")
 
     @cached_property
     def stats(self) -> dict:
-        return json.loads((self.path / "meta" / "stats.json").read_text())
+        return self._per_scene("stats.json")
 
     @property
     def fps(self) -> float:
@@ -73,6 +132,8 @@ class Corpus:
         return paths.pose_shard(self.path, shard)
 
     def shard_ids(self) -> list[int]:
+        if self.many and self.scene is not None:
+            return sorted(set(self.segments["shard"].to_pylist()))
         return sorted(self.info.shards)
 
     def read_shard(self, shard: int) -> pa.Table:
@@ -82,7 +143,7 @@ class Corpus:
             return self._shard_cache[shard]
         path = self.state_path(shard)
         table = read_ipc(path)
-        check_layout(table.schema, self.layout, str(path))
+        check_layout(table.schema, self.layout_of_shard(shard), str(path))
         self._shard_cache[shard] = table
         while len(self._shard_cache) > 2:
             self._shard_cache.pop(next(iter(self._shard_cache)))

@@ -43,6 +43,7 @@ class CorpusInfo:
     state_path: str = STATE_PATH
     video_path: str = VIDEO_PATH
     pose_path: str = POSE_PATH  # absent from corpora written before pose targets had shards of their own
+    layouts: dict = field(default_factory=dict)  # a corpus of several scenes: scene → layout JSON with "hash" (layout {})
     extra: dict = field(default_factory=dict, compare=False)  # fields a newer writer added, kept as read
 
     @property
@@ -63,6 +64,8 @@ class CorpusInfo:
     def to_json(self) -> dict:
         """The JSON object written as ``meta/info.json``."""
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
+        if not d["layouts"]:  # a corpus of one scene says it in "layout", as corpora always have
+            del d["layouts"]
         return {**self.extra, **d}
 
     @staticmethod
@@ -71,7 +74,7 @@ class CorpusInfo:
         if not isinstance(d, dict):
             raise ValueError(f"{where}: not a JSON object")
         known = {f.name: f for f in dataclasses.fields(CorpusInfo) if f.name != "extra"}
-        required = [n for n, f in known.items() if f.default is dataclasses.MISSING]
+        required = [n for n, f in known.items() if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
         missing = [n for n in required if n not in d]
         if missing:
             raise ValueError(f"{where}: missing fields {missing} (not a corpus of this version?)")
@@ -88,6 +91,7 @@ class CorpusInfo:
             "state_path": str,
             "video_path": str,
             "pose_path": str,
+            "layouts": dict,
         }
         kinds.update({n: int for n in known if n.startswith("total_")})
         for name, kind in kinds.items():

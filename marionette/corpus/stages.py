@@ -3,9 +3,11 @@
 WildWorld's ``state.csv`` names no stage. A source tree may carry ``stages.json`` (recording → stage, the
 user's word, which always wins); every other recording is placed by the terrain scan, which groups
 recordings by the agreement of their scanned terrain (``terrain_scan.grouping``) and writes the whole
-placement here: ``{"recordings": {"part/id": "stage"}}``. A user may edit the file (move a recording, split
-or rename a stage); the next scan applies the edit. A recording listed nowhere reads as stage ``default``
-until a scan places it.
+placement here: ``{"recordings": {"part/id": "stage"}, "found": {"part/id": {"stage": ..., "scan": key}}}`` —
+``found`` is what the grouping decided and with which scan options. A user may edit ``recordings`` (move a
+recording, split or rename a stage); the next scan applies the edit, and never undoes it. A placement the
+grouping found with other scan options (a new depth decoder: the terrain it compared was another) is made
+again by the next scan. A recording listed nowhere reads as stage ``default`` until a scan places it.
 """
 
 from __future__ import annotations
@@ -21,11 +23,15 @@ MAX_STAGES_BYTES = 64 << 20
 UNPLACED = "default"
 
 
-def _check(d: object, where: str) -> dict[str, str]:
-    if not isinstance(d, dict) or not isinstance(d.get("recordings"), dict):
+def _check(d: object, where: str, field: str = "recordings") -> dict[str, str]:
+    if not isinstance(d, dict) or not isinstance(d.get(field), dict):
         raise ValueError(f'{where}: not a stage placement (an object {{"recordings": {{"part/id": "stage"}}}})')
     out = {}
-    for rec, stage in d["recordings"].items():
+    for rec, stage in d[field].items():
+        if field == "found":
+            if not isinstance(stage, dict) or not isinstance(stage.get("scan"), str):
+                raise ValueError(f"{where}: found[{rec!r}] is not {{'stage': ..., 'scan': key}}")
+            stage = stage.get("stage")
         part, _, sample = rec.partition("/")
         if not (ID_PATTERN.fullmatch(part) and ID_PATTERN.fullmatch(sample)):
             raise ValueError(f"{where}: {rec!r} is not a recording id (part/id)")
@@ -37,20 +43,30 @@ def _check(d: object, where: str) -> dict[str, str]:
 
 def read_placements(corpus: Path) -> dict[str, str]:
     """``meta/stages.json`` of a corpus (recording → stage), checked; {} when there is none."""
+    return read_stage_file(corpus)[0]
+
+
+def read_stage_file(corpus: Path) -> tuple[dict[str, str], dict[str, dict]]:
+    """``meta/stages.json``: (recording → stage, recording → what the grouping found {"stage", "scan"}), checked."""
     path = Path(corpus) / "meta" / STAGES_FILE
     if not path.exists():
-        return {}
+        return {}, {}
     if path.stat().st_size > MAX_STAGES_BYTES:
         raise ValueError(f"{path}: {path.stat().st_size} bytes, more than a stage placement may hold ({MAX_STAGES_BYTES})")
     try:
         d = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: invalid JSON ({exc})") from None
-    return _check(d, str(path))
+    placed = _check(d, str(path))
+    found = {}
+    if "found" in d:
+        _check(d, str(path), "found")
+        found = {rec: {"stage": v["stage"], "scan": v["scan"]} for rec, v in d["found"].items()}
+    return placed, found
 
 
-def write_placements(corpus: Path, placements: dict[str, str]) -> Path:
+def write_placements(corpus: Path, placements: dict[str, str], found: dict[str, dict] | None = None) -> Path:
     """Write ``meta/stages.json`` atomically (sorted), returning its path."""
     path = Path(corpus) / "meta" / STAGES_FILE
-    write_json(path, {"recordings": dict(sorted(placements.items()))})
+    write_json(path, {"recordings": dict(sorted(placements.items())), "found": dict(sorted((found or {}).items()))})
     return path

@@ -148,9 +148,9 @@ WINDOWS_DIR = "windows"
 WINDOWS_VERSION = "2"  # 2: progress counts the time past the source frame
 
 
-def as_corpus(corpus: Corpus | Path | str) -> Corpus:
-    """``corpus`` itself, or the Corpus at that path."""
-    return corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
+def as_corpus(corpus: Corpus | Path | str, scene: str | None = None) -> Corpus:
+    """``corpus`` itself, or the Corpus at that path (its scene ``scene``, in a corpus of several)."""
+    return corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus), scene=scene)
 
 
 # -- normalisation -----------------------------------------------------------------------------------

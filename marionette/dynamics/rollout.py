@@ -161,10 +161,10 @@ class Rollout:
         cached: bool = True,
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        self.corpus = as_corpus(corpus)
-        self.layout = self.corpus.layout
         self.ckpt = checkpoint_dir(ckpt)
         meta = read_meta(self.ckpt)
+        self.corpus = as_corpus(corpus, meta["train_config"].get("scene"))  # the scene the model was trained on
+        self.layout = self.corpus.layout
         self.config = DynamicsConfig.from_json(meta["dynamics_config"])
         self.config.check_layout(self.layout)
         self.normaliser = Normaliser.from_json(meta["normaliser"])
@@ -774,8 +774,9 @@ def write_rollout(
     through the follow camera to ``render``); ``force`` and ``script_root`` as ``add_arguments`` parses them, ``rules``
     "auto", "none" or a comma list."""
     rules_in = rules if rules in ("auto", "none") else tuple(r for r in rules.split(",") if r)
-    c = as_corpus(corpus)
-    fps = float(read_meta(checkpoint_dir(ckpt))["train_config"].get("fps", 20.0))
+    trained = read_meta(checkpoint_dir(ckpt))["train_config"]
+    c = as_corpus(corpus, trained.get("scene"))
+    fps = float(trained.get("fps", 20.0))
     script = script_from_args(list(script_root), horizon, fps, c.layout)
     started = time.perf_counter()
     table = rollout(ckpt, c, segment, seed_frames, horizon, temperature, seed, list(force), script_root=script, rules=rules_in)

@@ -110,6 +110,9 @@ class TrainConfig:
     """Every knob of a training run; saved as JSON in each checkpoint's meta."""
 
     preset: str = knob("tiny", "model size (dynamics.model.PRESETS)", choices=sorted(PRESETS))
+    scene: str | None = knob(
+        None, "the scene to train on, in a corpus of several (a species slice); default: the corpus's only scene"
+    )
     steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
     batch_size: int = knob(16, "windows per step and process", min=1)
     loader_workers: int = knob(
@@ -484,7 +487,7 @@ def train(
     rank, world = rank_world()
     log = training.rank_zero_log(log)
     out_dir = Path(out_dir)
-    corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
+    corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path), scene=config.scene)
     device = torch.device(f"cuda:{torch.cuda.current_device()}" if torch.cuda.is_available() else "cpu")
     use_bf16 = config.bf16 if config.bf16 is not None else (device.type == "cuda" and torch.cuda.is_bf16_supported())
     autocast = torch.autocast(device.type, dtype=torch.bfloat16) if use_bf16 else nullcontext()

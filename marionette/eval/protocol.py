@@ -250,6 +250,11 @@ class Window:
         return self.seed_frames + self.horizon
 
 
+def model_scene(ckpt: Path | str) -> str | None:
+    """The scene a dynamics checkpoint (or training directory) was trained on, in a corpus of several (else None)."""
+    return read_meta(checkpoint_dir(ckpt))["train_config"].get("scene")
+
+
 def model_fps(ckpt: Path | str) -> float:
     """The frame rate (frames/s) a dynamics checkpoint (or training directory) was trained at."""
     return float(read_meta(checkpoint_dir(ckpt))["train_config"].get("fps", 20.0))

@@ -49,6 +49,7 @@ from marionette.eval.protocol import (
     ablation_rollouts,
     controllability_probe,
     model_fps,
+    model_scene,
     parse_protocol,
     rule_ablation,
     run_windows,
@@ -908,7 +909,7 @@ def evaluate(
     checkpoint (control "actions") for Table 1's second column; ``i3d``: an Inception-I3D safetensors file, for FVD
     proper instead of the proxy; ``progress(phase, done, total)`` is told the progress of every long loop."""
     proto = parse_protocol(protocol, **overrides)
-    c = Corpus(Path(corpus))
+    c = Corpus(Path(corpus), scene=model_scene(dynamics_dir))  # the scene the model was trained on
     out = Path(out_dir)
     _check_replaceable(out)  # before any compute
     extractor = fvd.extractor_for(Path(i3d)) if i3d is not None else None  # a bad I3D file fails here too

@@ -69,7 +69,16 @@ def check_corpus_options(corpus: Path, options: IngestOptions) -> None:
     """Refuse to add samples of one scene layout to a corpus built for another."""
     info = Path(corpus) / "meta" / "info.json"
     if info.exists():
-        have = json.loads(info.read_text())["layout"]
+        d = json.loads(info.read_text())
+        have_scene = d.get("ingest", {}).get("scene")
+        if options.auto or have_scene == "auto":
+            if have_scene != options.scene:
+                raise SchemaError(
+                    f"{corpus}: the corpus was built with scene {have_scene!r}; this build asks for {options.scene!r} "
+                    "(a corpus of one scene, or one where each recording has its own: not both)"
+                )
+            return
+        have = d["layout"]
         want = options.layout
         if have["hash"] != want.hash:
             raise SchemaError(

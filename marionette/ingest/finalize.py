@@ -22,6 +22,7 @@ from marionette.corpus.stages import UNPLACED, read_placements
 from marionette.corpus.vocab import classify
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
 from marionette.io import text_sha256, write_json, write_parquet
+from marionette.schema import layout_from_json
 
 
 def build_vocab(records: list[dict]) -> dict:
@@ -237,9 +238,9 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     if old_info:
         stages = {**old_info.stages, **stages}
     placed = read_placements(corpus)  # the terrain scan's grouping (or a user's edit of it); the source's map wins
-    layout = options.layout
     records = _load_records(meta / "samples")
     ingested = [r for r in records if r["status"] == "ingested"]
+    layouts = _layouts(options, ingested)
 
     seg_rows: dict[str, list] = {
         k: []
@@ -247,6 +248,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
             "segment",
             "sample",
             "stage",
+            "scene",
             "species",
             "weapon",
             "frames",
@@ -259,6 +261,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
         )
     }
     for r in ingested:
+        layout = layouts[r.get("scene", next(iter(layouts)))]
         types = r.get("types", {})
         species = next((types[e.name] for e in layout.entities if e.source_kind == "m"), -1)
         weapon = next((types[e.name] for e in layout.entities if e.source_kind == "w"), -1)
@@ -267,6 +270,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
                 ("segment", s["segment"]),
                 ("sample", r["sample"]),
                 ("stage", stages.get(r["sample"], placed.get(r["sample"], UNPLACED))),
+                ("scene", layout.scene),
                 ("species", species),
                 ("weapon", weapon),
                 ("frames", s["frames"]),
@@ -316,11 +320,17 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
             }
         ),
     )
-    vocab = build_vocab(ingested)
+    if len(layouts) > 1:  # vocab and stats per scene: a species' actions and body are its own
+        scenes = {name: [r for r in ingested if r.get("scene") == name] for name in layouts}
+        per = {name: build_vocab(recs) for name, recs in scenes.items()}
+        vocab = {"version": 1, "scenes": per, "hash": text_sha256(json.dumps({n: v["hash"] for n, v in per.items()}))[:16]}
+        stats = {"scenes": {name: build_stats(recs) for name, recs in scenes.items()}}
+    else:
+        vocab, stats = build_vocab(ingested), build_stats(ingested)
     write_json(meta / "vocab.json", vocab)
-    stats = build_stats(ingested)
     write_json(meta / "stats.json", stats)
 
+    only = next(iter(layouts.values())) if len(layouts) == 1 else None
     fps = sorted({r["fps"] for r in ingested}) or [30.0]
     splits: dict[str, int] = {}
     for r in ingested:
@@ -328,11 +338,12 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
             splits[s["split"]] = splits.get(s["split"], 0) + s["frames"]
     info = {
         "codebase_version": f"marionette-ingest-{INGEST_VERSION}",
-        "layout": {"hash": layout.hash, **layout.to_json()},
+        "layout": {"hash": only.hash, **only.to_json()} if only is not None else {},
+        **({"layouts": {n: {"hash": x.hash, **x.to_json()} for n, x in layouts.items()}} if len(layouts) > 1 else {}),
         "fps": fps[0] if len(fps) == 1 else fps,
         "dynamics_fps": 20,
         "ingest": options.to_json(),
-        "features": features(layout),
+        "features": features(only) if only is not None else {n: features(x) for n, x in layouts.items()},
         "total_samples": len(records),
         "total_ingested": len(ingested),
         "total_quarantined": len(bad),
@@ -350,6 +361,23 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     }
     write_json(info_path, CorpusInfo.from_json(info, str(info_path)).to_json())
     return info
+
+
+def _layouts(options: IngestOptions, ingested: list[dict]) -> dict:
+    """Scene → layout of what the corpus holds: the options' scene, or with ``auto`` each ingested recording's own
+    (carried in its record), in name order."""
+    if not options.auto:
+        return {options.layout.scene: options.layout}
+    out = {}
+    for r in sorted(ingested, key=lambda r: r["sample"]):
+        d = r.get("layout")
+        if not isinstance(d, dict) or r.get("scene") != d.get("name"):
+            raise ValueError(f"{r['sample']}: its record carries no layout of scene {r.get('scene')!r}")
+        got = layout_from_json({k: v for k, v in d.items() if k != "hash"})
+        if got.scene in out and out[got.scene].hash != got.hash:
+            raise ValueError(f"{r['sample']}: scene {got.scene!r} with another layout than the corpus's (a rig changed?)")
+        out[got.scene] = got
+    return dict(sorted(out.items()))
 
 
 def features(layout) -> dict:

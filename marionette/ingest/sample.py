@@ -30,9 +30,10 @@ from marionette.ingest.wildworld import (
     read_sample,
 )
 from marionette.io import file_sha256, text_sha256, write_ipc, write_json
-from marionette.schema import Layout, load_scene
+from marionette.schema import Layout, SchemaError, load_scene
 
 INGEST_VERSION = "1"
+AUTO_SCENE = "auto"  # each recording ingested with the layout of what it holds
 
 
 @dataclass(frozen=True)
@@ -50,13 +51,28 @@ class IngestOptions:
     max_member_bytes: int = MAX_MEMBER_BYTES  # a skeleton.npz member declaring more (inflated) is quarantined unread
 
     @property
+    def auto(self) -> bool:
+        """Whether each recording gets the layout of what it holds (``scene="auto"``) rather than one for all."""
+        return self.scene == AUTO_SCENE
+
+    @property
     def layout(self) -> Layout:
+        if self.auto:
+            raise SchemaError("scene 'auto' has no one layout: each recording gets its own (layout_for)")
         return load_scene(self.scene, rigs=None if self.rigs is None else Path(self.rigs))
 
-    def type_filter(self) -> dict[str, set[int]]:
+    def layout_for(self, ref: SampleRef) -> Layout:
+        """The layout a recording is ingested with: the scene's, or with ``auto`` the one of what it holds."""
+        if not self.auto:
+            return self.layout
+        from marionette.ingest.survey import recording_layout
+
+        return recording_layout(ref, None if self.rigs is None else Path(self.rigs))
+
+    def type_filter(self, layout: Layout | None = None) -> dict[str, set[int]]:
         """Accepted type ids per entity name: the requested slice, else what the rigs declare."""
         out = {}
-        for e in self.layout.entities:
+        for e in (layout or self.layout).entities:
             ids = set(e.rig.type_ids)
             if e.source_kind == "m" and self.monster_species is not None:
                 ids = {self.monster_species}
@@ -68,7 +84,13 @@ class IngestOptions:
     def key(self) -> str:
         """Hash of everything that changes what ingest writes."""
         d = asdict(self)
-        d["layout_hash"] = self.layout.hash  # what the rigs say, wherever they are
+        if self.auto:  # what every rig says: a changed rig re-ingests
+            from marionette.ingest.survey import rig_index
+
+            index = rig_index(None if self.rigs is None else Path(self.rigs))
+            d["layout_hash"] = text_sha256(json.dumps({k: r.to_json() for k, r in sorted(index.items())}, sort_keys=True))
+        else:
+            d["layout_hash"] = self.layout.hash  # what the rigs say, wherever they are
         d.pop("rigs")
         d["ingest_version"] = INGEST_VERSION
         return text_sha256(json.dumps(d, sort_keys=True, default=str))[:16]
@@ -348,7 +370,6 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
     stage = staging_dir(corpus, ref)
     stage.mkdir(parents=True, exist_ok=True)
     (stage / "record.json").unlink(missing_ok=True)
-    layout = options.layout
     record: dict = {
         "sample": ref.name,
         "key": sample_key(ref),
@@ -362,7 +383,8 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
             raise SampleError(refused)
         if digests is None:
             raise OSError(unreadable)
-        sample = read_sample(ref, layout, options.type_filter(), options.max_member_bytes)
+        layout = options.layout_for(ref)
+        sample = read_sample(ref, layout, options.type_filter(layout), options.max_member_bytes)
         runs = valid_runs(sample.valid, options.min_segment_frames)
         if not runs:
             raise SampleError(
@@ -406,6 +428,7 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
         types = {e.name: int(sample.entities[e.name].type_id[runs[0][0]]) for e in layout.entities}
         record.update(
             status="ingested",
+            scene=layout.scene,
             fps=sample.fps,
             n_frames=sample.n_frames,
             video_size=list(sample.video_size),
@@ -430,6 +453,8 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
             },
             state_hash=file_sha256(stage / "state.arrow"),
         )
+        if options.auto:  # its own layout travels with it to finalize
+            record["layout"] = {"hash": layout.hash, **layout.to_json()}
         result = SampleResult(ref.name, "ingested", h, segments=len(segs), frames=sum(s["frames"] for s in segs), worker=worker)
     except SampleSkipped as exc:
         record.update(status="skipped", reason=str(exc))
