@@ -789,10 +789,22 @@ def scene_missing(a: argparse.Namespace) -> str | None:
     from marionette.schema import scene_names
 
     names = scene_names(rigs=getattr(a, "rigs", None))
-    if a.scene in names or (a.scene == "auto" and getattr(a, "auto_scene", False)):
+    if a.scene in names or a.scene == "auto":
         return None
     where = "built in" + (f" or under {a.rigs}/scenes" if getattr(a, "rigs", None) is not None else "")
     return f"argument --scene: no scene {a.scene!r} {where}{near_ids(names, a.scene)} (scenes: {', '.join(names)})"
+
+
+def _scene_arguments(s: argparse.ArgumentParser, default: str, help: str) -> None:
+    """``--scene`` (a scene name, or auto) and ``--rigs DIR``, checked together once parsed (``scene_missing``)."""
+    s.add_argument("--scene", type=scene_name, default=default, help=help)
+    s.add_argument(
+        "--rigs",
+        type=rigs_dir,
+        default=None,
+        help="user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)",
+    )
+    s.add_check(scene_missing)
 
 
 def checked_scene(a: argparse.Namespace):
@@ -883,20 +895,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = command("calibrate-depth", "fit the unpublished 8-bit depth mapping from recorded skeletons and cameras")
     s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
-    s.add_argument(
-        "--scene",
-        type=scene_name,
-        default="auto",
-        help="scene layout: which rigs the skeletons are (auto: each recording's own, its types' rigs found by their edges key)",
+    _scene_arguments(
+        s,
+        "auto",
+        "scene layout: which rigs the skeletons are (auto: each recording's own, its types' rigs found by their edges key)",
     )
-    s.set_defaults(auto_scene=True)
-    s.add_argument(
-        "--rigs",
-        type=rigs_dir,
-        default=None,
-        help="user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)",
-    )
-    s.add_check(scene_missing)
     s.add_argument("--frame-stride", type=positive_int, default=5, help="use every Nth frame")
     s.add_argument("--max-recordings", type=positive_int, default=None, help="use the first N recordings (default: all)")
     s.add_argument(
@@ -938,21 +941,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = command("ingest", "ingest WildWorld recordings into a corpus (then finalize, scan terrain, render pose targets)")
     s.add_argument("src", type=Path, help="the source tree: a directory holding sample directories")
     s.add_argument("corpus", type=Path, help="the corpus directory (created, or updated incrementally)")
-    s.add_argument(
-        "--scene",
-        type=scene_name,
-        default="duel",
-        help="the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs); auto: each recording the "
+    _scene_arguments(
+        s,
+        "duel",
+        "the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs); auto: each recording the "
         "layout of what it holds (its species', player's and weapon's rigs: one corpus, many scenes)",
     )
-    s.add_argument(
-        "--rigs",
-        type=rigs_dir,
-        default=None,
-        help="user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)",
-    )
-    s.add_check(scene_missing)
-    s.set_defaults(auto_scene=True)
     species_help = "ingest only recordings whose monster has this species id (default: every species the rig declares)"
     s.add_argument("--monster-species", type=non_negative_int, help=species_help)
     s.add_argument("--weapon", type=non_negative_int, help="ingest only recordings whose hunter has this weapon (default: any)")

@@ -98,7 +98,7 @@ def test_survey_names_damaged_samples_and_reads_the_rest(world, tmp_path):
     rigs, _, problems = draft_rigs(tree, survey(tree), DraftRules(frames_per_type=50))
     assert species[0] in problems and species[1] in problems and "npc" in rigs  # the rest is drafted
     edges_path.write_bytes(b"{" + b" " * (17 << 20) + b"}")  # larger than any edges file: refused unread
-    assert "more than a skeleton_edges.json may hold" in survey(tree).problems[f"{PART}/skeleton_edges.json"][0]
+    assert "limit for a JSON file" in survey(tree).problems[f"{PART}/skeleton_edges.json"][0]
 
 
 def test_drafted_rigs_match_the_truth_and_ingest_takes_them_unchanged(world, tmp_path, capsys):

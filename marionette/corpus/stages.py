@@ -12,11 +12,10 @@ again by the next scan. A recording listed nowhere reads as stage ``default`` un
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from marionette.corpus.paths import ID_PATTERN
-from marionette.io import write_json
+from marionette.io import read_json, write_json
 
 STAGES_FILE = "stages.json"
 MAX_STAGES_BYTES = 64 << 20
@@ -51,12 +50,7 @@ def read_stage_file(corpus: Path) -> tuple[dict[str, str], dict[str, dict]]:
     path = Path(corpus) / "meta" / STAGES_FILE
     if not path.exists():
         return {}, {}
-    if path.stat().st_size > MAX_STAGES_BYTES:
-        raise ValueError(f"{path}: {path.stat().st_size} bytes, more than a stage placement may hold ({MAX_STAGES_BYTES})")
-    try:
-        d = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: invalid JSON ({exc})") from None
+    d = read_json(path, MAX_STAGES_BYTES)
     placed = _check(d, str(path))
     found = {}
     if "found" in d:

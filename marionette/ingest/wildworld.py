@@ -18,7 +18,6 @@ video with as many frames as rgb.mp4.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import zipfile
 import zlib
@@ -395,15 +394,14 @@ def load_skeletons(
 
 def load_edges(path: Path) -> dict[str, list[list[int]]]:
     """skeleton_edges.json: skeleton type key → [[parent, child], ...] (its size checked before it is read)."""
+    from marionette.io import read_json
+
     try:
-        size = Path(path).stat().st_size
-        if size > MAX_EDGES_BYTES:
-            raise SampleError(f"{path}: {size} bytes, more than a skeleton_edges.json may hold ({MAX_EDGES_BYTES})")
-        d = json.loads(Path(path).read_text())
+        d = read_json(Path(path), MAX_EDGES_BYTES)
     except FileNotFoundError:
         raise SampleError(f"{path}: missing") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SampleError(f"{path}: invalid JSON ({exc})") from None
+    except ValueError as exc:  # too large, or not JSON: the message names the file
+        raise SampleError(str(exc)) from None
     if not isinstance(d, dict):
         raise SampleError(f"{path}: not an object of skeleton type → edges")
     return d
