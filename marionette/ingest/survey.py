@@ -42,6 +42,7 @@ from .wildworld import (
     check_in_tree,
     discover,
     load_edges,
+    mode_type,
     read_state_csv,
     video_info,
 )
@@ -143,14 +144,6 @@ def _numbers(col) -> np.ndarray:  # noqa: ANN001 — a pyarrow string column
     s = pc.utf8_trim_whitespace(col)
     ok = pc.match_substring_regex(s, r"^[-+]?[0-9]*\.?[0-9]+([eE][-+]?[0-9]+)?$")
     return pc.if_else(ok, pc.cast(pc.if_else(ok, s, "0"), "float64"), float("nan")).to_numpy(zero_copy_only=False)
-
-
-def _mode(v: np.ndarray) -> int | None:
-    v = v[np.isfinite(v)]
-    if not len(v):
-        return None
-    vals, counts = np.unique(v.astype(np.int64), return_counts=True)
-    return int(vals[np.argmax(counts)])
 
 
 def survey(source: Path, progress: Progress | None = None, max_member_bytes: int = MAX_MEMBER_BYTES) -> Survey:
@@ -263,7 +256,7 @@ def _survey_sample(ref: SampleRef, out: Survey, max_member_bytes: int) -> dict:
         "fps": fps,
         "size": [h, w],
         "skeleton_keys": sorted(set(keys)),
-        "types": {slot: _mode(v) for slot, v in types.items()},
+        "types": {slot: mode_type(v) for slot, v in types.items()},
     }
 
 
@@ -521,7 +514,7 @@ def recording_layout(ref: SampleRef, rigs: Path | None = None, index: dict[str, 
     raw, _ = read_state_csv(ref.path / "state.csv", list(cols.values()))
     picked = {}
     for kind, col in cols.items():
-        t = _mode(_numbers(raw[col]))
+        t = mode_type(_numbers(raw[col]))
         if t is None:
             raise SampleError(f"{ref.path / 'state.csv'}: column {col!r} is nan on every row")
         key = edges_key(kind, t)

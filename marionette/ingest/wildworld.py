@@ -445,7 +445,8 @@ def _check_edges(path: Path, edges: dict, e: Entity) -> None:
         )
 
 
-def _mode_type(type_id: np.ndarray) -> int | None:
+def mode_type(type_id: np.ndarray) -> int | None:
+    """The type id recorded on most rows (nan rows aside), or None when every row is nan."""
     v = type_id[np.isfinite(type_id)]
     if not len(v):
         return None
@@ -497,7 +498,7 @@ def read_sample(
     for e in layout.entities:
         c = per_entity[e.name]
         type_id = num(c["type_id"])
-        t = _mode_type(type_id)
+        t = mode_type(type_id)
         allowed = (type_filter or {}).get(e.name, set(e.rig.type_ids))
         if t is None:
             raise SampleError(f"{csv_path}: column {c['type_id']!r} is nan on every row: entity {e.name!r} never appears")
