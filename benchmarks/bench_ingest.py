@@ -70,9 +70,9 @@ def stages(ref: SampleRef, layout, out: Path, compression: str, min_frames: int,
         for c in cols:
             width = ww.FLOAT_TUPLE_WIDTH.get(c) or ww.FLOAT_TUPLE_WIDTH.get(c.rsplit(".", 1)[-1])
             if width:
-                ww._parse_tuple_column(raw[c], width, csv_path, c)
+                ww.tuple_column(raw[c], width, csv_path, c)
             else:
-                ww._parse_scalar_column(raw[c], csv_path, c)
+                ww.scalar_column(raw[c], csv_path, c)
 
     s["tuple + scalar parsing"], _ = time_call(parse_all, repeats)
     s["skeleton.npz load"], _ = time_call(lambda: ww.load_skeletons(ref.path / "skeleton.npz"), repeats)

@@ -292,7 +292,8 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
     done = 0
     # recordings the placement has just scanned are committed from its outcomes, not scanned twice
     ready = [o for o in ready if (o.job.stage, o.job.sample) in order]
-    todo = [j for j in jobs if (j.stage, j.sample) not in {(o.job.stage, o.job.sample) for o in ready}]
+    scanned = {(o.job.stage, o.job.sample) for o in ready}
+    todo = [j for j in jobs if (j.stage, j.sample) not in scanned]
     try:
         for out in itertools.chain(ready, mapper(scan_job, todo, {"layouts": c.layouts, "options": options})):
             if bar is not None:
@@ -395,15 +396,14 @@ def _place_recordings(
         finally:
             if bar is not None:
                 bar.close()
-        seen = []
+        seen = {}  # what each recording saw: its fresh scan, or its stored contribution when unchanged
         for s in pending:
             o = outcomes[s]
             if o.reason is None:
-                obs = o.result.observations if o.result is not None else held[o.job.stage].contribution(s)
-                seen.append((s, obs))
+                seen[s] = o.result.observations if o.result is not None else held[o.job.stage].contribution(s)
         existing = sorted(set(given.values()) | set(placed.values()))
         near = {st: _near(Stage(paths.stage_dir(corpus, st))) for st in existing}
-        placements = place(seen, near, _new_stage_name)
+        placements = place(list(seen.items()), near, _new_stage_name)
         for p in placements:
             log(f"terrain: placed {p.line()}")
             o = outcomes[p.recording]
@@ -412,8 +412,9 @@ def _place_recordings(
             if o.result is not None:
                 ready.append(replace(o, job=replace(o.job, stage=p.stage, stored_hash=None)))
             elif p.stage != o.job.stage:  # unchanged, moved: its stored contribution goes with it
-                obs = dict(seen)[p.recording]
-                Stage(paths.stage_dir(corpus, p.stage), alias=options.alias()).put(p.recording, obs, o.input_hash, None)
+                Stage(paths.stage_dir(corpus, p.stage), alias=options.alias()).put(
+                    p.recording, seen[p.recording], o.input_hash, None
+                )
         write_placements(
             corpus, {s: st for s, st in placed.items() if s in now or s in given}, {s: f for s, f in found.items() if s in now}
         )

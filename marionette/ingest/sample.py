@@ -56,10 +56,14 @@ class IngestOptions:
         return self.scene == AUTO_SCENE
 
     @property
+    def rigs_dir(self) -> Path | None:
+        return None if self.rigs is None else Path(self.rigs)
+
+    @property
     def layout(self) -> Layout:
         if self.auto:
             raise SchemaError("scene 'auto' has no one layout: each recording gets its own (layout_for)")
-        return load_scene(self.scene, rigs=None if self.rigs is None else Path(self.rigs))
+        return load_scene(self.scene, rigs=self.rigs_dir)
 
     def layout_for(self, ref: SampleRef) -> Layout:
         """The layout a recording is ingested with: the scene's, or with ``auto`` the one of what it holds."""
@@ -67,7 +71,7 @@ class IngestOptions:
             return self.layout
         from marionette.ingest.survey import recording_layout
 
-        return recording_layout(ref, None if self.rigs is None else Path(self.rigs))
+        return recording_layout(ref, self.rigs_dir)
 
     def type_filter(self, layout: Layout | None = None) -> dict[str, set[int]]:
         """Accepted type ids per entity name: the requested slice, else what the rigs declare."""
@@ -87,7 +91,7 @@ class IngestOptions:
         if self.auto:  # what every rig says: a changed rig re-ingests
             from marionette.ingest.survey import rig_index
 
-            index = rig_index(None if self.rigs is None else Path(self.rigs))
+            index = rig_index(self.rigs_dir)
             d["layout_hash"] = text_sha256(json.dumps({k: r.to_json() for k, r in sorted(index.items())}, sort_keys=True))
         else:
             d["layout_hash"] = self.layout.hash  # what the rigs say, wherever they are

@@ -40,10 +40,13 @@ from .wildworld import (
     SampleRef,
     SkeletonArchive,
     check_in_tree,
+    csv_header,
     discover,
     load_edges,
     mode_type,
     read_state_csv,
+    scalar_column,
+    tuple_column,
     video_info,
 )
 
@@ -129,23 +132,6 @@ class Survey:
         return out
 
 
-def _header(path: Path) -> list[str]:
-    import csv
-
-    try:
-        with open(path, "rb") as fh:
-            return next(csv.reader([fh.readline().decode("utf-8", "replace")]), [])
-    except OSError as exc:
-        raise SampleError(f"{path}: unreadable ({exc})") from None
-
-
-def _numbers(col) -> np.ndarray:  # noqa: ANN001 — a pyarrow string column
-    """A scalar column as float64, nan where it is 'nan' or not a number."""
-    s = pc.utf8_trim_whitespace(col)
-    ok = pc.match_substring_regex(s, r"^[-+]?[0-9]*\.?[0-9]+([eE][-+]?[0-9]+)?$")
-    return pc.if_else(ok, pc.cast(pc.if_else(ok, s, "0"), "float64"), float("nan")).to_numpy(zero_copy_only=False)
-
-
 def survey(source: Path, progress: Progress | None = None, max_member_bytes: int = MAX_MEMBER_BYTES) -> Survey:
     """Read what every sample under ``source`` holds (headers and the type, camera and count columns only)."""
     out = Survey(source=str(source))
@@ -202,7 +188,7 @@ def _survey_sample(ref: SampleRef, out: Survey, max_member_bytes: int) -> dict:
     n_video, fps, h, w = video_info(ref.path / "rgb.mp4")
     video_info(ref.path / "depth.mkv")  # opens, or names the file
     csv_path = ref.path / "state.csv"
-    header = _header(csv_path)
+    header = csv_header(csv_path)
     lists = {
         kind: sorted({int(m.group(1)) for c in header if (m := re.fullmatch(rf"{kind}\.list\.([0-9]+)\.type_id", c))})
         for kind in ("monster", "npc")
@@ -214,11 +200,11 @@ def _survey_sample(ref: SampleRef, out: Survey, max_member_bytes: int) -> dict:
     out.invalid_camera_rows += int(n - cam_ok.sum())
     types: dict[str, np.ndarray] = {}
     for i in lists["monster"]:
-        types[f"m{i + 1}"] = _numbers(raw[f"monster.list.{i}.type_id"])
+        types[f"m{i + 1}"] = scalar_column(raw[f"monster.list.{i}.type_id"], csv_path, f"monster.list.{i}.type_id")
     for i in lists["npc"]:
-        types[f"n{i + 1}"] = _numbers(raw[f"npc.list.{i}.type_id"])
+        types[f"n{i + 1}"] = scalar_column(raw[f"npc.list.{i}.type_id"], csv_path, f"npc.list.{i}.type_id")
         if f"npc.list.{i}.weapon_id" in raw:
-            types[f"w{i + 1}"] = _numbers(raw[f"npc.list.{i}.weapon_id"])
+            types[f"w{i + 1}"] = scalar_column(raw[f"npc.list.{i}.weapon_id"], csv_path, f"npc.list.{i}.weapon_id")
     any_monster = np.zeros(n, bool)
     for slot, v in types.items():
         counts = Counter(int(t) for t in v[np.isfinite(v)])
@@ -391,16 +377,15 @@ def _entity_frames(ref: SampleRef, key: str, limit: int, max_member_bytes: int) 
     owner = "n" if kind == "w" else kind
     prefix = _list_prefix(owner, index)
     cols = [prefix + ("weapon_id" if kind == "w" else "type_id")] + ([prefix + "rot"] if kind != "w" else [])
-    raw, n = read_state_csv(ref.path / "state.csv", cols)
-    present = _numbers(raw[cols[0]]) == type_id
+    csv_path = ref.path / "state.csv"
+    raw, n = read_state_csv(csv_path, cols)
+    present = scalar_column(raw[cols[0]], csv_path, cols[0]) == type_id
     arr = SkeletonArchive(ref.path / "skeleton.npz", max_member_bytes).read(key, max_frames=n + 64)
     if arr.shape[0] != n:
         raise SampleError(f"{ref.path / 'skeleton.npz'}: {key!r} has {arr.shape[0]} frames, state.csv {n} rows")
     rot = None
     if kind != "w":
-        from .wildworld import _parse_tuple_column
-
-        rot = _parse_tuple_column(raw[cols[1]], 4, ref.path / "state.csv", cols[1])
+        rot = tuple_column(raw[cols[1]], 4, csv_path, cols[1])
     at = np.flatnonzero(present)[:limit]
     return arr[at], (rot[at] if rot is not None else None)
 
@@ -511,12 +496,13 @@ def recording_layout(ref: SampleRef, rigs: Path | None = None, index: dict[str, 
 
     index = rig_index(rigs) if index is None else index
     cols = {"m": "monster.list.0.type_id", "n": "npc.list.0.type_id", "w": "npc.list.0.weapon_id"}
-    raw, _ = read_state_csv(ref.path / "state.csv", list(cols.values()))
+    csv_path = ref.path / "state.csv"
+    raw, _ = read_state_csv(csv_path, list(cols.values()))
     picked = {}
     for kind, col in cols.items():
-        t = mode_type(_numbers(raw[col]))
+        t = mode_type(scalar_column(raw[col], csv_path, col))
         if t is None:
-            raise SampleError(f"{ref.path / 'state.csv'}: column {col!r} is nan on every row")
+            raise SampleError(f"{csv_path}: column {col!r} is nan on every row")
         key = edges_key(kind, t)
         rig = index.get(key)
         if rig is None or t not in rig.type_ids:

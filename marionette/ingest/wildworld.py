@@ -193,7 +193,7 @@ def _find_bad_row(path: Path, n_cols: int) -> str:
     return "a row has the wrong number of fields"
 
 
-def _parse_tuple_column(col: pa.ChunkedArray, width: int, path: Path, name: str) -> np.ndarray:
+def tuple_column(col: pa.ChunkedArray, width: int, path: Path, name: str) -> np.ndarray:
     """Parse a column of tuple literals '(a, b, c)' (or 'nan') into (N, width) float64, nan where invalid."""
     col = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
     if pa.types.is_floating(col.type) or pa.types.is_integer(col.type) or pa.types.is_null(col.type):
@@ -230,7 +230,7 @@ def _parse_tuple_column(col: pa.ChunkedArray, width: int, path: Path, name: str)
     return out
 
 
-def _parse_scalar_column(col: pa.ChunkedArray, path: Path, name: str) -> np.ndarray:
+def scalar_column(col: pa.ChunkedArray, path: Path, name: str) -> np.ndarray:
     """A numeric column as float64 (nan where invalid), naming the row of an unparsable cell."""
     col = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
     if pa.types.is_null(col.type):
@@ -248,6 +248,15 @@ def _parse_scalar_column(col: pa.ChunkedArray, path: Path, name: str) -> np.ndar
     return col.cast(pa.float64()).to_numpy(zero_copy_only=False)
 
 
+def csv_header(path: Path) -> list[str]:
+    """The column names of a state.csv (its first line only)."""
+    try:
+        with open(path, "rb") as fh:
+            return next(csv.reader([fh.readline().decode("utf-8", "replace")]), [])
+    except OSError as exc:
+        raise SampleError(f"{path}: unreadable ({exc})") from None
+
+
 def read_state_csv(path: Path, columns: list[str]) -> tuple[dict[str, pa.ChunkedArray], int]:
     """Read the named columns of a state.csv with pyarrow; malformed rows raise SampleError."""
     path = Path(path)
@@ -259,11 +268,7 @@ def read_state_csv(path: Path, columns: list[str]) -> tuple[dict[str, pa.Chunked
         bad_rows.append(row.text)
         return "skip"
 
-    try:
-        with open(path, "rb") as fh:
-            header = next(csv.reader([fh.readline().decode("utf-8", "replace")]), [])
-    except OSError as exc:
-        raise SampleError(f"{path}: unreadable ({exc})") from None
+    header = csv_header(path)
     missing = [c for c in columns if c not in header]
     if missing:
         raise SampleError(f"{path}: header lacks columns {missing[:6]}{' ...' if len(missing) > 6 else ''}")
@@ -476,10 +481,10 @@ def read_sample(
     csv_path = d / "state.csv"
 
     def tup(c: str, w: int) -> np.ndarray:
-        return _parse_tuple_column(raw[c], w, csv_path, c)
+        return tuple_column(raw[c], w, csv_path, c)
 
     def num(c: str) -> np.ndarray:
-        return _parse_scalar_column(raw[c], csv_path, c)
+        return scalar_column(raw[c], csv_path, c)
 
     npz = d / "skeleton.npz"
     skel = SkeletonArchive(npz, max_member_bytes)
