@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import shutil
+from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -68,7 +70,7 @@ TINY_DYNAMICS = {"preset": "tiny", "steps": 1000, "batch_size": 8, "window": 64,
 
 
 @pytest.fixture(scope="session")
-def dynamics_corpus(tmp_path_factory) -> Path:
+def dynamics_corpus(request, tmp_path_factory) -> Path:
     """A corpus of 16 × 45 s synthetic recordings (one recording's segments in the "test" split)."""
     from marionette.corpus import Corpus
     from marionette.synth import generate
@@ -77,6 +79,8 @@ def dynamics_corpus(tmp_path_factory) -> Path:
     generate(root / "recordings", **DYNAMICS_SYNTH, workers=2)
     build_corpus(root / "recordings", root / "corpus", DYNAMICS_OPTIONS, workers=2, progress=False)
     assert Corpus(root / "corpus").segment_ids("test"), "the dynamics corpus needs a held-out split"
+    if any(OBSERVATION_FIXTURES & set(getattr(item, "fixturenames", ())) for item in request.session.items):
+        observation_jobs(root / "corpus", tmp_path_factory)  # start them now, in the background
     return root / "corpus"
 
 
@@ -110,35 +114,74 @@ def obs_config():
     return ObservationTrainConfig(preset="tiny", steps=300, batch_size=4, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
 
 
-@pytest.fixture(scope="session")
-def follow_corpus(dynamics_corpus, tmp_path_factory) -> Path:
-    """A copy of the dynamics corpus with its terrain scanned (the background behind moved bodies) and pose targets
-    rendered."""
+# The observation fixtures below take about four minutes of one core, mostly single-threaded (a terrain scan, a GL
+# render, two small trainings), so once the dynamics corpus exists they are made in one background process while
+# the session goes on (the dynamics model trains on one thread meanwhile), and each fixture waits for its result.
+OBSERVATION_FIXTURES = {"follow_corpus", "pose_run", "baseline_run"}
+_jobs: dict[str, Future] = {}
+_pool: ProcessPoolExecutor | None = None
+
+
+def _silent(*_) -> None:
+    pass
+
+
+def _prepare_follow(dynamics: Path, out: Path) -> Path:
+    """``follow_corpus``'s work: the copy, its scan, its pose targets."""
     from marionette.bridge.targets import render_pose_targets
     from terrain_scan.scan import ScanOptions, scan_stages
 
-    out = tmp_path_factory.mktemp("follow") / "corpus"
-    shutil.copytree(dynamics_corpus, out)
-    scan_stages(out, incremental=True, options=ScanOptions(frame_stride=OBS_SCAN_STRIDE), log=lambda *_: None)
+    shutil.copytree(dynamics, out)
+    scan_stages(out, incremental=True, options=ScanOptions(frame_stride=OBS_SCAN_STRIDE), log=_silent)
     render_pose_targets(out)
     return out
 
 
-@pytest.fixture(scope="session")
-def pose_run(follow_corpus, tmp_path_factory) -> tuple[Path, dict]:
-    """The pose-controlled observation model trained on ``follow_corpus``: (run directory, training summary)."""
-    from marionette.observation.train import train
-
-    out = tmp_path_factory.mktemp("follow-pose")
-    return out, train(follow_corpus, out, obs_config(), log=lambda *_: None)
-
-
-@pytest.fixture(scope="session")
-def baseline_run(follow_corpus, tmp_path_factory) -> tuple[Path, dict]:
-    """The pixel-AR baseline (action schedules, no pose video) trained on ``follow_corpus`` with the same recipe."""
+def _train_observation(corpus: Path, out: Path, control: str) -> tuple[Path, dict]:
+    """``pose_run`` / ``baseline_run``'s work, on one thread (the session's tests use the other core)."""
     from dataclasses import replace
 
+    import torch
+
     from marionette.observation.train import train
 
-    out = tmp_path_factory.mktemp("follow-baseline")
-    return out, train(follow_corpus, out, replace(obs_config(), control="actions"), log=lambda *_: None)
+    torch.set_num_threads(1)
+    return out, train(corpus, out, replace(obs_config(), control=control), log=_silent)
+
+
+def observation_jobs(dynamics: Path, tmp_path_factory) -> dict[str, Future]:
+    """The background jobs of the observation fixtures (started once; later calls return them)."""
+    global _pool
+    if not _jobs:
+        _pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        follow = tmp_path_factory.mktemp("follow") / "corpus"
+        _jobs["follow_corpus"] = _pool.submit(_prepare_follow, dynamics, follow)
+        for name, control in (("baseline_run", "actions"), ("pose_run", "pose")):  # in the order the tests ask
+            _jobs[name] = _pool.submit(_train_observation, follow, tmp_path_factory.mktemp(name.replace("_run", "")), control)
+    return _jobs
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    if _pool is not None:
+        for proc in list(getattr(_pool, "_processes", {}).values()):  # a run cut short leaves no job running
+            proc.terminate()
+        _pool.shutdown(wait=False, cancel_futures=True)
+
+
+@pytest.fixture(scope="session")
+def follow_corpus(dynamics_corpus, tmp_path_factory) -> Path:
+    """A copy of the dynamics corpus with its terrain scanned (the background behind moved bodies) and pose targets
+    rendered (made in the background, ``observation_jobs``)."""
+    return observation_jobs(dynamics_corpus, tmp_path_factory)["follow_corpus"].result()
+
+
+@pytest.fixture(scope="session")
+def pose_run(follow_corpus, dynamics_corpus, tmp_path_factory) -> tuple[Path, dict]:
+    """The pose-controlled observation model trained on ``follow_corpus``: (run directory, training summary)."""
+    return observation_jobs(dynamics_corpus, tmp_path_factory)["pose_run"].result()
+
+
+@pytest.fixture(scope="session")
+def baseline_run(follow_corpus, dynamics_corpus, tmp_path_factory) -> tuple[Path, dict]:
+    """The pixel-AR baseline (action schedules, no pose video) trained on ``follow_corpus`` with the same recipe."""
+    return observation_jobs(dynamics_corpus, tmp_path_factory)["baseline_run"].result()

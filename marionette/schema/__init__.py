@@ -14,7 +14,7 @@ import json
 import os
 import re
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, cached_property
 from pathlib import Path
 
 import pyarrow as pa
@@ -46,12 +46,12 @@ class Rig:
     description: str = ""
     id_band: tuple[int, int] | None = None  # [first, last] render ids of its bones (the bridge's G channel)
 
-    @property
+    @cached_property
     def keep_source_index(self) -> tuple[int, ...]:
         """Index into the source joint axis of each kept joint."""
         return tuple(self.source_joints.index(n) for n in self.keep)
 
-    @property
+    @cached_property
     def parents(self) -> tuple[int, ...]:
         """Parent of each kept joint as an index into ``keep`` (nearest kept ancestor; -1 at the top)."""
         kept = {self.source_joints.index(n): i for i, n in enumerate(self.keep)}
@@ -63,7 +63,7 @@ class Rig:
             out.append(kept.get(p, -1))
         return tuple(out)
 
-    @property
+    @cached_property
     def contact_index(self) -> tuple[int, ...]:
         """Index into ``keep`` of each key ground-contact joint."""
         return tuple(self.keep.index(n) for n in self.contact_joints)
@@ -72,7 +72,7 @@ class Rig:
     def n_keep(self) -> int:
         return len(self.keep)
 
-    @property
+    @cached_property
     def bones(self) -> tuple[tuple[int, int], ...]:
         """(child, parent) kept-joint indices of every bone, children in breadth-first order from the top."""
         par = self.parents
@@ -87,7 +87,7 @@ class Rig:
         """Render id of each bone of ``bones``: id_band[0] + its breadth-first rank."""
         if self.id_band is None:
             raise SchemaError(f"rig {self.name!r} has no id_band: it cannot be rendered")
-        return tuple(self.id_band[0] + k for k in range(len(self.bones)))
+        return tuple(range(self.id_band[0], self.id_band[0] + len(self.bones)))
 
     def to_json(self) -> dict:
         return {
