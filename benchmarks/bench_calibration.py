@@ -10,7 +10,9 @@ gathered once at every frame; each row keeps every ``stride``-th frame, drops a 
 (seeded) as if their cameras were invalid, fits (``terrain_scan.calibrate.fit``) and reports the largest relative
 depth error of the fitted mapping against the hidden one over 2–20 m (what the scan reads: its ``max_depth_m`` is 20)
 and over 2–100 m, its seconds, and the terrain RMSE (away from steps, one recording scanned at frame stride 2) that
-scanning with it gives, beside the RMSE with the true mapping.
+scanning with it gives, beside the RMSE with the true mapping; then the same two after the contact scale
+(``fit_contact_scale``: the ground where the feet stood; its pass reads every ``stride``-th frame, all cameras valid),
+which ``marionette calibrate-depth`` applies unless ``--no-contact-scale``.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from marionette.synth import terrain as synth_terrain  # noqa: E402
 from terrain_scan import calibrate  # noqa: E402
 from terrain_scan.accumulate import scan_recording  # noqa: E402
 from terrain_scan.depth import DepthDecoder  # noqa: E402
+from terrain_scan.scan import ScanOptions  # noqa: E402
 
 
 def max_error(dec: DepthDecoder, truth: DepthDecoder, lo: float, hi: float) -> float:
@@ -70,7 +73,7 @@ def main() -> None:
             every = calibrate.Pairs.concat(list(calibrate.iter_pairs(refs, layout, 1)))
             true_rmse = terrain_rmse(refs[0], layout, truth)
             label = f"{truth.kind}, near {truth.z_near:g} m, far {truth.z_far:g} m"
-            rows.append([str(seed), label, "true mapping", "", "", "", "", "", f"{true_rmse:.4f}"])
+            rows.append([str(seed), label, "true mapping", "", "", "", "", "", f"{true_rmse:.4f}", "", ""])
             frames = np.unique(every.frame)
             for stride in args.strides:
                 for share in args.invalid:
@@ -84,16 +87,30 @@ def main() -> None:
                     try:
                         cal = calibrate.fit(pairs)
                     except ValueError as exc:
-                        rows.append([*head, str(exc)[:40], "", ""])
+                        rows.append([*head, str(exc)[:40], "", "", "", ""])
                         continue
                     secs = time.perf_counter() - t
                     errors = [100 * max_error(cal.chosen, truth, 2, hi) for hi in (20, 100)]
                     rmse = terrain_rmse(refs[0], layout, cal.chosen)
-                    rows.append([*head, f"{cal.chosen.kind} {errors[0]:.2f} % / {errors[1]:.2f} %", f"{secs:.2f}", f"{rmse:.4f}"])
+                    points = calibrate.iter_contact_points(refs, layout, cal.chosen, stride, ScanOptions().scan_kwargs())
+                    cs = calibrate.fit_contact_scale([p for p in points if not isinstance(p, str)])
+                    scaled = cal.with_contact_scale(cs).chosen
+                    after = [100 * max_error(scaled, truth, 2, hi) for hi in (20, 100)]
+                    rows.append(
+                        [
+                            *head,
+                            f"{cal.chosen.kind} {errors[0]:.2f} % / {errors[1]:.2f} %",
+                            f"{secs:.2f}",
+                            f"{rmse:.4f}",
+                            f"× {cs.scale:.4f}: {after[0]:.2f} % / {after[1]:.2f} %" if cs.applied else cs.note[:40],
+                            f"{terrain_rmse(refs[0], layout, scaled):.4f}",
+                        ]
+                    )
                     print(rows[-1], file=sys.stderr, flush=True)
     print(preamble("Depth calibration: error against frames and invalid cameras; terrain error against it"))
     header = ["seed", "hidden mapping", "frame stride", "invalid cameras", "frames", "pairs"]
     header += ["fitted: max error 2–20 m / 2–100 m", "fit s", "terrain RMSE away m"]
+    header += ["contact scale: max error 2–20 m / 2–100 m", "terrain RMSE away m, contact scale"]
     print(table(header, rows))
 
 

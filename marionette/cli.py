@@ -110,6 +110,19 @@ def cmd_survey(a: argparse.Namespace) -> int:
     return 1 if a.strict and report.problems else status
 
 
+def _progress(items, total: int, desc: str, quiet: bool):
+    """``items`` as they come, behind a progress bar of ``total`` recordings unless ``quiet``."""
+    if quiet:
+        yield from items
+        return
+    from tqdm import tqdm
+
+    with tqdm(total=total, desc=desc, unit="recording") as bar:
+        for item in items:
+            bar.update(1)
+            yield item
+
+
 def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     """Fit the 8-bit depth mapping from a recording tree's skeletons and depth (``terrain_scan.calibrate``); write
     it as JSON, plot it, and make it the scan decoder of a corpus."""
@@ -128,21 +141,15 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
         layout = lambda ref: recording_layout(ref, a.rigs, index)  # noqa: E731
     else:
         layout = checked_scene(a)
-    parts, failed = [], []
-    bar = None
-    if not a.quiet:
-        from tqdm import tqdm
+    knobs = None
+    if a.contact_scale:  # where the characters stood, the depth must show ground (terrain_scan.calibrate)
+        from terrain_scan.scan import ScanOptions
 
-        bar = tqdm(total=len(refs), desc="calibrate-depth", unit="recording")
-    for got in calibrate.iter_pairs(refs, layout, a.frame_stride):
-        if bar is not None:
-            bar.update(1)
-        (failed if isinstance(got, str) else parts).append(got)
-    if bar is not None:
-        bar.close()
+        knobs = (ScanOptions.of_corpus(a.corpus) if a.corpus is not None else ScanOptions()).scan_kwargs()
+    progress = lambda items, total, desc: _progress(items, total, desc, a.quiet)  # noqa: E731
+    cal, failed = calibrate.calibrate_recordings(refs, layout, a.frame_stride, a.family, knobs, progress)
     for why in failed:
         print(f"skipped: {why}")
-    cal = calibrate.fit(calibrate.Pairs.concat(parts), a.family)
     for line in cal.lines():
         print(line)
     if a.out is not None:
@@ -523,6 +530,17 @@ def cmd_train_observation(a: argparse.Namespace) -> int:
     from marionette.training import config_from_args, nodes_from_args
 
     config = config_from_args(ObservationTrainConfig, a)
+    summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
+    print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
+    return 0
+
+
+def cmd_train_wan(a: argparse.Namespace) -> int:
+    """Fine-tune Wan2.2-Fun-Control on a corpus's pose-control chunks (resuming from --out)."""
+    from marionette.observation.wan_train import WanTrainConfig, run
+    from marionette.training import config_from_args, nodes_from_args
+
+    config = config_from_args(WanTrainConfig, a)
     summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
     print(json.dumps({k: v for k, v in summary.items() if k != "losses"}, indent=1))
     return 0
@@ -911,6 +929,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=None, help="write the mapping and the fit's report here (JSON)")
     s.add_argument("--plot", type=png_path, default=None, help="plot the pairs, the fits and the residuals here (.png)")
     s.add_argument("--corpus", type=Path, default=None, help="make the mapping this corpus's scan decoder (meta/scan.json)")
+    s.add_argument(
+        "--no-contact-scale",
+        dest="contact_scale",
+        action="store_false",
+        help="keep the joints' fit as it is (by default every depth is scaled so that the ground stands where the "
+        "characters' contact joints stood; a second pass over the recordings)",
+    )
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=cmd_calibrate_depth)
 
@@ -1065,6 +1090,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     observation_arguments(s)
     s.set_defaults(fn=cmd_train_observation)
+
+    s = command(
+        "wan", "fine-tune Wan2.2-Fun-Control on the corpus's pose-control chunks (latent cache, full or LoRA; resumes)", tsub
+    )
+    from marionette.observation.wan_train import add_arguments as wan_arguments
+
+    wan_arguments(s)
+    s.set_defaults(fn=cmd_train_wan)
 
     s = command("generate", "paint RGB onto a pose-control video with a trained observation model")
     from marionette.observation.generate import add_arguments as generate_arguments

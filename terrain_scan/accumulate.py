@@ -170,10 +170,10 @@ def entity_bones(sample: RecordedSample, layout: Layout, frame: int, radius_scal
     return out
 
 
-def contact_observations(
-    sample: RecordedSample, layout: Layout, ts: int, speed: float = 0.2, window: int = 2, tol_m: float = 0.05, hits: int = 1
-) -> Observations:
-    """Ground contacts of every articulated entity (rule in the module docstring)."""
+def contact_positions(
+    sample: RecordedSample, layout: Layout, speed: float = 0.2, window: int = 2, tol_m: float = 0.05
+) -> np.ndarray:
+    """(n, 3) world positions of every articulated entity's ground contacts (rule in the module docstring)."""
     parts = []
     dt_s = 1.0 / (sample.fps or 30.0)
     for e in layout.articulated:
@@ -207,20 +207,25 @@ def contact_observations(
         low = (P[..., 1] - lowest[:, None]) <= tol_m
         ok = rest & low & t.valid[:, None] & np.isfinite(P).all(-1)
         fi, ci = np.nonzero(ok)
-        if not len(fi):
-            continue
-        q = P[fi, ci]
-        parts.append(
-            Observations(
-                np.floor(q[:, 0]).astype(np.int64),
-                np.floor(q[:, 2]).astype(np.int64),
-                q[:, 1].copy(),
-                np.tile([0.0, 1.0, 0.0], (len(q), 1)),
-                np.full(len(q), hits, np.int64),
-                np.full(len(q), ts, np.int64),
-            )
-        )
-    return Observations.concat(parts)
+        parts.append(P[fi, ci])
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def contact_observations(
+    sample: RecordedSample, layout: Layout, ts: int, speed: float = 0.2, window: int = 2, tol_m: float = 0.05, hits: int = 1
+) -> Observations:
+    """Ground contacts of every articulated entity (``contact_positions``) as observations of their cells."""
+    q = contact_positions(sample, layout, speed, window, tol_m)
+    if not len(q):
+        return Observations.empty()
+    return Observations(
+        np.floor(q[:, 0]).astype(np.int64),
+        np.floor(q[:, 2]).astype(np.int64),
+        q[:, 1].copy(),
+        np.tile([0.0, 1.0, 0.0], (len(q), 1)),
+        np.full(len(q), hits, np.int64),
+        np.full(len(q), ts, np.int64),
+    )
 
 
 def depth_frames(path: Path) -> Iterator[np.ndarray]:

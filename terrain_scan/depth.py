@@ -96,6 +96,15 @@ class DepthDecoder:
 
         return DepthDecoder.from_json(DEPTH_ENCODING)
 
+    def scaled(self, s: float) -> DepthDecoder:
+        """This mapping with every depth multiplied by ``s`` > 0 (exact for every kind: each is affine in a g(z) with
+        g(s·z) affine in g(z), and a table's entries scale)."""
+        if not (np.isfinite(s) and s > 0):
+            raise ValueError(f"depth scale must be a positive number, not {s!r}")
+        if self.kind == "table":
+            return DepthDecoder("table", table=tuple(float(v) * s for v in self.table))
+        return DepthDecoder(self.kind, self.z_near * s, self.z_far * s)
+
     def code_of(self, z: np.ndarray) -> np.ndarray:
         """The unrounded code (float64) of depths z (m) within [z_near, z_far]: the mapping's inverse."""
         z = np.asarray(z, dtype=np.float64)

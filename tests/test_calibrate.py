@@ -5,6 +5,7 @@ terrain that scanning with the true mapping gives."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -57,6 +58,9 @@ def test_calibration_recovers_the_hidden_mapping_and_the_corpus_scans_with_it(hi
     assert report["pairs"] > 5000 and report["fits"]["log"]["rms_inliers_codes"] < 1.5
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     assert ScanOptions.stored(work).decoder == got.to_json()  # the corpus's next scan decodes with it
+    assert "contact scale: every depth ×" in said and report["contact_scale"]["points"] > 1000
+    assert cli(["calibrate-depth", str(root), "--frame-stride", "10", "--no-contact-scale", "--out", str(out), "--quiet"]) == 0
+    assert "contact scale" not in capsys.readouterr().out and "contact_scale" not in json.loads(out.read_text())["report"]
     # the table, made monotone from each code's median, agrees with the truth where the characters were seen
     cal = calibrate.fit(calibrate.Pairs.concat(list(calibrate.iter_pairs(discover(root), load_scene("duel"), 3))), "table")
     assert cal.chosen.kind == "table" and _max_error(cal.chosen, truth, 6.0, 30.0) < 0.05
@@ -65,7 +69,10 @@ def test_calibration_recovers_the_hidden_mapping_and_the_corpus_scans_with_it(hi
 def test_terrain_scanned_with_the_calibrated_mapping_is_as_good_as_with_the_truth(hidden):
     root, truth = hidden
     refs, layout = discover(root), load_scene("duel")
-    got = calibrate.fit(calibrate.Pairs.concat(list(calibrate.iter_pairs(refs, layout, 1)))).chosen
+    cal, failed = calibrate.calibrate_recordings(refs, layout, 1, knobs=ScanOptions().scan_kwargs())
+    got = cal.chosen
+    assert not failed and cal.contact.applied and abs(cal.contact.after_m) < abs(cal.contact.before_m) + 0.005
+    assert 0.99 < cal.contact.scale < 1.01  # the drake's thin limbs leave the joints' fit little to correct
     rmse = {}
     for name, dec in (("truth", truth), ("calibrated", got), ("the synthetic default", DepthDecoder.synthetic())):
         obs = scan_recording(refs[0], layout, dec, frame_stride=2).observations
@@ -86,3 +93,61 @@ def test_too_few_pairs_and_a_family_that_does_not_fit_are_clear_errors(hidden):
         calibrate.fit(few)
     with pytest.raises(ValueError, match="family 'linear': its planes are not a depth range"):
         calibrate.fit(pairs, "linear")
+
+
+def test_a_scaled_decoder_scales_every_depth():
+    z = np.geomspace(3.0, 90.0, 50)
+    table = DepthDecoder("table", table=tuple(np.geomspace(2.0, 200.0, 255)))
+    for dec in (DepthDecoder("inverse", 1.2, 150.0), DepthDecoder("log", 2.5, 400.0), DepthDecoder("linear", 0.5, 120.0), table):
+        codes = np.linspace(1.0, 255.0, 77)
+        assert np.allclose(dec.scaled(1.03).depth_of(codes), 1.03 * dec.depth_of(codes), rtol=1e-12)
+        assert np.allclose(dec.scaled(0.97).code_of(0.97 * z), dec.code_of(z), atol=1e-9)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="depth scale"):
+            DepthDecoder("log", 2.5, 400.0).scaled(bad)
+
+
+def _flat_ground(
+    read_scale: float, height: float = 0.0, cells: int = 60, seed: int = 0, aside_m: float = 8.0
+) -> calibrate.ContactPoints:
+    """Depth points of flat ground at ``height`` seen from cameras 3–6 m above it and up to ``aside_m`` to the side,
+    read with every depth multiplied by ``read_scale`` (a mapping that far off), around contacts at ``height``:
+    one cell each, far from the origin and on both sides of it."""
+    rng = np.random.default_rng(seed)
+    feet = np.stack([rng.uniform(-4000, 4000, cells), np.full(cells, height), rng.uniform(-4000, 4000, cells)], 1)
+    cams, offs = [], []
+    for f in feet:
+        ground = f + np.stack([rng.uniform(-0.1, 0.1, 40), np.zeros(40), rng.uniform(-0.1, 0.1, 40)], 1)
+        cam = f + np.array([rng.uniform(-aside_m, aside_m), rng.uniform(3, 6), rng.uniform(-aside_m, aside_m)])
+        cams.append(np.broadcast_to(cam, (40, 3)))
+        offs.append(read_scale * (ground - cam))
+    from terrain_scan.calibrate import _cell_key
+
+    keys = _cell_key(feet[:, 0], feet[:, 2])
+    order = np.argsort(keys)
+    cam, off = np.concatenate(cams), np.concatenate(offs)
+    return calibrate.ContactPoints(cam, off, np.zeros(len(cam), np.int64), [(keys[order], feet[order, 1])], frames=cells)
+
+
+def test_the_contact_scale_puts_the_ground_where_the_feet_stood():
+    """Ground read 2 % too far (the depth below the camera too long) comes back × 1/1.02, on cells thousands of
+    metres from the origin on either side; too few points or a scale out of range are not applied, and say why."""
+    cs = calibrate.fit_contact_scale([_flat_ground(1.02), _flat_ground(1.02, height=-250.0, seed=1)])
+    assert cs.applied and cs.scale == pytest.approx(1 / 1.02, rel=1e-6) and cs.recordings == 2
+    assert cs.before_m < -0.05 and abs(cs.after_m) < 1e-6 and "× 0.98039" in cs.line()
+    assert calibrate.fit_contact_scale([_flat_ground(1.0)]).scale == pytest.approx(1.0, abs=1e-9)
+    few = calibrate.fit_contact_scale([_flat_ground(1.02, cells=4)])
+    assert not few.applied and few.scale == 1.0 and re.search(r"\d+ depth points on contact cells, fewer than 200", few.line())
+    far = calibrate.fit_contact_scale([_flat_ground(1.5, aside_m=0.0)])  # straight down: the points stay on their cells
+    assert not far.applied and "outside 0.8–1.25" in far.note
+    assert not calibrate.fit_contact_scale([]).applied
+    # applied to a calibration: the chosen decoder and the table, not the joints' fits; the report says so
+    cal = calibrate.Calibration(
+        {}, DepthDecoder("log", 2.5, 400.0), DepthDecoder("table", table=tuple(np.geomspace(2, 300, 255))), None, "log"
+    )
+    scaled = cal.with_contact_scale(cs)
+    assert scaled.chosen == DepthDecoder("log", 2.5, 400.0).scaled(cs.scale) and scaled.table.z_far == pytest.approx(
+        300 * cs.scale
+    )
+    assert cal.with_contact_scale(few).chosen == cal.chosen and cal.with_contact_scale(few).contact.note
+    assert calibrate.weighted_median(np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 5.0])) == 3.0

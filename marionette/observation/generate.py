@@ -60,6 +60,28 @@ def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tup
     return pose_frames(np.stack(list(iter_codes(pose_path))), f), rgb_frames(first[None], f)[0]
 
 
+WAN_SETTINGS = "marionette-wan.json"  # in a fine-tuned Wan model directory: {"frames", "shift"} it was trained with
+
+
+def wan_directory(path: Path) -> bool:
+    """Whether ``path`` is a Wan2.2-Fun-Control model directory (a transformer config and a ``vae/``)."""
+    return (path / "vae").is_dir() and ((path / "config.json").is_file() or (path / "transformer" / "config.json").is_file())
+
+
+def wan_settings(path: Path) -> dict:
+    """The chunk length and timestep shift a Wan model directory was fine-tuned with (``WAN_SETTINGS``), else the
+    release's (81 frames, shift 5)."""
+    from marionette.io import read_json
+
+    d = read_json(path / WAN_SETTINGS) if (path / WAN_SETTINGS).is_file() else {}
+    frames, shift = d.get("frames", 81), d.get("shift", 5.0)
+    if not isinstance(frames, int) or isinstance(frames, bool) or frames < 5 or (frames - 1) % 4:
+        raise ValueError(f"{path / WAN_SETTINGS}: frames {frames!r} is not 4k + 1 ≥ 5")
+    if not isinstance(shift, int | float) or isinstance(shift, bool) or not shift > 0:
+        raise ValueError(f"{path / WAN_SETTINGS}: shift {shift!r} is not a positive number")
+    return {"frames": frames, "shift": float(shift)}
+
+
 def paint_video(
     ckpt: Path,
     pose: Path,
@@ -73,10 +95,20 @@ def paint_video(
 ) -> Path:
     """Paint the pose video ``pose`` from ``first_frame`` with the observation model at ``ckpt`` into the mp4 ``out``
     (``chunks`` model chunks relayed, default as many as the pose video holds)."""
-    model = load_model(ckpt)
-    pose_t, first_t = load_inputs(pose, first_frame, model.config.size)
-    t0 = time.perf_counter()
-    video = generate(model, pose_t, first_t, chunks=chunks, steps=steps, seed=seed)
+    if wan_directory(Path(ckpt)):  # a fine-tuned (or released) Wan2.2-Fun-Control, at the pose video's own size
+        from marionette.observation.wan import WanFunControl
+
+        settings = wan_settings(Path(ckpt))
+        wan = WanFunControl.from_pretrained(Path(ckpt), frames=settings["frames"], shift=settings["shift"])
+        m = read_meta(pose)
+        pose_t, first_t = load_inputs(pose, first_frame, (m.height, m.width))
+        t0 = time.perf_counter()
+        video = wan.generate(pose_t, first_t, chunks=chunks, steps=steps, seed=seed)
+    else:
+        model = load_model(ckpt)
+        pose_t, first_t = load_inputs(pose, first_frame, model.config.size)
+        t0 = time.perf_counter()
+        video = generate(model, pose_t, first_t, chunks=chunks, steps=steps, seed=seed)
     took = time.perf_counter() - t0
     frames = ((video.permute(0, 2, 3, 1).numpy() + 1.0) * 127.5).round().clip(0, 255).astype(np.uint8)
     h, w = frames.shape[1:3]
@@ -89,7 +121,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The generate command's arguments."""
     from marionette.options import non_negative_int, positive_float, positive_int
 
-    ap.add_argument("ckpt", type=Path, help="an observation checkpoint or training directory")
+    ap.add_argument(
+        "ckpt",
+        type=Path,
+        help="an observation checkpoint or training directory, or a Wan2.2-Fun-Control model directory (`train wan`'s OUT/model)",
+    )
     pose_help = "a pose-control G-buffer video (.mkv), from `marionette export-chunk` or `marionette render`"
     ap.add_argument("--pose", type=Path, required=True, help=pose_help)
     ap.add_argument("--first-frame", type=Path, required=True, help="the first frame: an image of the pose video's size")

@@ -1,0 +1,446 @@
+"""Fine-tuning Wan2.2-Fun-Control on a corpus's pose-control chunks (``marionette train wan``).
+
+Data: the train split's chunks at the backbone's size (the corpus's chunk size divided by ``reduce``, then
+centre-cropped to whole latent patches: the VAE's 16× reduction times the transformer's 2× patch), cut into
+windows of T = ``frames`` (4k + 1) frames that start where a relay would start a chunk (every T − 1 frames).
+A window's three latents — its RGB, its pose video read as RGB in [−1, 1], and the masked video (its first
+frame, then zeros) — are what the transformer sees, exactly as ``WanFunControl.sample_chunk`` builds them.
+
+**The latent cache.** Encoding is the expensive, fixed part, so each window is encoded once by the VAE into
+``<corpus>/derived/wan-latents/<vae>-<T>x<H>x<W>/<window>.safetensors`` (bf16; ``vae`` the sha256 of the VAE's
+config and weights, ``window`` the sha256 of the window's decoded RGB and pose bytes), written atomically, and a
+later run (or another rank) reads it instead of encoding: a second run encodes nothing.
+
+**The objective** is Wan's flow matching: σ drawn uniformly and warped by the timestep shift
+(shift·σ / (1 + (shift − 1)·σ)), x_σ = (1 − σ)·x₀ + σ·ε, the network predicting ε − x₀ under mean squared error;
+latent frame 0 is the given first frame (x₀ there, its tokens at timestep 0, left out of the loss), as sampling
+holds it. The text context is the adapter's fixed embedding (zeros: every prompt token padding).
+
+**What trains**: every transformer weight (``lora_rank`` 0), or LoRA adapters (peft) of rank ``lora_rank`` on the
+attention projections and the feed-forward layers, the backbone frozen. AdamW, warm-up then cosine decay to a
+tenth, gradient clipping at 1; bf16 autocast and gradient checkpointing on request. The loop, exact resume and
+the checkpoints (the trainable weights only, safetensors, with the optimizer) are ``marionette.training``'s;
+the finished run writes ``<out>/model/``: the transformer with any LoRA merged, in the release's layout, and
+the VAE, which ``WanFunControl.from_pretrained`` and ``marionette generate`` load.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import save_file
+from torch import Tensor, nn
+
+from marionette import training
+from marionette.corpus import Corpus
+from marionette.distributed import ONE_NODE, Nodes, rank_world
+from marionette.dynamics.checkpoint import save_checkpoint
+from marionette.io import atomic_path, check_json_fields, file_sha256, read_tensors, write_json
+from marionette.observation.data import Clip, ClipSource
+from marionette.observation.generate import WAN_SETTINGS
+from marionette.observation.wan import WanFunControl, find_vae, save_original
+from marionette.options import Parser
+from marionette.training import knob
+
+CACHE_DIR = "derived/wan-latents"
+LORA_TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "ffn.net.0.proj", "ffn.net.2")
+EVAL_DRAWS = 4
+HELD_OUT = "test"
+
+
+@dataclass(frozen=True)
+class WanTrainConfig:
+    """Every knob of a Wan fine-tuning run; saved in each checkpoint's meta."""
+
+    backbone: str = knob("", "the Wan2.2-Fun-Control checkpoint directory to start from (release or diffusers layout)")
+    steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
+    batch_size: int = knob(1, "windows per step and process", min=1)
+    frames: int = knob(81, "window length in frames, 4k + 1", min=5)
+    reduce: int = knob(1, "the corpus chunk's height and width divided by the backbone's input", min=1)
+    lr: float = knob(1e-4, "peak learning rate", above=0.0)
+    warmup: int = knob(50, "linear warm-up steps", min=0)
+    seed: int = knob(0, "seed of the windows drawn, the noise and the LoRA initialisation", min=0)
+    lora_rank: int = knob(0, "LoRA rank on the attention and feed-forward layers; 0: every weight trains", min=0)
+    lora_alpha: float | None = knob(None, "LoRA scale numerator (alpha / rank scales the update); default: the rank", above=0.0)
+    shift: float = knob(5.0, "Wan's timestep shift of the training σ", above=0.0)
+    max_chunks: int = knob(0, "train on the first N chunks of the train split (and of the held-out split); 0: all", min=0)
+    bf16: bool = knob(False, "bf16 autocast of the transformer's forward pass")
+    gradient_checkpointing: bool = knob(False, "recompute each block's activations in the backward pass")
+    checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
+
+    def __post_init__(self) -> None:
+        training.check_knobs(self)
+        if (self.frames - 1) % 4:
+            raise ValueError(f"WanTrainConfig.frames: windows are 4k + 1 frames, not {self.frames}")
+        if not self.backbone:
+            raise ValueError("WanTrainConfig.backbone: the Wan checkpoint directory to fine-tune is required")
+
+    @property
+    def alpha(self) -> float:
+        return float(self.lora_alpha if self.lora_alpha is not None else self.lora_rank)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> WanTrainConfig:
+        check_json_fields(cls, d, "Wan train config")
+        return cls(**d)
+
+
+def vae_key(vae_dir: Path) -> str:
+    """The sha256 (16 hex) of a VAE directory's config and weights: what cached latents were encoded with."""
+    h = hashlib.sha256()
+    for p in sorted(Path(vae_dir).iterdir()):
+        if p.name == "config.json" or p.suffix == ".safetensors":
+            h.update(p.name.encode() + b"\0" + file_sha256(p).encode())
+    return h.hexdigest()[:16]
+
+
+def crop_box(size: tuple[int, int], multiple: int) -> tuple[int, int, int, int]:
+    """(top, left, height, width) of the centred crop of ``size`` to whole multiples of ``multiple``."""
+    H, W = size
+    h, w = H // multiple * multiple, W // multiple * multiple
+    if not h or not w:
+        raise ValueError(f"{H}×{W}: smaller than one latent patch ({multiple}×{multiple}); use a smaller reduce")
+    return (H - h) // 2, (W - w) // 2, h, w
+
+
+def windows(clip: Clip, frames: int, box: tuple[int, int, int, int]) -> list[tuple[Tensor, Tensor]]:
+    """The relay-aligned windows of a chunk: (RGB, pose) of frames k(T − 1) … k(T − 1) + T − 1, cropped to ``box``."""
+    top, left, h, w = box
+    rgb, pose = clip.rgb[:, :, top : top + h, left : left + w], clip.pose[:, :, top : top + h, left : left + w]
+    return [(rgb[s : s + frames], pose[s : s + frames]) for s in range(0, len(rgb) - frames + 1, frames - 1)]
+
+
+def window_digest(rgb: Tensor, pose: Tensor) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(rgb.numpy()).tobytes())
+    h.update(np.ascontiguousarray(pose.numpy()).tobytes())
+    return h.hexdigest()[:24]
+
+
+class LatentCache:
+    """Encoded windows under ``<corpus>/derived/wan-latents/<vae>-<T>x<H>x<W>/`` (module docstring); counts what this
+    process ``encoded`` and what it found already there (``reused``)."""
+
+    def __init__(self, corpus: Path, key: str, frames: int, size: tuple[int, int]) -> None:
+        self.dir = Path(corpus) / CACHE_DIR / f"{key}-{frames}x{size[0]}x{size[1]}"
+        self.encoded = self.reused = 0
+
+    def path(self, rgb: Tensor, pose: Tensor) -> Path:
+        return self.dir / f"{window_digest(rgb, pose)}.safetensors"
+
+    def ensure(self, path: Path, rgb: Tensor, pose: Tensor, model: WanFunControl) -> None:
+        """Encode the window into ``path`` unless it is there: its RGB, its pose video read as RGB in [−1, 1], and the
+        masked video (the first frame, then zeros), each (z, F, h, w), stored in bf16."""
+        if path.is_file():
+            self.reused += 1
+            return
+        with torch.no_grad():
+            masked = torch.zeros_like(rgb)
+            masked[0] = rgb[0]
+            out = {"x0": model.encode(rgb)[0], "control": model.encode(pose * 2.0 - 1.0)[0], "masked": model.encode(masked)[0]}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            save_file({k: v.to(torch.bfloat16).contiguous().cpu() for k, v in out.items()}, str(tmp))
+        self.encoded += 1
+
+
+def read_latents(path: Path) -> dict[str, Tensor]:
+    """A cached window's {"x0", "control", "masked"} in float32."""
+    return {k: v.float() for k, v in read_tensors(path).items()}
+
+
+def summed(values: list[float]) -> list[float]:
+    """``values`` summed over the ranks of the process group (as they are in one process)."""
+    if rank_world()[1] == 1:
+        return values
+    t = torch.tensor(values, dtype=torch.float64)
+    torch.distributed.all_reduce(t)
+    return t.tolist()
+
+
+def input_box(corpus: Corpus, config: WanTrainConfig, model: WanFunControl) -> tuple[tuple[int, int], tuple[int, int, int, int]]:
+    """The chunks' size at ``reduce`` and the crop of it the backbone takes (whole latent patches)."""
+    video = corpus.info.video
+    H, W = int(video["height"]), int(video["width"])
+    if H % config.reduce or W % config.reduce:
+        raise ValueError(f"{corpus.path}: chunks of {H}×{W} do not divide by reduce={config.reduce}")
+    size = (H // config.reduce, W // config.reduce)
+    _, ph, pw = model.transformer.config.patch_size
+    return size, crop_box(size, model.spatial * max(ph, pw))
+
+
+def cache_split(corpus: Corpus, split: str, config: WanTrainConfig, model: WanFunControl, cache: LatentCache) -> list[Path]:
+    """The cache files of every window of the split's chunks (the first ``max_chunks``): rank r of w encodes the
+    windows k ≡ r (mod w) that are missing, then every rank waits for the others, so the encoding fans out over
+    the ranks and each reads all of them after."""
+    rank, world = rank_world()
+    size, box = input_box(corpus, config, model)
+    paths: list[Path] = []
+    for k, clip in enumerate(ClipSource(corpus, split, config.frames, size).chunks()):
+        if config.max_chunks and k >= config.max_chunks:
+            break
+        for rgb, pose in windows(clip, config.frames, box):
+            path = cache.path(rgb, pose)
+            if len(paths) % world == rank:
+                cache.ensure(path, rgb, pose, model)
+            paths.append(path)
+    if world > 1:
+        torch.distributed.barrier()
+    return paths
+
+
+class Windows(Sequence):
+    """Cached windows read from disk when a batch asks for them (memory stays one batch's, at any corpus size)."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i: int) -> dict[str, Tensor]:
+        return read_latents(self.paths[i])
+
+
+def flow_batch(
+    latents: Sequence[dict[str, Tensor]], picks: Sequence[int], generator: torch.Generator, shift: float, temporal: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The transformer's input (B, 148, F, h, w), its per-frame σ (B, F) (0 on frame 0), the target ε − x₀ and x₀."""
+    items = [latents[i] for i in picks]  # each read once
+    x0 = torch.stack([lat["x0"] for lat in items])
+    cond_parts = []
+    for lat in items:
+        mask = torch.zeros(temporal, *lat["x0"].shape[1:])
+        mask[:, 0] = 1.0
+        cond_parts.append(torch.cat([lat["control"], mask, lat["masked"]]))
+    cond = torch.stack(cond_parts)
+    u = torch.rand(len(picks), generator=generator)
+    sigma = shift * u / (1 + (shift - 1) * u)
+    eps = torch.randn(x0.shape, generator=generator)
+    s = sigma.view(-1, 1, 1, 1, 1)
+    x = (1 - s) * x0 + s * eps
+    x[:, :, :1] = x0[:, :, :1]
+    per_frame = sigma[:, None].expand(-1, x0.shape[2]).clone()
+    per_frame[:, 0] = 0.0
+    return torch.cat([x, cond], dim=1), per_frame, eps - x0, x0
+
+
+def flow_loss(
+    transformer: nn.Module, patch: Sequence[int], context: Tensor, inp: Tensor, per_frame: Tensor, target: Tensor, bf16: bool
+) -> Tensor:
+    """Mean squared error of the predicted velocity on every latent frame but the given one (``patch``: the
+    transformer's (t, h, w) patch size; each token's timestep is its latent frame's σ)."""
+    pt, ph, pw = patch
+    B, _, F, h, w = inp.shape
+    per_token = per_frame[:, ::pt, None].expand(B, F // pt, (h // ph) * (w // pw)).reshape(B, -1)
+    with torch.autocast(inp.device.type, dtype=torch.bfloat16, enabled=bf16):
+        v = transformer(inp, timestep=1000.0 * per_token, encoder_hidden_states=context.expand(B, -1, -1), return_dict=False)[0]
+    return ((v.float() - target) ** 2)[:, :, 1:].mean()
+
+
+class Trainable(nn.Module):
+    """The trainable parameters of the transformer as one module of their own (shared, not copied), so that a
+    checkpoint holds them and nothing of the frozen backbone."""
+
+    def __init__(self, transformer: nn.Module) -> None:
+        super().__init__()
+        self.names = [n for n, p in transformer.named_parameters() if p.requires_grad]
+        self.params = nn.ParameterList([p for p in transformer.parameters() if p.requires_grad])
+
+
+def add_lora(transformer: nn.Module, rank: int, alpha: float, seed: int) -> nn.Module:
+    """``transformer`` with LoRA adapters (peft) on ``LORA_TARGETS``, everything else frozen."""
+    from peft import LoraConfig, get_peft_model
+
+    torch.manual_seed(seed)
+    return get_peft_model(transformer, LoraConfig(r=rank, lora_alpha=alpha, target_modules=list(LORA_TARGETS)))
+
+
+@torch.no_grad()
+def held_out_loss(
+    transformer: nn.Module,
+    patch: Sequence[int],
+    context: Tensor,
+    latents: Sequence[dict[str, Tensor]],
+    config: WanTrainConfig,
+    temporal: int,
+) -> float:
+    """Mean flow loss of every held-out window at ``EVAL_DRAWS`` fixed (σ, ε) draws (seed 1234)."""
+    transformer.eval()
+    g = torch.Generator().manual_seed(1234)
+    total = 0.0
+    for i in range(len(latents)):
+        for _ in range(EVAL_DRAWS):
+            inp, per_frame, target, _ = flow_batch(latents, [i], g, config.shift, temporal)
+            total += float(flow_loss(transformer, patch, context, inp, per_frame, target, config.bf16))
+    transformer.train()
+    return total / max(len(latents) * EVAL_DRAWS, 1)
+
+
+def export_model(
+    transformer: nn.Module, backbone: Path, out: Path, text_len: int, ref_conv: nn.Module | None, settings: dict
+) -> Path:
+    """Write ``out`` as a loadable checkpoint: the transformer (LoRA merged) in the release's layout, the VAE, and
+    the chunk length and shift it was trained with (``generate.WAN_SETTINGS``)."""
+    base = transformer.merge_and_unload() if hasattr(transformer, "merge_and_unload") else transformer
+    tmp = out.with_name(f".{out.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    save_original(tmp, base, text_len=text_len, ref_conv=ref_conv)
+    shutil.copytree(find_vae(Path(backbone)), tmp / "vae")
+    write_json(tmp / WAN_SETTINGS, settings)
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)
+    return out
+
+
+def train(
+    corpus_path: Corpus | Path | str,
+    out_dir: Path | str,
+    config: WanTrainConfig,
+    log: Callable[[str], Any] = print,
+    *,
+    stop_at: int | None = None,
+    progress: bool = False,
+) -> dict:
+    """Fine-tune (or resume from the latest checkpoint in ``out_dir``) for ``config.steps`` steps; returns a summary
+    (``encoded`` / ``reused``: the windows the latent cache encoded and read). ``stop_at`` ends the run early
+    (checkpointed), as an interruption would."""
+    rank = rank_world()[0]
+    log = training.rank_zero_log(log)
+    out_dir = Path(out_dir)
+    corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
+    backbone = Path(config.backbone)
+    model = WanFunControl.from_pretrained(backbone, frames=config.frames, shift=config.shift)
+    cache = LatentCache(corpus.path, vae_key(find_vae(backbone)), config.frames, input_box(corpus, config, model)[1][2:])
+    latents = Windows(cache_split(corpus, "train", config, model, cache))
+    held_split = HELD_OUT if corpus.segment_ids(HELD_OUT) else "train"
+    held = Windows(cache_split(corpus, held_split, config, model, cache))
+    if not len(latents):
+        raise ValueError(f"{corpus.path}: no train window of {config.frames} frames with a pose target")
+    encoded, reused = (int(v) for v in summed([cache.encoded, cache.reused]))
+    log(f"latent cache {cache.dir}: {encoded} windows encoded, {reused} already there")
+    transformer = model.transformer.float().requires_grad_(True)
+    if config.lora_rank:
+        transformer.requires_grad_(False)
+        transformer = add_lora(transformer, config.lora_rank, config.alpha, config.seed)
+    if config.gradient_checkpointing:
+        (transformer.base_model.model if config.lora_rank else transformer).enable_gradient_checkpointing()
+    transformer.train()
+    trainable = Trainable(transformer)
+    opt = torch.optim.AdamW(trainable.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=0.0)
+    sched = training.warmup_cosine(opt, config.warmup, config.steps, 0.1)
+    run = training.resume(out_dir, trainable, opt, sched, {"train_config": config}, may_change=training.CADENCE_FIELDS)
+    if run.resumed_from is not None:
+        log(f"resumed from {run.resumed_from} at step {run.step}")
+    n_train = sum(p.numel() for p in trainable.parameters())
+    log(f"{len(latents)} train windows, {len(held)} held-out ({held_split}); {n_train:,} trainable parameters")
+    context, patch = model.context.float(), tuple(model.transformer.config.patch_size)
+    if not run.evals and rank == 0:
+        run.evals.append({"step": 0, "held_out_loss": held_out_loss(transformer, patch, context, held, config, model.temporal)})
+    net = training.ddp(transformer, torch.device("cpu"))
+
+    def checkpoint(at: int) -> Path | None:
+        if rank != 0:
+            return None
+        meta = {
+            "train_config": config.to_json(),
+            "losses": run.history,
+            "evals": run.evals,
+            "kind": "wan",
+            "names": trainable.names,
+        }
+        return save_checkpoint(out_dir, at, trainable, opt, sched, meta)
+
+    def loss_at(step: int) -> dict[str, Tensor]:
+        rng = np.random.default_rng([config.seed, step] if rank == 0 else [config.seed, step, rank])
+        picks = rng.integers(0, len(latents), config.batch_size).tolist()
+        g = training.noise_generator(config.seed, step, rank)
+        inp, per_frame, target, _ = flow_batch(latents, picks, g, config.shift, model.temporal)
+        return {"loss": flow_loss(net, patch, context, inp, per_frame, target, config.bf16)}
+
+    end = config.steps if stop_at is None else min(stop_at, config.steps)
+    training.run_steps(
+        run,
+        end,
+        loss_at,
+        trainable,
+        opt,
+        sched,
+        seed=config.seed,
+        objective="loss",
+        grad_clip=1.0,
+        checkpoint=checkpoint,
+        checkpoint_every=config.checkpoint_every,
+        log=log,
+        progress=progress,
+        desc="train wan" + (f" (LoRA rank {config.lora_rank})" if config.lora_rank else ""),
+    )
+    if run.step > run.started and rank == 0:
+        run.evals.append(
+            {"step": run.step, "held_out_loss": held_out_loss(transformer, patch, context, held, config, model.temporal)}
+        )
+    last = training.final_checkpoint(run, checkpoint)
+    exported = None
+    if rank == 0 and run.step >= config.steps:
+        settings = {"frames": config.frames, "shift": config.shift}
+        exported = export_model(transformer, backbone, out_dir / "model", model.context.shape[1], model.ref_conv, settings)
+        log(f"wrote {exported}: `marionette generate {exported} --pose ... --first-frame ...` paints with it")
+    evals = run.evals
+    if rank == 0:
+        log(
+            f"held-out flow loss {evals[0]['held_out_loss']:.4f} at the backbone → {evals[-1]['held_out_loss']:.4f} at step {run.step}"
+        )
+    summary = {
+        "steps": run.step,
+        "evals": evals,
+        "checkpoint": str(last) if last else None,
+        "model": str(exported) if exported else None,
+        "trainable_parameters": n_train,
+        "windows": len(latents),
+        "held_out": len(held),
+        "held_out_split": held_split,
+        "encoded": encoded,
+        "reused": reused,
+        "losses": run.history,
+    }
+    return training.finish(out_dir, summary)
+
+
+def add_arguments(ap: Parser) -> None:
+    """The arguments of ``marionette train wan`` and ``python -m marionette.observation.wan_train``."""
+    training.add_arguments(ap, WanTrainConfig)
+
+
+def run(
+    corpus: Path | str,
+    out_dir: Path | str,
+    config: WanTrainConfig,
+    *,
+    nproc: int = 1,
+    nodes: Nodes = ONE_NODE,
+    progress: bool = False,
+    log: Callable[[str], Any] = print,
+) -> dict:
+    """Train in this process, or with ``nproc`` > 1 or several ``nodes`` under torchrun (gloo on CPU)."""
+    return training.launch(
+        "marionette.observation.wan_train", train, corpus, out_dir, config, nproc=nproc, nodes=nodes, progress=progress, log=log
+    )
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """``python -m marionette.observation.wan_train CORPUS --out DIR --backbone DIR ...``; under torchrun one process per rank."""
+    return training.main(argv, "python -m marionette.observation.wan_train", __doc__.splitlines()[0], WanTrainConfig, run)
+
+
+if __name__ == "__main__":
+    main()

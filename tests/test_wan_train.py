@@ -1,0 +1,141 @@
+"""Fine-tuning Wan2.2-Fun-Control (issue 18) on a tiny model built from the real classes (test_wan's): the latent
+cache is written once and read after, full fine-tuning and LoRA both lower the held-out flow loss, a resumed run
+continues the same loss sequence, and the finished run's model loads with ``WanFunControl.from_pretrained`` and
+generates."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import av
+import numpy as np
+import pytest
+import torch
+from diffusers import AutoencoderKLWan, WanTransformer3DModel
+from safetensors.torch import load_file
+from test_wan import TEXT_LEN, TRANSFORMER, VAE
+
+from marionette.bridge.gbuffer import GBufferMeta, write_gbuffer
+from marionette.cli import main as cli
+from marionette.observation.generate import write_image
+from marionette.observation.wan import WanFunControl, save_original
+from marionette.observation.wan_train import WanTrainConfig, crop_box, train
+
+# 9-frame windows (3 latent frames), the follow corpus's 36×64 chunks cropped to 32×64 (2×4 latents): 10 windows per
+# 81-frame chunk; 4 train chunks, 2 held out
+BASE = dict(steps=40, batch_size=4, frames=9, lr=2e-3, warmup=5, max_chunks=4)
+
+
+@pytest.fixture(scope="module")
+def backbone(tmp_path_factory):
+    """A tiny Wan2.2-Fun-Control checkpoint in the release's layout."""
+    torch.manual_seed(0)
+    root = tmp_path_factory.mktemp("wan-backbone") / "Wan2.2-Fun-5B-Control"
+    save_original(root, WanTransformer3DModel(**TRANSFORMER).eval(), text_len=TEXT_LEN)
+    AutoencoderKLWan(**VAE).eval().save_pretrained(root / "vae", safe_serialization=True)
+    return root
+
+
+@pytest.fixture(scope="module")
+def full(follow_corpus, backbone, tmp_path_factory):
+    out = tmp_path_factory.mktemp("wan-full")
+    return out, train(follow_corpus, out, WanTrainConfig(backbone=str(backbone), **BASE), log=lambda *_: None)
+
+
+def _losses(summary: dict) -> tuple[float, float]:
+    return summary["evals"][0]["held_out_loss"], summary["evals"][-1]["held_out_loss"]
+
+
+def test_full_fine_tuning_lowers_the_held_out_loss_and_its_model_generates(full, backbone):
+    out, s = full
+    first, last = _losses(s)
+    print(f"\nfull fine-tuning: held-out flow loss {first:.4f} → {last:.4f} over {s['steps']} steps, {s['windows']} windows")
+    assert s["windows"] == 40 and s["held_out"] > 0 and s["held_out_split"] == "test"
+    assert last < 0.8 * first
+    model = WanFunControl.from_pretrained(out / "model", frames=9)
+    original = WanFunControl.from_pretrained(backbone, frames=9)
+    ref = dict(original.transformer.named_parameters())
+    still = {n for n, p in model.transformer.named_parameters() if torch.equal(p, ref[n])}
+    # every weight trained but the text embedder's input layer, which sees only the fixed (zero) context
+    assert still == {"condition_embedder.text_embedder.linear_1.weight"}
+    pose, first_frame = torch.rand(17, 3, 32, 64), torch.rand(3, 32, 64) * 2 - 1
+    video = model.generate(pose, first_frame, steps=2, seed=0)
+    assert video.shape == (17, 3, 32, 64) and torch.isfinite(video).all()
+    assert torch.equal(video, model.generate(pose, first_frame, steps=2, seed=0))
+
+
+def test_the_latent_cache_is_written_once(full, follow_corpus, backbone, tmp_path):
+    _, s = full
+    assert s["encoded"] == s["windows"] + s["held_out"] and s["reused"] == 0
+    again = train(follow_corpus, tmp_path, WanTrainConfig(backbone=str(backbone), **{**BASE, "steps": 1}), log=lambda *_: None)
+    assert again["encoded"] == 0 and again["reused"] == s["windows"] + s["held_out"]
+    files = list((follow_corpus / "derived" / "wan-latents").rglob("*.safetensors"))
+    assert len(files) == s["encoded"] and all(set(load_file(f)) == {"x0", "control", "masked"} for f in files)
+
+
+def test_lora_trains_only_its_adapters_and_merges_into_the_model(follow_corpus, backbone, tmp_path):
+    config = WanTrainConfig(backbone=str(backbone), lora_rank=4, **{**BASE, "lr": 1e-2})  # adapters take a larger step
+    s = train(follow_corpus, tmp_path, config, log=lambda *_: None)
+    first, last = _losses(s)
+    print(f"\nLoRA rank 4: held-out flow loss {first:.4f} → {last:.4f}, {s['trainable_parameters']:,} trainable parameters")
+    assert last < 0.9 * first
+    meta = json.loads((tmp_path / (tmp_path / "latest").read_text().strip() / "meta.json").read_text())
+    total = sum(p.numel() for p in WanTransformer3DModel(**TRANSFORMER).parameters())
+    assert meta["names"] and all(".lora_A." in n or ".lora_B." in n for n in meta["names"])
+    assert s["trainable_parameters"] < 0.25 * total  # the checkpoint holds the adapters, not the backbone
+    base = WanFunControl.from_pretrained(backbone, frames=9).transformer.state_dict()
+    merged = WanFunControl.from_pretrained(tmp_path / "model", frames=9).transformer.state_dict()
+    changed = {k for k in base if not torch.equal(base[k], merged[k])}
+    assert changed and all(
+        k.endswith(".weight") and any(t in k for t in ("to_q", "to_k", "to_v", "to_out", "ffn")) for k in changed
+    )
+
+
+def test_a_resumed_run_continues_the_same_loss_sequence(follow_corpus, backbone, tmp_path):
+    config = WanTrainConfig(backbone=str(backbone), lora_rank=2, **{**BASE, "steps": 12})
+    whole = train(follow_corpus, tmp_path / "whole", config, log=lambda *_: None)
+    train(follow_corpus, tmp_path / "cut", config, log=lambda *_: None, stop_at=5)
+    resumed = train(follow_corpus, tmp_path / "cut", config, log=lambda *_: None)
+    assert [r["loss"] for r in resumed["losses"]] == [r["loss"] for r in whole["losses"]]
+    with pytest.raises(ValueError, match="differs in \\['lr'\\]"):
+        train(follow_corpus, tmp_path / "cut", replace(config, lr=1e-3), log=lambda *_: None)
+
+
+def test_bad_configs_and_crops_are_named():
+    with pytest.raises(ValueError, match="backbone"):
+        WanTrainConfig()
+    with pytest.raises(ValueError, match="4k \\+ 1"):
+        WanTrainConfig(backbone="x", frames=8)
+    with pytest.raises(ValueError, match="lora_rank"):
+        WanTrainConfig(backbone="x", lora_rank=-1)
+    assert crop_box((36, 64), 32) == (2, 0, 32, 64) and crop_box((704, 1280), 32) == (0, 0, 704, 1280)
+    with pytest.raises(ValueError, match="smaller than one latent patch"):
+        crop_box((18, 32), 32)
+
+
+def test_the_command_trains_under_ddp_and_generate_paints_with_the_result(follow_corpus, backbone, tmp_path):
+    argv = ["train", "wan", str(follow_corpus), "--out", str(tmp_path), "--backbone", str(backbone), "--no-progress"]
+    argv += ["--steps", "2", "--frames", "9", "--max-chunks", "1", "--lora-rank", "2", "--bf16", "--gradient-checkpointing"]
+    assert cli([*argv, "--nproc", "2"]) == 0  # two processes under torchrun (DDP, gloo); one process loads the result
+    assert (tmp_path / "model" / "config.json").is_file() and (tmp_path / "model" / "vae" / "config.json").is_file()
+    assert json.loads((tmp_path / "summary.json").read_text())["steps"] == 2
+    with pytest.raises(SystemExit):
+        cli([*argv, "--lora-rank", "-1"])
+    # `marionette generate` paints with the fine-tuned model at the pose video's size, in its 9-frame chunks
+    rng = np.random.default_rng(0)
+    meta = GBufferMeta(h_min=0.0, h_max=10.0, z_near=0.3, z_far=100.0, width=64, height=32, fps=20.0)
+    write_gbuffer(tmp_path / "pose.mkv", [rng.integers(0, 1024, (32, 64, 3), dtype=np.uint16) for _ in range(17)], meta)
+    write_image(tmp_path / "first.png", rng.integers(0, 256, (32, 64, 3), dtype=np.uint8))
+    paint = [
+        "generate",
+        str(tmp_path / "model"),
+        "--pose",
+        str(tmp_path / "pose.mkv"),
+        "--first-frame",
+        str(tmp_path / "first.png"),
+    ]
+    assert cli([*paint, "--out", str(tmp_path / "painted.mp4"), "--steps", "2"]) == 0
+    with av.open(str(tmp_path / "painted.mp4")) as c:
+        frames = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+    assert len(frames) == 17 and frames[0].shape == (32, 64, 3)
