@@ -476,6 +476,7 @@ def cmd_terrain_export(a: argparse.Namespace) -> int:
 
 def cmd_render(a: argparse.Namespace) -> int:
     """Render one corpus segment, or a rollout table, to a G-buffer video."""
+    from marionette.bridge.jitter import Jitter
     from marionette.bridge.targets import TerrainScene, render_rows, source_size
     from marionette.corpus import Corpus
     from marionette.io import read_ipc
@@ -506,7 +507,8 @@ def cmd_render(a: argparse.Namespace) -> int:
         if a.camera == "recorded":
             raise ValueError(f"{src}: a rollout has no recorded camera to follow; use --camera follow")
         size_src = None
-    meta = render_rows(layout, rows, a.out, terrain, a.camera, a.size, a.fps, size_src)
+    jitter = Jitter(a.jitter_root, a.jitter_joint_deg, a.jitter_time, a.jitter_seed)
+    meta = render_rows(layout, rows, a.out, terrain, a.camera, a.size, a.fps, size_src, jitter=jitter, key=a.segment or "")
     took = time.time() - t0
     heights = f"heights {meta.h_min:g}..{meta.h_max:g} m"
     print(f"wrote {a.out}: {meta.width}×{meta.height} at {meta.fps:g} fps, {heights}, {took:.1f} s")
@@ -1075,6 +1077,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--size", type=size_hxw, default=(704, 1280), metavar="HxW", help="output size, HxW")
     s.add_argument("--fps", type=positive_float, default=None, help="output rate (default: the state's)")
     s.add_argument("--terrain", type=Path, default=None, help="a stage directory (default: the segment's stage)")
+    jit = s.add_argument_group("jitter", "move the state before it is rendered, as training targets can be (bridge.jitter)")
+    jit.add_argument("--jitter-root", type=non_negative_float, default=0.0, metavar="M", help="shift each character by M metres")
+    jit.add_argument("--jitter-joint-deg", type=non_negative_float, default=0.0, metavar="D", help="turn each bone by up to D°")
+    jit.add_argument("--jitter-time", type=non_negative_float, default=0.0, metavar="S", help="warp time by up to S seconds")
+    jit.add_argument("--jitter-seed", type=non_negative_int, default=0, metavar="N", help="seed of the jitter's draws")
     s.set_defaults(fn=cmd_render)
 
     t = command("train", "train a model on a corpus")

@@ -428,26 +428,44 @@ def finish(out_dir: Path | str, summary: dict) -> dict:
 # -- launching ---------------------------------------------------------------------------------------
 
 
-def launch(
-    module: str,
-    train: Callable[..., dict],
-    corpus: Path | str,
-    out_dir: Path | str,
-    config: Any,
-    *,
-    nproc: int = 1,
-    nodes: Nodes = ONE_NODE,
-    progress: bool = False,
-    log: Callable[[str], Any] = print,
-) -> dict:
-    """``train(corpus, out_dir, config, log, progress=)`` in this process (in torchrun's process group when
-    launched by it), or, with ``nproc`` > 1 or several ``nodes`` outside one, ``python -m module`` in
-    ``nproc`` processes on this node under torchrun, returning the summary rank 0 wrote (losses left out;
-    the ranks print their own log; on a node other than 0, the summary rank 0 wrote in the shared OUT)."""
-    if (nproc > 1 or nodes.nnodes > 1) and "WORLD_SIZE" not in os.environ:
-        return train_under_torchrun(module, corpus, out_dir, config.to_json(), nproc, SUMMARY, nodes=nodes, progress=progress)
-    with process_group_from_env():
-        return train(corpus, out_dir, config, log, progress=progress)
+@dataclass(frozen=True)
+class Trainer:
+    """A trainer module's entry points, made once from its ``train``, its config class and its first docstring line:
+    ``add_arguments`` (its command's arguments), ``run`` (in this process, or ``nproc`` processes under torchrun)
+    and ``main`` (its ``python -m``, which torchrun runs once per rank)."""
+
+    module: str
+    train: Callable[..., dict]
+    config: type
+    description: str
+
+    def add_arguments(self, ap: Parser) -> None:
+        add_arguments(ap, self.config)
+
+    def run(
+        self,
+        corpus: Path | str,
+        out_dir: Path | str,
+        config: Any,
+        *,
+        nproc: int = 1,
+        nodes: Nodes = ONE_NODE,
+        progress: bool = False,
+        log: Callable[[str], Any] = print,
+    ) -> dict:
+        """``train(corpus, out_dir, config, log, progress=)`` in this process (in torchrun's process group when
+        launched by it), or, with ``nproc`` > 1 or several ``nodes`` outside one, ``python -m module`` in ``nproc``
+        processes on this node under torchrun, returning the summary rank 0 wrote (losses left out; the ranks print
+        their own log; on a node other than 0, the summary rank 0 wrote in the shared OUT)."""
+        if (nproc > 1 or nodes.nnodes > 1) and "WORLD_SIZE" not in os.environ:
+            return train_under_torchrun(
+                self.module, corpus, out_dir, config.to_json(), nproc, SUMMARY, nodes=nodes, progress=progress
+            )
+        with process_group_from_env():
+            return self.train(corpus, out_dir, config, log, progress=progress)
+
+    def main(self, argv: list[str] | None = None) -> dict:
+        return main(argv, f"python -m {self.module}", self.description, self.config, self.run)
 
 
 def main(argv: list[str] | None, prog: str, description: str, cls: type, run: Callable[..., dict]) -> dict:

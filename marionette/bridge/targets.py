@@ -31,6 +31,7 @@ from marionette.schema import Entity, Layout
 
 from .camera import Cameras, follow_cameras, recorded_cameras
 from .gbuffer import GBufferMeta, write_gbuffer
+from .jitter import Jitter
 from .kinematics import bone_segments, world_skeletons
 from .render import TERRAIN_CULL_M, Rasterizer
 
@@ -488,12 +489,15 @@ def render_rows(
     fps: float | None = None,
     src_size: tuple[int, int] | None = None,
     settings: RenderSettings | None = None,
+    jitter: Jitter | None = None,
+    key: str = "",
 ) -> GBufferMeta:
     """Render state rows (one segment or rollout, corpus state schema) to a G-buffer video ``out``.
 
     ``camera``: "recorded" (the rows' camera, its intrinsics mapped by the centred crop + resize from
     ``src_size`` to ``size``) or "follow" (``camera.follow_cameras``). ``fps`` defaults to the rows' rate;
-    skeletons and the recorded camera are interpolated in time (slerp for rotations).
+    skeletons and the recorded camera are interpolated in time (slerp for rotations). ``jitter`` moves the
+    skeletons (``bridge.jitter``; drawn for the clip ``key``) before they are rendered; the camera stays.
     """
     from marionette.geometry import resample_positions, resample_quats
     from marionette.ingest.video import CropResize
@@ -509,7 +513,8 @@ def render_rows(
     fps = float(fps or round(src_fps, 6))
     n_out = max(1, int(np.floor((t[-1] - t[0]) * fps + 1e-6)) + 1)
     t_out = t[0] + np.arange(n_out) / fps
-    skel = world_skeletons(layout, state, anchors, valid, t, t_out)
+    jitter = jitter or Jitter()
+    skel = jitter.apply(layout, world_skeletons(layout, state, anchors, valid, t, jitter.times(t_out, key)), key)
     if camera == "recorded":
         if src_size is None:
             raise ValueError("the recorded camera needs the source video size")

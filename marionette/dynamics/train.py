@@ -69,7 +69,7 @@ from torch import Tensor, nn
 from marionette import geometry as geo
 from marionette import training
 from marionette.corpus import Corpus
-from marionette.distributed import ONE_NODE, Nodes, rank_world
+from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.data import (
     ActionTokens,
@@ -94,7 +94,6 @@ from marionette.dynamics.model import (
     pose_training_pair,
 )
 from marionette.io import check_json_fields
-from marionette.options import Parser
 from marionette.schema import Layout
 from marionette.training import knob
 
@@ -622,33 +621,8 @@ def train(
 # -- commands ----------------------------------------------------------------------------------------
 
 
-def add_arguments(ap: Parser) -> None:
-    """The arguments of ``marionette train dynamics`` and ``python -m marionette.dynamics.train``: the corpus,
-    ``--out``, ``--config``, one flag per ``TrainConfig`` field, ``--nproc``, the node options, ``--progress``."""
-    training.add_arguments(ap, TrainConfig)
-
-
-def run(
-    corpus: Path | str,
-    out_dir: Path | str,
-    config: TrainConfig,
-    *,
-    nproc: int = 1,
-    nodes: Nodes = ONE_NODE,
-    progress: bool = False,
-    log: Callable[[str], Any] = print,
-) -> dict:
-    """Train in this process, or with ``nproc`` > 1 or several ``nodes`` under torchrun (gloo on CPU, NCCL on
-    GPU), returning the summary (from torchrun: the one rank 0 wrote, losses left out)."""
-    return training.launch(
-        "marionette.dynamics.train", train, corpus, out_dir, config, nproc=nproc, nodes=nodes, progress=progress, log=log
-    )
-
-
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m marionette.dynamics.train CORPUS --out DIR [--preset tiny] [--steps N] ...``; under
-    torchrun (RANK / WORLD_SIZE / MASTER_ADDR in the environment) one process per rank."""
-    return training.main(argv, "python -m marionette.dynamics.train", __doc__.splitlines()[0], TrainConfig, run)
+TRAINER = training.Trainer("marionette.dynamics.train", train, TrainConfig, __doc__.splitlines()[0])
+add_arguments, run, main = TRAINER.add_arguments, TRAINER.run, TRAINER.main  # the command's arguments, run it, its python -m
 
 
 if __name__ == "__main__":

@@ -32,12 +32,11 @@ import torch
 
 from marionette import training
 from marionette.corpus import Corpus
-from marionette.distributed import ONE_NODE, Nodes, rank_world
+from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.io import check_json_fields
 from marionette.observation.data import ChunkStore, Clip, ClipSource
 from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
-from marionette.options import Parser
 from marionette.training import knob
 
 HELD_OUT = "test"
@@ -286,34 +285,8 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
     return model.eval()
 
 
-def add_arguments(ap: Parser) -> None:
-    """The arguments of ``marionette train observation`` and ``python -m marionette.observation.train``: the
-    corpus, ``--out``, ``--config``, one flag per ``ObservationTrainConfig`` field, ``--nproc``, the node options,
-    ``--progress``."""
-    training.add_arguments(ap, ObservationTrainConfig)
-
-
-def run(
-    corpus: Path | str,
-    out_dir: Path | str,
-    config: ObservationTrainConfig,
-    *,
-    nproc: int = 1,
-    nodes: Nodes = ONE_NODE,
-    progress: bool = False,
-    log: Callable[[str], Any] = print,
-) -> dict:
-    """Train in this process, or with ``nproc`` > 1 or several ``nodes`` under torchrun (gloo on CPU),
-    returning the summary (from torchrun: the one rank 0 wrote, losses left out)."""
-    return training.launch(
-        "marionette.observation.train", train, corpus, out_dir, config, nproc=nproc, nodes=nodes, progress=progress, log=log
-    )
-
-
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m marionette.observation.train CORPUS --out DIR [--steps N] ...``; under torchrun one
-    process per rank."""
-    return training.main(argv, "python -m marionette.observation.train", __doc__.splitlines()[0], ObservationTrainConfig, run)
+TRAINER = training.Trainer("marionette.observation.train", train, ObservationTrainConfig, __doc__.splitlines()[0])
+add_arguments, run, main = TRAINER.add_arguments, TRAINER.run, TRAINER.main  # the command's arguments, run it, its python -m
 
 
 if __name__ == "__main__":

@@ -40,13 +40,12 @@ from torch import Tensor, nn
 
 from marionette import training
 from marionette.corpus import Corpus
-from marionette.distributed import ONE_NODE, Nodes, rank_world
+from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.io import atomic_path, check_json_fields, file_sha256, read_tensors, write_json
 from marionette.observation.data import Clip, ClipSource
 from marionette.observation.generate import WAN_SETTINGS
 from marionette.observation.wan import WanFunControl, find_vae, save_original
-from marionette.options import Parser
 from marionette.training import knob
 
 CACHE_DIR = "derived/wan-latents"
@@ -416,30 +415,8 @@ def train(
     return training.finish(out_dir, summary)
 
 
-def add_arguments(ap: Parser) -> None:
-    """The arguments of ``marionette train wan`` and ``python -m marionette.observation.wan_train``."""
-    training.add_arguments(ap, WanTrainConfig)
-
-
-def run(
-    corpus: Path | str,
-    out_dir: Path | str,
-    config: WanTrainConfig,
-    *,
-    nproc: int = 1,
-    nodes: Nodes = ONE_NODE,
-    progress: bool = False,
-    log: Callable[[str], Any] = print,
-) -> dict:
-    """Train in this process, or with ``nproc`` > 1 or several ``nodes`` under torchrun (gloo on CPU)."""
-    return training.launch(
-        "marionette.observation.wan_train", train, corpus, out_dir, config, nproc=nproc, nodes=nodes, progress=progress, log=log
-    )
-
-
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m marionette.observation.wan_train CORPUS --out DIR --backbone DIR ...``; under torchrun one process per rank."""
-    return training.main(argv, "python -m marionette.observation.wan_train", __doc__.splitlines()[0], WanTrainConfig, run)
+TRAINER = training.Trainer("marionette.observation.wan_train", train, WanTrainConfig, __doc__.splitlines()[0])
+add_arguments, run, main = TRAINER.add_arguments, TRAINER.run, TRAINER.main  # the command's arguments, run it, its python -m
 
 
 if __name__ == "__main__":
