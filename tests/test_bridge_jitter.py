@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from marionette.bridge.camera import Cameras, intrinsics_for, look_at
 from marionette.bridge.gbuffer import decode_codes, iter_codes
@@ -123,3 +124,40 @@ def test_render_jitters_on_request(corpus, tmp_path):
     assert len(a) == len(b) and any(not np.array_equal(x, y) for x, y in zip(a, b))
     with pytest.raises(SystemExit):
         cli([*base, "--out", str(tmp_path / "c.mkv"), "--jitter-root", "-1"])
+
+
+def test_jittered_training_targets_are_a_product_of_their_own(corpus, tmp_path):
+    """The pose pass renders the targets of jittered state beside the corpus's own (never touching them), a second pass
+    renders nothing, the clip reader takes them by key (RGB the same, pose moved), and a training run that asks for
+    jitter trains on them."""
+    import shutil
+
+    from marionette.bridge.targets import render_pose_targets
+    from marionette.corpus import paths
+    from marionette.observation.data import ClipSource
+    from marionette.observation.train import ObservationTrainConfig, train
+
+    work = tmp_path / "corpus"
+    shutil.copytree(corpus, work)
+    render_pose_targets(work)
+    own = {p.name: p.read_bytes() for p in (work / "pose").glob("*.tar")}
+    jit = Jitter(root_m=0.5, joint_deg=5.0, time_s=0.05, seed=0)
+    first = render_pose_targets(work, jitter=jit)
+    assert first.rendered and not first.failed
+    assert {p.name: p.read_bytes() for p in (work / "pose").glob("*.tar")} == own  # the corpus's own, untouched
+    assert sorted(p.name for p in paths.jitter_dir(work, jit.key()).joinpath("pose").glob("*.tar")) == sorted(own)
+    assert not render_pose_targets(work, jitter=jit).rendered
+    plain = list(ClipSource(work, "train", 5, (18, 32)).chunks())
+    moved = list(ClipSource(work, "train", 5, (18, 32), jitter=jit.key()).chunks())
+    assert [c.key for c in plain] == [c.key for c in moved]
+    assert all(torch.equal(a.rgb, b.rgb) for a, b in zip(plain, moved))
+    assert any(not torch.equal(a.pose, b.pose) for a, b in zip(plain, moved))
+    said = []
+    config = ObservationTrainConfig(
+        preset="tiny", steps=2, batch_size=2, frames=5, reduce=4, patch=2, jitter_root_m=0.5, jitter_joint_deg=5.0
+    )
+    summary = train(work, tmp_path / "run", config, log=said.append)
+    assert summary["steps"] == 2 and any("pose targets of jittered state" in line for line in said)
+    assert paths.jitter_dir(work, Jitter(0.5, 5.0, 0.0, config.seed).key()).is_dir()
+    with pytest.raises(ValueError, match="jitter_joint_deg"):
+        ObservationTrainConfig(jitter_joint_deg=60.0)

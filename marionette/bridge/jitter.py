@@ -19,8 +19,9 @@ a generator seeded by (``seed``, the clip's key), so a clip's jitter is reproduc
 from __future__ import annotations
 
 import hashlib
+import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -50,6 +51,10 @@ class Jitter:
     @property
     def active(self) -> bool:
         return bool(self.root_m or self.joint_deg or self.time_s)
+
+    def key(self) -> str:
+        """16 hex digits naming this jitter's targets (``corpus.paths.jitter_dir``)."""
+        return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:16]
 
     def rng(self, key: str) -> np.random.Generator:
         """The clip's generator: seeded by ``seed`` and a hash of ``key``."""

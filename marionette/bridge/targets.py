@@ -188,8 +188,10 @@ class TargetsReport:
 class _Pass:
     """One pose-target pass's caches: terrain per stage, a rasterizer per size, rows per segment."""
 
-    def __init__(self, corpus: Corpus, settings: RenderSettings, report: TargetsReport):
+    def __init__(self, corpus: Corpus, settings: RenderSettings, report: TargetsReport, jitter: Jitter | None = None):
         self.corpus, self.settings, self.report = corpus, settings, report
+        self.jitter = jitter if jitter is not None and jitter.active else None
+        self.jitter_key = None if self.jitter is None else self.jitter.key()
         self.segments = {r["segment"]: r for r in corpus.segments.to_pylist()}
         self.terrains: dict[str, TerrainScene] = {}
         self.rasts: dict[tuple[int, int], Rasterizer] = {}
@@ -239,8 +241,9 @@ class _Pass:
             f"{out_h}x{out_w}",
             BRIDGE_VERSION,
             settings.key(),
+            *([] if self.jitter is None else [json.dumps(asdict(self.jitter), sort_keys=True)]),
         )[:16]
-        path = paths.pose_target(self.corpus.path, key, digest)
+        path = paths.pose_target(self.corpus.path, key, digest, self.jitter_key)
         self.keep.add(path.name)
         if not path.exists():
             size = (out_w, out_h)
@@ -251,7 +254,12 @@ class _Pass:
                 rast.set_terrain(terrain.vertices, terrain.faces)
                 self.uploaded[size] = stage
             state, anchors, valid, t = chunk_inputs(layout, rows)
-            skel = world_skeletons(layout, state, anchors, valid, t)
+            if self.jitter is None:
+                skel = world_skeletons(layout, state, anchors, valid, t)
+            else:  # the state moved before it is rendered (bridge.jitter), drawn for this chunk
+                skel = self.jitter.apply(
+                    layout, world_skeletons(layout, state, anchors, valid, t, self.jitter.times(t, key)), key
+                )
             meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, out_w, out_h, float(rec["fps"]))
             self.report.frames_rendered += write_gbuffer(path, render_frames(rast, layout, skel, cams, h, settings), meta)
             self.report.rendered.append(key)
@@ -304,7 +312,9 @@ class ShardOutcome:
     worker: str
 
 
-def render_shard(job: RenderJob, settings: RenderSettings, gl_threads: int | None = None) -> ShardOutcome:
+def render_shard(
+    job: RenderJob, settings: RenderSettings, gl_threads: int | None = None, jitter: Jitter | None = None
+) -> ShardOutcome:
     """Bring one shard's pose targets up to date in a pass of its own (its own rasterizer and terrain). With
     ``gl_threads``, a worker that has no ``LP_NUM_THREADS`` of its own gives Mesa's llvmpipe that many threads
     (read when the process's first GL context is made: k workers on one machine share its cores)."""
@@ -314,7 +324,7 @@ def render_shard(job: RenderJob, settings: RenderSettings, gl_threads: int | Non
         os.environ.setdefault("LP_NUM_THREADS", str(int(gl_threads)))
     corpus = Corpus(Path(job.corpus))
     report = TargetsReport()
-    run = _Pass(corpus, settings, report)
+    run = _Pass(corpus, settings, report, jitter)
     try:
         _render_shard(run, corpus, job.shard, lambda n: None)
     finally:
@@ -325,7 +335,7 @@ def render_shard(job: RenderJob, settings: RenderSettings, gl_threads: int | Non
 def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> None:
     """One shard's pose targets through ``run``; its pose shard is rewritten (atomically) when its members change
     (``report.shards_rewritten``). The video shard is only read."""
-    vpath, ppath = corpus.video_path(shard), corpus.pose_path(shard)
+    vpath, ppath = corpus.video_path(shard), corpus.pose_path(shard, run.jitter_key)
     if not vpath.exists():
         return
     try:
@@ -353,6 +363,7 @@ def render_pose_targets(
     workers: int = 1,
     mapper=None,
     gl_threads: int | None = None,
+    jitter: Jitter | None = None,
 ) -> TargetsReport:
     """Bring every video chunk's pose target up to date (module docstring), holding the corpus lock; a chunk
     or shard that fails is recorded in ``failed`` and the pass goes on. ``progress`` shows a bar over chunks.
@@ -363,6 +374,8 @@ def render_pose_targets(
     on Dask) and the outcomes are merged in shard order: a shard's bytes depend only on its own chunks, so
     every worker count writes the same files and the same report. ``gl_threads``: llvmpipe's threads in each
     worker (``render_shard``); by default the local pool's workers split this machine's cores between them.
+    ``jitter`` (active): the targets of jittered state instead (``bridge.jitter``; each chunk's drawn for its
+    key), a product of their own under ``corpus.paths.jitter_dir``; the corpus's own targets are not touched.
     """
     from marionette.fanout import pool_mapper
 
@@ -371,7 +384,9 @@ def render_pose_targets(
     corpus = Corpus(Path(corpus_path))
     settings = settings or RenderSettings()
     report = TargetsReport()
-    out_dir = corpus.path / "derived" / "pose"
+    jitter = jitter if jitter is not None and jitter.active else None
+    jitter_key = None if jitter is None else jitter.key()
+    out_dir = paths.pose_targets_dir(corpus.path, jitter_key)
     with corpus_lock(corpus.path, "pose targets"):
         bar = None
         if progress:
@@ -380,12 +395,12 @@ def render_pose_targets(
             bar = tqdm(total=corpus.info.total_chunks, desc="pose targets", unit="chunk")
         try:
             if mapper is None and workers == 1:
-                keep = _render_serial(corpus, settings, report, bar)
+                keep = _render_serial(corpus, settings, report, bar, jitter)
             else:
                 if mapper is None and gl_threads is None:
                     gl_threads = max(1, (os.cpu_count() or 1) // workers)
                 mapper = mapper or pool_mapper(workers, start_method="spawn")
-                keep = _render_fanned_out(corpus, settings, report, bar, mapper, gl_threads)
+                keep = _render_fanned_out(corpus, settings, report, bar, mapper, gl_threads, jitter)
         finally:
             if bar:
                 bar.close()
@@ -393,23 +408,24 @@ def render_pose_targets(
             for old in out_dir.glob("*.mkv"):
                 if old.name not in keep:
                     old.unlink(missing_ok=True)
-        _remove_orphan_pose_shards(corpus)
+        _remove_orphan_pose_shards(corpus, jitter_key)
     return report
 
 
-def _remove_orphan_pose_shards(corpus: Corpus) -> None:
+def _remove_orphan_pose_shards(corpus: Corpus, jitter_key: str | None = None) -> None:
     """Delete the pose shards of shard numbers the corpus no longer holds (a retired recording's)."""
     held = {paths.shard_name(s) for s in corpus.shard_ids()}
-    for p in (corpus.path / "pose").glob("shard-*.tar") if (corpus.path / "pose").is_dir() else []:
+    where = corpus.pose_path(0, jitter_key).parent
+    for p in where.glob("shard-*.tar") if where.is_dir() else []:
         if paths.SHARD_NAME.fullmatch(p.stem) and p.stem not in held:
             p.unlink(missing_ok=True)
 
 
-def _render_serial(corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar) -> set[str]:
+def _render_serial(corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar, jitter: Jitter | None) -> set[str]:
     from marionette.fanout import worker_identity
 
     report.workers = [worker_identity()]
-    run = _Pass(corpus, settings, report)
+    run = _Pass(corpus, settings, report, jitter)
     try:
         for shard in corpus.shard_ids():
             _render_shard(run, corpus, shard, bar.update if bar else lambda n: None)
@@ -419,11 +435,11 @@ def _render_serial(corpus: Corpus, settings: RenderSettings, report: TargetsRepo
 
 
 def _render_fanned_out(
-    corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar, mapper, gl_threads: int | None
+    corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar, mapper, gl_threads: int | None, jitter: Jitter | None
 ) -> set[str]:
     jobs = [RenderJob(str(corpus.path), s) for s in corpus.shard_ids()]
     outcomes: dict[int, ShardOutcome] = {}
-    for out in mapper(render_shard, jobs, {"settings": settings, "gl_threads": gl_threads}):
+    for out in mapper(render_shard, jobs, {"settings": settings, "gl_threads": gl_threads, "jitter": jitter}):
         outcomes[out.job.shard] = out
         if bar:
             bar.update(out.report.chunks)

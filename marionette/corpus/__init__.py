@@ -128,8 +128,8 @@ class Corpus:
     def video_path(self, shard: int) -> Path:
         return paths.video_shard(self.path, shard)
 
-    def pose_path(self, shard: int) -> Path:
-        return paths.pose_shard(self.path, shard)
+    def pose_path(self, shard: int, jitter: str | None = None) -> Path:
+        return paths.pose_shard(self.path, shard, jitter)
 
     def shard_ids(self) -> list[int]:
         if self.many and self.scene is not None:

@@ -70,9 +70,18 @@ def video_shard(root: Path, n: int) -> Path:
     return Path(root) / "video" / f"{shard_name(n)}.tar"
 
 
-def pose_shard(root: Path, n: int) -> Path:
-    """``<root>/pose/shard-NNNNNN.tar``: the pose targets of video shard ``n``, keyed like its chunks."""
-    return Path(root) / "pose" / f"{shard_name(n)}.tar"
+def jitter_dir(root: Path, jitter: str) -> Path:
+    """``<root>/derived/jitter-<jitter>``: the pose targets rendered from state jittered by the ``bridge.jitter.Jitter``
+    whose key is ``jitter`` (16 hex digits), in the layout of the corpus's own (``targets/``, ``pose/``)."""
+    if not POSE_HASH.fullmatch(jitter):
+        raise CorpusPathError(f"jitter key {jitter!r} is not 16 hex digits")
+    return Path(root) / "derived" / f"jitter-{jitter}"
+
+
+def pose_shard(root: Path, n: int, jitter: str | None = None) -> Path:
+    """``<root>/pose/shard-NNNNNN.tar``: the pose targets of video shard ``n``, keyed like its chunks (with ``jitter``,
+    those of jittered state, under ``jitter_dir``)."""
+    return (Path(root) if jitter is None else jitter_dir(root, jitter)) / "pose" / f"{shard_name(n)}.tar"
 
 
 def meta(root: Path, name: str) -> Path:
@@ -113,12 +122,17 @@ def parse_chunk_key(key: str, where: str = "") -> tuple[str, int]:
     return m["segment"], int(m["chunk"])
 
 
-def pose_target(root: Path, key: str, digest: str) -> Path:
-    """``<root>/derived/pose/<chunk key>-<digest>.mkv``: a rendered pose-control target."""
+def pose_targets_dir(root: Path, jitter: str | None = None) -> Path:
+    """``<root>/derived/pose``: the rendered pose-control targets (with ``jitter``: ``jitter_dir``'s ``targets``)."""
+    return Path(root) / "derived" / "pose" if jitter is None else jitter_dir(root, jitter) / "targets"
+
+
+def pose_target(root: Path, key: str, digest: str, jitter: str | None = None) -> Path:
+    """``<root>/derived/pose/<chunk key>-<digest>.mkv``: a rendered pose-control target (``pose_targets_dir``)."""
     parse_chunk_key(key)
     if not POSE_HASH.fullmatch(digest):
         raise CorpusPathError(f"pose target digest {digest!r} is not 16 hex digits")
-    return Path(root) / "derived" / "pose" / f"{key}-{digest}.mkv"
+    return pose_targets_dir(root, jitter) / f"{key}-{digest}.mkv"
 
 
 def stage_dir(root: Path, stage: str) -> Path:

@@ -105,13 +105,40 @@ def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) ->
     )
 
 
+def jittered_targets(corpus: Corpus, root_m: float, joint_deg: float, time_s: float, seed: int, log=print) -> str | None:
+    """The key of the pose targets of state jittered by these amounts (``bridge.jitter``), rendered first where
+    missing (rank 0, the other ranks waiting); None when every amount is 0 (the corpus's own targets)."""
+    from marionette.bridge.jitter import Jitter
+    from marionette.distributed import rank_world
+
+    jitter = Jitter(root_m, joint_deg, time_s, seed)
+    if not jitter.active:
+        return None
+    rank, world = rank_world()
+    if rank == 0:
+        from marionette.bridge.targets import render_pose_targets
+
+        report = render_pose_targets(corpus.path, jitter=jitter)
+        log(f"pose targets of jittered state ({jitter}): {len(report.rendered)} chunks rendered, {len(report.failed)} failed")
+    if world > 1:
+        torch.distributed.barrier()
+    return jitter.key()
+
+
 class ClipSource:
     """The clips of one split of a corpus's video shards (module doc: which clips)."""
 
     def __init__(
-        self, corpus: Corpus | Path | str, split: str, frames: int, size: tuple[int, int], actions: bool = False
+        self,
+        corpus: Corpus | Path | str,
+        split: str,
+        frames: int,
+        size: tuple[int, int],
+        actions: bool = False,
+        jitter: str | None = None,
     ) -> None:
         self.corpus = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
+        self.jitter = jitter  # the key of a jitter whose pose targets to read (bridge.jitter), else the corpus's own
         if frames < 1 or (frames - 1) % 4:
             raise ValueError(f"a clip has 4k + 1 frames (Wan's VAE), not {frames}")
         self.split, self.frames, self.size = split, int(frames), (int(size[0]), int(size[1]))
@@ -145,7 +172,7 @@ class ClipSource:
     def _pose_shard(self, n: int) -> tuple[PoseShard, str] | None:
         """Video shard ``n``'s pose shard (open) and the state shard's ingest hash; None, the reason in ``skipped``,
         where the pose shard is refused (untrusted input: its chunks are skipped)."""
-        path = self.corpus.pose_path(n)
+        path = self.corpus.pose_path(n, self.jitter)
         try:
             return PoseShard(path), self.corpus.shard_hash(n)
         except (ValueError, KeyError) as err:
@@ -218,7 +245,7 @@ class ClipSource:
             wanted = {k: m for k, m in members.items() if parse_chunk_key(k)[0] in self.segments}
             if not wanted or (pose := self._pose_shard(n)) is None:
                 continue
-            ppath = self.corpus.pose_path(n)
+            ppath = self.corpus.pose_path(n, self.jitter)
             stamp = (*_stamp(vpath), *_stamp(ppath))
             with pose[0]:
                 for key, m in wanted.items():

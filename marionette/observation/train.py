@@ -35,7 +35,7 @@ from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.io import check_json_fields
-from marionette.observation.data import ChunkStore, Clip, ClipSource
+from marionette.observation.data import ChunkStore, Clip, ClipSource, jittered_targets
 from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
 from marionette.training import knob
 
@@ -72,6 +72,14 @@ class ObservationTrainConfig:
         min=0.0,
         below=1.0,
     )
+
+    jitter_root_m: float = knob(
+        0.0, "training targets rendered from state whose roots are shifted this far (m; bridge.jitter)", min=0.0
+    )
+    jitter_joint_deg: float = knob(
+        0.0, "training targets rendered from state whose bones are turned by up to this (°)", min=0.0, max=45.0
+    )
+    jitter_time_s: float = knob(0.0, "training targets rendered from state whose time is warped by up to this (s)", min=0.0)
 
     def __post_init__(self) -> None:
         training.check_knobs(self)
@@ -183,7 +191,8 @@ def train(
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
     mc = model_config(corpus, config)
     actions = config.control == "actions"
-    src = ClipSource(corpus, "train", mc.frames, mc.size, actions=actions)
+    jitter = jittered_targets(corpus, config.jitter_root_m, config.jitter_joint_deg, config.jitter_time_s, config.seed, log)
+    src = ClipSource(corpus, "train", mc.frames, mc.size, actions=actions, jitter=jitter)  # held out: the recorded state's
     chunks = ChunkStore(src, budget_bytes=config.cache_mb << 20)
     if not len(chunks):
         first = dict(list(src.skipped.items())[:3])

@@ -43,7 +43,7 @@ from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.io import atomic_path, check_json_fields, file_sha256, read_tensors, write_json
-from marionette.observation.data import Clip, ClipSource
+from marionette.observation.data import Clip, ClipSource, jittered_targets
 from marionette.observation.generate import WAN_SETTINGS
 from marionette.observation.wan import WanFunControl, find_vae, save_original
 from marionette.training import knob
@@ -73,6 +73,13 @@ class WanTrainConfig:
     bf16: bool = knob(False, "bf16 autocast of the transformer's forward pass")
     gradient_checkpointing: bool = knob(False, "recompute each block's activations in the backward pass")
     checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
+    jitter_root_m: float = knob(
+        0.0, "training targets rendered from state whose roots are shifted this far (m; bridge.jitter)", min=0.0
+    )
+    jitter_joint_deg: float = knob(
+        0.0, "training targets rendered from state whose bones are turned by up to this (°)", min=0.0, max=45.0
+    )
+    jitter_time_s: float = knob(0.0, "training targets rendered from state whose time is warped by up to this (s)", min=0.0)
 
     def __post_init__(self) -> None:
         training.check_knobs(self)
@@ -177,14 +184,16 @@ def input_box(corpus: Corpus, config: WanTrainConfig, model: WanFunControl) -> t
     return size, crop_box(size, model.spatial * max(ph, pw))
 
 
-def cache_split(corpus: Corpus, split: str, config: WanTrainConfig, model: WanFunControl, cache: LatentCache) -> list[Path]:
+def cache_split(
+    corpus: Corpus, split: str, config: WanTrainConfig, model: WanFunControl, cache: LatentCache, jitter: str | None = None
+) -> list[Path]:
     """The cache files of every window of the split's chunks (the first ``max_chunks``): rank r of w encodes the
     windows k ≡ r (mod w) that are missing, then every rank waits for the others, so the encoding fans out over
     the ranks and each reads all of them after."""
     rank, world = rank_world()
     size, box = input_box(corpus, config, model)
     paths: list[Path] = []
-    for k, clip in enumerate(ClipSource(corpus, split, config.frames, size).chunks()):
+    for k, clip in enumerate(ClipSource(corpus, split, config.frames, size, jitter=jitter).chunks()):
         if config.max_chunks and k >= config.max_chunks:
             break
         for rgb, pose in windows(clip, config.frames, box):
@@ -321,7 +330,8 @@ def train(
     backbone = Path(config.backbone)
     model = WanFunControl.from_pretrained(backbone, frames=config.frames, shift=config.shift)
     cache = LatentCache(corpus.path, vae_key(find_vae(backbone)), config.frames, input_box(corpus, config, model)[1][2:])
-    latents = Windows(cache_split(corpus, "train", config, model, cache))
+    jitter = jittered_targets(corpus, config.jitter_root_m, config.jitter_joint_deg, config.jitter_time_s, config.seed, log)
+    latents = Windows(cache_split(corpus, "train", config, model, cache, jitter))  # held out: the recorded state's
     held_split = HELD_OUT if corpus.segment_ids(HELD_OUT) else "train"
     held = Windows(cache_split(corpus, held_split, config, model, cache))
     if not len(latents):
