@@ -161,3 +161,21 @@ def test_jittered_training_targets_are_a_product_of_their_own(corpus, tmp_path):
     assert paths.jitter_dir(work, Jitter(0.5, 5.0, 0.0, config.seed).key()).is_dir()
     with pytest.raises(ValueError, match="jitter_joint_deg"):
         ObservationTrainConfig(jitter_joint_deg=60.0)
+    # the Wan trainer reads the same product: its train windows (the first chunk's) are those of the jittered targets
+    from diffusers import AutoencoderKLWan, WanTransformer3DModel
+    from test_wan import TEXT_LEN, TRANSFORMER, VAE
+
+    from marionette.observation.wan import save_original
+    from marionette.observation.wan_train import WanTrainConfig
+    from marionette.observation.wan_train import train as train_wan
+
+    backbone = tmp_path / "wan"
+    save_original(backbone, WanTransformer3DModel(**TRANSFORMER).eval(), text_len=TEXT_LEN)
+    AutoencoderKLWan(**VAE).eval().save_pretrained(backbone / "vae", safe_serialization=True)
+    wan = dict(backbone=str(backbone), steps=1, frames=9, reduce=2, max_chunks=1, jitter_root_m=0.5, jitter_joint_deg=5.0)
+    said.clear()
+    run = train_wan(work, tmp_path / "wan-jit", WanTrainConfig(**wan), log=said.append)
+    assert any("pose targets of jittered state" in line for line in said)
+    # the first train chunk is also the first held-out one (the recorded state's) here: its windows were encoded twice,
+    # once with each pose video
+    assert run["held_out_split"] == "train" and run["encoded"] == run["windows"] + run["held_out"] == 20
