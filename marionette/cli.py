@@ -650,8 +650,11 @@ def cmd_demo(a: argparse.Namespace) -> int:
         print(f"    {len(pose['rendered'])} of {pose['chunks']} video chunks rendered ({pose['frames_rendered']} frames)")
     seg = c.segment_ids()[0]
     follow = out / f"{seg}-follow.mkv"
-    render = argparse.Namespace(source=corpus, segment=seg, camera="follow", out=follow, size=(352, 640), fps=None, terrain=None)
-    cmd_render(render)
+    cmd_render(
+        build_parser().parse_args(
+            ["render", str(corpus), "--segment", seg, "--camera", "follow", "--out", str(follow), "--size", "352x640"]
+        )
+    )
     print(inspect_text(corpus))
     _demo_dynamics(c, out, a.dynamics_steps)
     _demo_observation(c, out, a.observation_steps)
