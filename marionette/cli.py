@@ -66,6 +66,8 @@ def cmd_synth(a: argparse.Namespace) -> int:
         players=a.players,
         weapons=a.weapons,
         stages=a.stages,
+        skins=a.skins,
+        camera_pans=a.camera_pans,
     )
     print(f"wrote {len(dirs)} recordings under {a.out} in {time.time() - t0:.1f} s")
     return 0
@@ -552,7 +554,9 @@ def cmd_generate(a: argparse.Namespace) -> int:
     """Paint RGB onto a pose-control video with a trained observation model."""
     from marionette.observation.generate import paint_video
 
-    paint_video(a.ckpt, a.pose, a.first_frame, a.out, chunks=a.chunks, steps=a.steps, seed=a.seed, fps=a.fps)
+    paint_video(
+        a.ckpt, a.pose, a.first_frame, a.out, chunks=a.chunks, steps=a.steps, seed=a.seed, fps=a.fps, references=a.references
+    )
     return 0
 
 
@@ -965,6 +969,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument(
         "--stages", type=int_in(1, 4), default=1, help="stages: each further one the first's map turned 90° and raised 1.5 m"
+    )
+    s.add_argument(
+        "--skins",
+        action="store_true",
+        help="each recording's monster and player in colours of their own (appearance a model must read from the "
+        "video, as between the real game's variants and armour)",
+    )
+    s.add_argument(
+        "--camera-pans",
+        action="store_true",
+        help="the player looks around now and then (the camera turned 120–180° for 2.5–4 s every 2–5 s): the bodies "
+        "leave the view and come back",
     )
     s.set_defaults(fn=cmd_synth)
 

@@ -441,3 +441,37 @@ def test_bodies_follow_the_terraces(play):
             bones = np.stack([np.linalg.norm(X[ok, c] - X[ok, p], axis=-1) for c, p in enumerate(parents) if p >= 0], 1)
             assert (bones.std(0) / bones.mean(0)).max() < 0.01, (d.name, entity)
     assert on_terrace > 200
+
+
+def test_skins_and_camera_pans_change_only_what_they_say(tmp_path):
+    """``skins``: each recording's monster and player in colours of their own (drawn by seed and index); ``camera_pans``:
+    the player looks around, so the bodies leave the view and come back. The play itself is the game's."""
+    from marionette.synth.cast import draw_skin
+    from marionette.synth.render import camera_pans
+
+    short = {**GEN, "recordings": 2, "seconds": 4.0}
+    generate(tmp_path / "plain", **short)
+    generate(tmp_path / "skins", **short, skins=True)
+    generate(tmp_path / "pans", **short, camera_pans=True)
+    assert draw_skin(2, 0) != draw_skin(2, 1) and draw_skin(2, 0) == draw_skin(2, 0)
+    for k in range(2):
+        assert load_truth(tmp_path / "skins", PART, f"rec{k:04d}")["role"]["skin"] == draw_skin(GEN["seed"], k).to_json()
+        assert "skin" not in load_truth(tmp_path / "plain", PART, f"rec{k:04d}")["role"]
+    plain, skins, pans = (_samples(tmp_path / d)[0] for d in ("plain", "skins", "pans"))
+    assert (plain / "state.csv").read_bytes() == (skins / "state.csv").read_bytes()  # the same play and cameras
+    # a skin changes the characters' pixels only: most of the frame is the same
+    a, b = _rgb(plain / "rgb.mp4")[0], _rgb(skins / "rgb.mp4")[0]
+    changed = np.abs(a.astype(int) - b.astype(int)).max(-1) > 24
+    assert 0 < changed.mean() < 0.2
+    # panning turns the whole view away and back: frames differ most where the pan is largest, not before it starts
+    pan = camera_pans(GEN["seed"], 0, len(_rgb(plain / "rgb.mp4")), FPS)
+    assert np.radians(119) < np.abs(pan).max() <= np.pi and pan[0] == 0.0
+    p = _rgb(pans / "rgb.mp4")
+    plain_frames = _rgb(plain / "rgb.mp4")
+    diff = [float(np.abs(x.astype(int) - y.astype(int)).mean()) for x, y in zip(p, plain_frames)]
+    assert diff[0] < 1.0 and diff[int(np.argmax(np.abs(pan)))] > 10 * max(diff[0], 0.1)
+
+
+def _rgb(path: Path) -> list[np.ndarray]:
+    with av.open(str(path)) as c:
+        return [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]

@@ -92,6 +92,7 @@ def paint_video(
     steps: int = 20,
     seed: int = 0,
     fps: float = 30.0,
+    references: bool = True,
 ) -> Path:
     """Paint the pose video ``pose`` from ``first_frame`` with the observation model at ``ckpt`` into the mp4 ``out``
     (``chunks`` model chunks relayed, default as many as the pose video holds)."""
@@ -108,7 +109,7 @@ def paint_video(
         model = load_model(ckpt)
         pose_t, first_t = load_inputs(pose, first_frame, model.config.size)
         t0 = time.perf_counter()
-        video = generate(model, pose_t, first_t, chunks=chunks, steps=steps, seed=seed)
+        video = generate(model, pose_t, first_t, chunks=chunks, steps=steps, seed=seed, references=references)
     took = time.perf_counter() - t0
     frames = ((video.permute(0, 2, 3, 1).numpy() + 1.0) * 127.5).round().clip(0, 255).astype(np.uint8)
     h, w = frames.shape[1:3]
@@ -134,3 +135,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--steps", type=positive_int, default=20, help="sampling steps per chunk")
     ap.add_argument("--seed", type=non_negative_int, default=0, help="seed of the sampling noise")
     ap.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of the output video")
+    ap.add_argument(
+        "--no-references",
+        dest="references",
+        action="store_false",
+        help="a model trained with entity references paints without them (each chunk sees only its first frame)",
+    )

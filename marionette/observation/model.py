@@ -25,6 +25,11 @@ its targets stay its own frames, so the pose, not the first frame, must say wher
 dx/ds = v from s = 1 to 0 with ``steps`` Euler steps on a uniform grid, with frame 0 held at the
 first frame's noised value x_s = (1 − s)·first + s·ε₀ so that it is consistent with every step.
 
+Persistent entity references (``reference_bands``, ``observation.references``): a model with reference slots
+also reads, per entity slot, a crop of that entity (RGB and its mask, ``reference_size`` pixels square) as
+(r/p)² tokens of its own — a linear patch embedding of their own, the patch row and column embeddings and a learnt
+embedding of the slot — that every token attends to and none is painted from; a slot with nothing seen is zeros.
+
 The pixel-AR baseline of the paper is the same network with ``control="actions"``: no pose channels;
 instead each frame's tokens get the sum of per-entity embeddings of that frame's action tokens (the
 action schedule), so it must infer where bodies are from the first frame and the actions alone.
@@ -68,6 +73,10 @@ class ObservationConfig:
     # what the inputs mean. 2: the first frame on frame 0's tokens only. A checkpoint without it gave the first
     # frame to every frame's tokens: its parameters have the same shapes but would paint wrong video here.
     format: int = FORMAT
+    # persistent entity references (observation.references): the render-id band [first, last] of each entity slot,
+    # and a reference's side in pixels; () and 0: none
+    reference_bands: tuple[tuple[int, int], ...] = ()
+    reference_size: int = 0
 
     def __post_init__(self) -> None:
         if self.format != FORMAT:
@@ -84,6 +93,18 @@ class ObservationConfig:
             )
         if self.width % self.heads:
             raise ValueError(f"observation config: width {self.width} does not split into {self.heads} heads")
+        if self.reference_bands:
+            if self.reference_size < self.patch or self.reference_size % self.patch:
+                raise ValueError(
+                    f"observation config: reference_size {self.reference_size} is not a whole number of {self.patch}-pixel patches"
+                )
+            for a, b in self.reference_bands:
+                if not 1 <= a <= b <= 254:
+                    raise ValueError(f"observation config: reference band [{a}, {b}] is not within the render ids 1–254")
+            if self.control != "pose":
+                raise ValueError("observation config: entity references need pose control (their masks come from it)")
+        elif self.reference_size:
+            raise ValueError("observation config: reference_size without reference_bands")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -99,9 +120,15 @@ class ObservationConfig:
         zeros after) and its mask."""
         return RGB + (POSE if self.control == "pose" else 0) + RGB + 1
 
+    @property
+    def references(self) -> int:
+        """Entity reference slots (0: a model without references)."""
+        return len(self.reference_bands)
+
     def to_json(self) -> dict:
         d = asdict(self)
         d["vocab_sizes"] = list(self.vocab_sizes)
+        d["reference_bands"] = [list(b) for b in self.reference_bands]
         return d
 
     @classmethod
@@ -112,7 +139,13 @@ class ObservationConfig:
                 "observation config JSON has no format: a model from before format 2 (first frame on every frame's "
                 "tokens), which this version would run wrongly; retrain it"
             )
-        return cls(**{**d, "vocab_sizes": tuple(d.get("vocab_sizes", ()))})
+        bands = d.get("reference_bands", ())
+        if not isinstance(bands, list | tuple) or not all(
+            isinstance(b, list | tuple) and len(b) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in b)
+            for b in bands
+        ):
+            raise ValueError(f"observation config JSON: reference_bands {bands!r} is not a list of [first, last] ids")
+        return cls(**{**d, "vocab_sizes": tuple(d.get("vocab_sizes", ())), "reference_bands": tuple(tuple(b) for b in bands)})
 
 
 OBS_PRESETS = {
@@ -166,6 +199,9 @@ class VideoDiT(nn.Module):
         self.norm = nn.LayerNorm(c.width, elementwise_affine=False)
         self.final_mod = nn.Linear(c.width, 2 * c.width)
         self.head = nn.Linear(c.width, RGB * p * p)
+        if c.references:  # each entity's reference (RGB and its mask) as tokens of its own, a learnt slot embedding each
+            self.ref_embed = nn.Linear((RGB + 1) * p * p, c.width)
+            self.ref_slot = nn.Embedding(c.references, c.width)
         with torch.no_grad():
             for m in self.modules():
                 if isinstance(m, nn.Linear):
@@ -184,6 +220,13 @@ class VideoDiT(nn.Module):
             [sincos(t.reshape(-1), third), sincos(r.reshape(-1), third), sincos(q.reshape(-1), c.width - 2 * third)], -1
         )
         self.register_buffer("pos", pos, persistent=False)  # (tokens, width)
+        if c.references:
+            n = c.reference_size // p
+            r, q = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
+            ref_pos = torch.cat(
+                [torch.zeros(n * n, third), sincos(r.reshape(-1), third), sincos(q.reshape(-1), c.width - 2 * third)], -1
+            )
+            self.register_buffer("ref_pos", ref_pos, persistent=False)  # (patches of a reference, width)
 
     def patchify(self, x: Tensor) -> Tensor:
         """(B, T, C, H, W) → (B, T·(H/p)·(W/p), C·p·p)."""
@@ -200,9 +243,10 @@ class VideoDiT(nn.Module):
         x = x.reshape(B, c.frames, hp, wp, -1, p, p).permute(0, 1, 4, 2, 5, 3, 6)
         return x.reshape(B, c.frames, -1, c.height, c.width_px)
 
-    def forward(self, x_s: Tensor, control: Tensor, first: Tensor, s: Tensor) -> Tensor:
+    def forward(self, x_s: Tensor, control: Tensor, first: Tensor, s: Tensor, refs: Tensor | None = None) -> Tensor:
         """x_s (B, T, 3, H, W); control: pose (B, T, 3, H, W), or action tokens (B, T, N) for the baseline;
-        first (B, 3, H, W); s (B,) → velocity (B, T, 3, H, W)."""
+        first (B, 3, H, W); s (B,); refs (B, E, 4, r, r), the entity references of a model with reference slots
+        (None: none seen) → velocity (B, T, 3, H, W)."""
         c = self.config
         B, T = x_s.shape[:2]
         given = torch.zeros(B, T, RGB + 1, *x_s.shape[3:], dtype=x_s.dtype, device=x_s.device)  # Wan's masked video + mask
@@ -212,9 +256,20 @@ class VideoDiT(nn.Module):
         if self.actions is not None:
             per_frame = sum(emb(control[..., i]) for i, emb in enumerate(self.actions))  # (B, T, width)
             tokens = (tokens.view(B, T, -1, c.width) + per_frame[:, :, None]).view(B, -1, c.width)
+        n = tokens.shape[1]
+        if c.references:
+            r = c.reference_size
+            if refs is None:
+                refs = torch.zeros(B, c.references, RGB + 1, r, r, dtype=x_s.dtype, device=x_s.device)
+            if tuple(refs.shape) != (B, c.references, RGB + 1, r, r):
+                raise ValueError(f"references {tuple(refs.shape)}: the model takes ({B}, {c.references}, {RGB + 1}, {r}, {r})")
+            per = self.ref_embed(self.patchify(refs.to(x_s.dtype))).view(B, c.references, -1, c.width)
+            per = per + self.ref_pos + self.ref_slot.weight[:, None]
+            tokens = torch.cat([tokens, per.reshape(B, -1, c.width)], dim=1)
         cond = self.time(sincos(s * 1000.0, c.width).to(x_s.dtype))  # (B, width)
         for block in self.blocks:
             tokens = block(tokens, cond)
+        tokens = tokens[:, :n]  # the references' tokens are read, never painted
         shift, scale = self.final_mod(cond)[:, None].chunk(2, dim=-1)
         return self.unpatchify(self.head(self.norm(tokens) * (1 + scale) + shift))
 
@@ -241,22 +296,32 @@ def check_inputs(config: ObservationConfig, control: Tensor, first: Tensor) -> N
         raise ValueError(f"first frame {tuple(first.shape)}: the model takes ({RGB}, {h}, {w})")
 
 
-def flow_loss(model: VideoDiT, rgb: Tensor, control: Tensor, generator: torch.Generator, first: Tensor | None = None) -> Tensor:
+def flow_loss(
+    model: VideoDiT,
+    rgb: Tensor,
+    control: Tensor,
+    generator: torch.Generator,
+    first: Tensor | None = None,
+    refs: Tensor | None = None,
+) -> Tensor:
     """Rectified-flow loss of a batch of clips (B, T, 3, H, W) under their control, frames 1..T−1 (module doc);
-    ``first`` (B, 3, H, W): the given first frames, if not the clips' own frame 0."""
+    ``first`` (B, 3, H, W): the given first frames, if not the clips' own frame 0; ``refs``: entity references."""
     B = rgb.shape[0]
     if first is not None:
         rgb = torch.cat([first[:, None], rgb[:, 1:]], dim=1)
     s = torch.rand(B, generator=generator).to(rgb.device)
     eps = torch.randn(rgb.shape, generator=generator).to(rgb.device)
     x_s = (1 - s)[:, None, None, None, None] * rgb + s[:, None, None, None, None] * eps
-    v = model(x_s, control, rgb[:, 0], s)
+    v = model(x_s, control, rgb[:, 0], s, refs)
     return F.mse_loss(v[:, 1:], (eps - rgb)[:, 1:])
 
 
 @torch.no_grad()
-def sample_chunk(model: VideoDiT, control: Tensor, first: Tensor, steps: int, generator: torch.Generator) -> Tensor:
-    """One chunk (B, T, 3, H, W) in [−1, 1] from its control (B, T, ...) and first frames (B, 3, H, W) by Euler steps."""
+def sample_chunk(
+    model: VideoDiT, control: Tensor, first: Tensor, steps: int, generator: torch.Generator, refs: Tensor | None = None
+) -> Tensor:
+    """One chunk (B, T, 3, H, W) in [−1, 1] from its control (B, T, ...) and first frames (B, 3, H, W) by Euler
+    steps (``refs``: entity references, for a model with reference slots)."""
     B, T = control.shape[:2]
     x = torch.randn(B, T, RGB, *first.shape[2:], generator=generator).to(first.device)  # CPU noise: the same video on any device
     eps0 = x[:, 0].clone()
@@ -264,17 +329,27 @@ def sample_chunk(model: VideoDiT, control: Tensor, first: Tensor, steps: int, ge
     for k in range(steps):
         s, s_next = float(grid[k]), float(grid[k + 1])
         x[:, 0] = (1 - s) * first + s * eps0  # the given frame, noised to this level
-        v = model(x, control, first, torch.full((B,), s, device=first.device))
+        v = model(x, control, first, torch.full((B,), s, device=first.device), refs)
         x = x + (s_next - s) * v
     x[:, 0] = first
     return x.clamp(-1.0, 1.0)
 
 
 def generate(
-    model: VideoDiT, control: Tensor, first: Tensor, chunks: int | None = None, steps: int = 20, seed: int = 0
+    model: VideoDiT,
+    control: Tensor,
+    first: Tensor,
+    chunks: int | None = None,
+    steps: int = 20,
+    seed: int = 0,
+    references: bool = True,
 ) -> Tensor:
     """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a control (a pose video, or the baseline's action
-    schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds)."""
+    schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds).
+
+    A model with reference slots is given, at every chunk, each entity's crop from the first frame that showed it
+    (the given first frame, then the generated ones; ``observation.references``); ``references=False`` gives it
+    none (a measurement of what they do)."""
     c = model.config
     check_inputs(c, control, first)
     pose = control
@@ -284,9 +359,19 @@ def generate(
         raise ValueError(f"{n} chunks need {1 + n * step} control frames; the control has {len(pose)}")
     g = torch.Generator().manual_seed(int(seed))
     out, cur = [first[None]], first
+    seen = None
+    if c.references and references:
+        from marionette.observation.references import EntityReferences
+
+        seen = EntityReferences(c.reference_bands, c.reference_size)
+        seen.see(first[None], pose[:1])
     model.eval()
     for k in range(n):
-        clip = sample_chunk(model, pose[None, k * step : k * step + c.frames], cur[None], steps, g)[0]
+        ctrl = pose[k * step : k * step + c.frames]
+        refs = seen.tensor()[None].to(first.device) if seen is not None else None
+        clip = sample_chunk(model, ctrl[None], cur[None], steps, g, refs)[0]
+        if seen is not None:
+            seen.see(clip[1:], ctrl[1:], offset=k * step + 1)
         out.append(clip[1:])
         cur = clip[-1]
     return torch.cat(out, dim=0)

@@ -11,6 +11,9 @@ benchmarks share.
   frames make one chunk; the silhouettes of its generated frames are scored (IoU) against B's id masks
   (the pose it was given) and against A's (the bodies of the first frame, where a model that copies its
   first frame leaves them). Pairs are chosen whose masks overlap little, so that the two are told apart.
+- ``entity_drift``: appearance drift over a relay. Per relay chunk, the per-entity appearance error: for each
+  entity (render-id band) and frame in which the recorded pose shows it, the mean |generated − recorded| over its
+  mask's pixels; its growth from the first chunks to the last is what persistent references are for.
 """
 
 from __future__ import annotations
@@ -46,6 +49,103 @@ def relay_error(model: VideoDiT, chunks: list[Clip], steps: int = 16, seed: int 
         video = generate(model, control_of(ch, model.config.control), ch.rgb[0], steps=steps, seed=seed)
         errs.append(float((video[1:] - ch.rgb[1 : len(video)]).abs().mean()))
     return float(np.mean(errs))
+
+
+def entity_drift(
+    model: VideoDiT,
+    videos: list[Clip],
+    bands: tuple[tuple[int, int], ...],
+    steps: int = 16,
+    seed: int = 0,
+    references: bool = True,
+) -> dict[str, np.ndarray | float]:
+    """``appearance_drift`` of the model's relays (``references``: whether a model with reference slots is given
+    them)."""
+
+    def paint(pose: Tensor, first: Tensor, chunks: int) -> Tensor:
+        return generate(model, pose, first, chunks=chunks, steps=steps, seed=seed, references=references)
+
+    return appearance_drift(videos, bands, model.config.frames - 1, paint)
+
+
+def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], step: int, paint) -> dict[str, np.ndarray | float]:
+    """Appearance drift over relays: each video relayed by ``paint(pose, first frame, chunks)`` from its recorded
+    first frame over as many chunks K of ``step`` new frames as the shortest holds. Per (entity, frame) where the
+    recorded pose shows the entity, its colour error |mean generated RGB − mean recorded RGB| over the entity's mask
+    (its look, whatever the shape) and its pixel error (mean |generated − recorded| over the mask: look and shape).
+    Returns
+
+    - ``colour``, ``pixel``: (K,) their means over relay chunk k's pairs (nan where none shows an entity);
+    - ``in_view``, ``after_gap``: the mean colour error where the entity has stayed in view since it was first
+      shown, and where it left the view and came back (what a relay without references must paint from nothing);
+      ``pairs``: how many of each."""
+    from marionette.observation.references import band_masks
+
+    K = min((len(v.rgb) - 1) // step for v in videos)
+    n = 1 + K * step
+    sums = {"colour": np.zeros(K), "pixel": np.zeros(K)}
+    count = np.zeros(K)
+    history = {"in_view": [], "after_gap": []}
+    for v in videos:
+        pose, rgb = v.pose[:n], v.rgb[:n]
+        video = paint(pose, rgb[0], K)[1:]
+        masks = band_masks(pose, bands).float()[:, :, None]  # (n, E, 1, H, W)
+        shown_at = masks.flatten(2).sum(-1) > 0  # (n, E)
+        masks, shown = masks[1:], shown_at[1:].float()
+        pixels = masks.sum((-2, -1)).clamp(min=1)  # (n − 1, E, 1)
+        mean_gen, mean_rec = (masks * video[:, None]).sum((-2, -1)) / pixels, (masks * rgb[1:, None]).sum((-2, -1)) / pixels
+        colour = (mean_gen - mean_rec).abs().mean(-1)  # (n − 1, E)
+        per = {"colour": colour, "pixel": (masks * (video - rgb[1:]).abs()[:, None]).sum((-2, -1)).mean(-1) / pixels[..., 0]}
+        for k in range(K):
+            at = slice(k * step, (k + 1) * step)
+            count[k] += float(shown[at].sum())
+            for name, e in per.items():
+                sums[name][k] += float((e[at] * shown[at]).sum())
+        seen = shown_at.numpy()
+        for e in range(seen.shape[1]):
+            gone = False
+            for t in range(1, n):
+                gone = gone or (not seen[t, e] and seen[:t, e].any())
+                if seen[t, e]:
+                    history["after_gap" if gone else "in_view"].append(float(colour[t - 1, e]))
+    out: dict[str, np.ndarray | float] = {name: np.where(count > 0, t / np.maximum(count, 1), np.nan) for name, t in sums.items()}
+    for name, errs in history.items():
+        out[name] = float(np.mean(errs)) if errs else float("nan")
+    out["pairs"] = {name: len(errs) for name, errs in history.items()}
+    return out
+
+
+def relay_videos(source, frames: int, every: int | None = None) -> list[Clip]:
+    """Videos of ``frames`` frames for long relays: the runs of consecutive chunks of each segment of a
+    ``ClipSource`` (chunks whose source frames follow on) joined, cut from their starts every ``every`` frames
+    (default ``frames``), in the index's order."""
+    from marionette.corpus.paths import parse_chunk_key
+
+    runs: dict[str, list[list]] = {}
+    for ref in source.index():
+        seg = runs.setdefault(parse_chunk_key(ref.key)[0], [])
+        if seg and seg[-1][-1].first_frame + seg[-1][-1].frames == ref.first_frame:
+            seg[-1].append(ref)
+        else:
+            seg.append([ref])
+    out = []
+    for seg, chains in runs.items():
+        for chain in chains:
+            if sum(r.frames for r in chain) < frames:
+                continue
+            parts = [source.chunk(r) for r in chain]
+            rgb, pose = torch.cat([p.rgb for p in parts]), torch.cat([p.pose for p in parts])
+            for a in range(0, len(rgb) - frames + 1, every or frames):
+                out.append(
+                    Clip(rgb=rgb[a : a + frames], pose=pose[a : a + frames], key=f"{seg}@{chain[0].first_frame + a}", start=0)
+                )
+    return out
+
+
+def drift_growth(errors: np.ndarray) -> float:
+    """How much a per-chunk error grows over a relay: the mean of its last quarter of chunks less its first's."""
+    q = max(1, len(errors) // 4)
+    return float(np.nanmean(errors[-q:]) - np.nanmean(errors[:q]))
 
 
 def copy_error(chunks: list[Clip], frames: int) -> float:

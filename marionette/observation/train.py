@@ -37,6 +37,7 @@ from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, s
 from marionette.io import check_json_fields
 from marionette.observation.data import ChunkStore, Clip, ClipSource, jittered_targets
 from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
+from marionette.observation.references import REF_PATCHES, EntityReferences, chunk_references
 from marionette.training import knob
 
 HELD_OUT = "test"
@@ -73,6 +74,19 @@ class ObservationTrainConfig:
         below=1.0,
     )
 
+    references: bool = knob(
+        False,
+        "give every clip a crop of each entity from the first frame of its chunk that shows it, up to the clip's "
+        "start (persistent references against appearance drift over a relay; observation.references)",
+    )
+    first_frame_drift: float = knob(
+        0.0,
+        "each entity's pixels in a clip's given first frame shifted by a random colour (per channel, this standard "
+        "deviation in [-1, 1] units), as a relayed frame's drifted look: teaches the model to take a body's look "
+        "from its references",
+        min=0.0,
+        max=2.0,
+    )
     jitter_root_m: float = knob(
         0.0, "training targets rendered from state whose roots are shifted this far (m; bridge.jitter)", min=0.0
     )
@@ -87,6 +101,10 @@ class ObservationTrainConfig:
             raise ValueError(f"ObservationTrainConfig.frames: clips are 4k + 1 frames, not {self.frames}")
         if self.reference_swap and self.control != "pose":
             raise ValueError("reference_swap needs pose control: the baseline learns where bodies are from its first frame")
+        if self.first_frame_drift and self.control != "pose":
+            raise ValueError("first_frame_drift needs pose control: the entities' pixels are found by the pose frame's id mask")
+        if self.references and self.control != "pose":
+            raise ValueError("references need pose control: an entity's crop is found by the pose frame's id mask")
 
     @property
     def swap(self) -> float:
@@ -111,6 +129,14 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
     if h % config.reduce or w % config.reduce:
         raise ValueError(f"{corpus.path}: chunks of {h}×{w} do not divide by reduce={config.reduce}")
     base = OBS_PRESETS[config.preset]
+    patch = config.patch or base.patch
+    bands: tuple[tuple[int, int], ...] = ()
+    if config.references:
+        from marionette.observation.references import layout_bands
+
+        bands = layout_bands(corpus.layouts.values())
+        if not bands:
+            raise ValueError(f"{corpus.path}: no rendered entity (no rig with an id_band) to take references of")
     vocab: tuple[int, ...] = ()
     if config.control == "actions":
         from marionette.corpus.vocab import ActionTokens
@@ -121,9 +147,11 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
         height=h // config.reduce,
         width_px=w // config.reduce,
         frames=config.frames or base.frames,
-        patch=config.patch or base.patch,
+        patch=patch,
         control=config.control,
         vocab_sizes=vocab,
+        reference_bands=bands,
+        reference_size=REF_PATCHES * patch if bands else 0,
     )
 
 
@@ -138,11 +166,38 @@ def _noise_seed(seed: int, step: int, rank: int) -> int:
     return seed * 1_000_003 + step if rank == 0 else hash((seed, step, rank)) % 2**62
 
 
+class ChunkReferences:
+    """The entity references of each chunk of a store (``references.chunk_references``), found when a chunk is first
+    asked for and kept (a few KiB a chunk)."""
+
+    def __init__(self, chunks: Sequence[Clip], config: ObservationConfig) -> None:
+        self.chunks, self.config = chunks, config
+        self._refs: dict[int, EntityReferences] = {}
+
+    def __call__(self, i: int) -> EntityReferences:
+        if i not in self._refs:
+            ch, c = self.chunks[i], self.config
+            self._refs[i] = chunk_references(ch.rgb, ch.pose, c.reference_bands, c.reference_size)
+        return self._refs[i]
+
+
 def _batch(
-    chunks: Sequence[Clip], frames: int, size: int, seed: int, step: int, control: str, rank: int = 0, swap: float = 0.0
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Step ``step``'s clips, their controls and their given first frames: with probability ``swap``, a clip's
-    is a random frame of another chunk (reference swap), else its own frame 0."""
+    chunks: Sequence[Clip],
+    frames: int,
+    size: int,
+    seed: int,
+    step: int,
+    control: str,
+    rank: int = 0,
+    swap: float = 0.0,
+    refs_of: ChunkReferences | None = None,
+    drift: float = 0.0,
+    bands: tuple[tuple[int, int], ...] = (),
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Step ``step``'s clips, their controls, their given first frames (with probability ``swap`` a random frame
+    of another chunk, reference swap, else the clip's own frame 0, whose pixels of each entity of ``bands`` are
+    shifted by a colour drawn from N(0, ``drift``²) per channel) and, with ``refs_of``, their entity references
+    (each from the first frame of the clip's own chunk that shows it, up to the clip's start)."""
     rng = np.random.default_rng([seed, step] if rank == 0 else [seed, step, rank])
     picks = rng.integers(0, len(chunks), size)
     starts = [int(rng.integers(0, chunks[i].rgb.shape[0] - frames + 1)) for i in picks]
@@ -153,20 +208,36 @@ def _batch(
         for b in np.flatnonzero(rng.random(size) < swap):
             other = chunks[(picks[b] + 1 + rng.integers(0, len(chunks) - 1)) % len(chunks)].rgb
             first[b] = other[rng.integers(0, len(other))]
-    return rgb, ctrl, first
+    if drift and bands:
+        from marionette.observation.references import band_masks
+
+        swapped = ~(first == rgb[:, 0]).flatten(1).all(1)
+        masks = band_masks(ctrl[:, 0], bands)  # (B, E, H, W) of the clips' own frame 0
+        shift = torch.from_numpy(rng.normal(0.0, drift, (size, len(bands), 3))).float()  # (B, E, 3)
+        for b in np.flatnonzero(~swapped.numpy()):
+            for e in range(len(bands)):
+                first[b][:, masks[b, e]] += shift[b, e][:, None]
+        first = first.clamp(-1.0, 1.0)
+    refs = torch.stack([refs_of(int(i)).tensor(upto=s) for i, s in zip(picks, starts)]) if refs_of is not None else None
+    return rgb, ctrl, first, refs
 
 
 @torch.no_grad()
 def held_out_loss(model: VideoDiT, chunks: Sequence[Clip]) -> float:
-    """Mean flow loss over every held-out chunk's first clip at ``EVAL_DRAWS`` fixed noise draws."""
+    """Mean flow loss over every held-out chunk's first clip at ``EVAL_DRAWS`` fixed noise draws (a model with
+    reference slots given what frame 0 shows)."""
     model.eval()
     g = torch.Generator().manual_seed(1234)
-    T = model.config.frames
+    c = model.config
+    T = c.frames
     total = 0.0
     for ch in chunks:
-        ctrl = control_of(ch, model.config.control)
+        ctrl = control_of(ch, c.control)
+        refs = None
+        if c.references:
+            refs = chunk_references(ch.rgb[:1], ch.pose[:1], c.reference_bands, c.reference_size).tensor()[None]
         for _ in range(EVAL_DRAWS):
-            total += float(flow_loss(model, ch.rgb[None, :T], ctrl[None, :T], g))
+            total += float(flow_loss(model, ch.rgb[None, :T], ctrl[None, :T], g, refs=refs))
     model.train()
     return total / max(len(chunks) * EVAL_DRAWS, 1)
 
@@ -222,6 +293,12 @@ def train(
     if not run.evals and rank == 0:
         run.evals.append({"step": 0, "held_out_loss": held_out_loss(model, held)})
     net = training.ddp(model, torch.device("cpu"))
+    refs_of = ChunkReferences(chunks, mc) if mc.references else None
+    drift_bands = ()
+    if config.first_frame_drift:
+        from marionette.observation.references import layout_bands
+
+        drift_bands = layout_bands(corpus.layouts.values())
 
     def checkpoint(at: int) -> Path | None:
         if rank != 0:
@@ -236,9 +313,21 @@ def train(
         return save_checkpoint(out_dir, at, model, opt, sched, meta)
 
     def loss_at(step: int) -> dict[str, torch.Tensor]:
-        rgb, ctrl, first = _batch(chunks, mc.frames, config.batch_size, config.seed, step, config.control, rank, config.swap)
+        rgb, ctrl, first, refs = _batch(
+            chunks,
+            mc.frames,
+            config.batch_size,
+            config.seed,
+            step,
+            config.control,
+            rank,
+            config.swap,
+            refs_of,
+            config.first_frame_drift,
+            drift_bands,
+        )
         noise = torch.Generator().manual_seed(_noise_seed(config.seed, step, rank))
-        return {"loss": flow_loss(net, rgb, ctrl, noise, first)}
+        return {"loss": flow_loss(net, rgb, ctrl, noise, first, refs)}
 
     end = config.steps if stop_at is None else min(stop_at, config.steps)
     training.run_steps(

@@ -318,6 +318,34 @@ class Stage:
 
 
 @dataclass(frozen=True)
+class Skin:
+    """What the monster and the player look like in one recording (RGB albedo in [0, 1]): in the real game a
+    species' variants and a player's armour differ between recordings, so appearance cannot be learnt once."""
+
+    monster: tuple[float, float, float]
+    hunter: tuple[float, float, float]
+
+    def colours(self) -> dict[str, tuple[float, float, float]]:
+        return {"monster": self.monster, "hunter": self.hunter}
+
+    def to_json(self) -> dict:
+        return {"monster": list(self.monster), "hunter": list(self.hunter)}
+
+
+def draw_skin(seed: int, index: int) -> Skin:
+    """Recording ``index``'s skin, drawn by (seed, index): two colours of any hue, mid saturation and value."""
+    import colorsys
+
+    rng = np.random.default_rng([seed, 0x5C1, index])
+
+    def colour() -> tuple[float, float, float]:
+        h, s, v = rng.uniform(0.0, 1.0), rng.uniform(0.5, 0.9), rng.uniform(0.45, 0.9)
+        return tuple(round(float(c), 4) for c in colorsys.hsv_to_rgb(h, s, v))
+
+    return Skin(monster=colour(), hunter=colour())
+
+
+@dataclass(frozen=True)
 class Role:
     """Who plays in one recording and where."""
 
@@ -325,6 +353,8 @@ class Role:
     player: Player
     weapon: Weapon
     stage: Stage
+    skin: Skin | None = None  # None: the game's one look (a red monster, a blue player)
+    camera_pans: bool = False  # whether the player looks around now and then (render.camera_pans)
 
     @property
     def monster_type(self) -> int:
@@ -332,7 +362,14 @@ class Role:
 
     @property
     def default(self) -> bool:
-        return self.species is None and self.player.scale == 1.0 and self.weapon == GREATSWORD and self.stage.identity
+        return (
+            self.species is None
+            and self.player.scale == 1.0
+            and self.weapon == GREATSWORD
+            and self.stage.identity
+            and self.skin is None
+            and not self.camera_pans
+        )
 
     def to_json(self) -> dict:
         return {
@@ -341,6 +378,8 @@ class Role:
             "player": {"type_id": self.player.type_id, "scale": self.player.scale},
             "weapon": {"type_id": self.weapon.type_id, "name": self.weapon.name, "points": len(self.weapon.fractions)},
             "stage": self.stage.to_json(),
+            **({"skin": self.skin.to_json()} if self.skin is not None else {}),
+            **({"camera_pans": True} if self.camera_pans else {}),
         }
 
 
@@ -352,6 +391,8 @@ class Cast:
     players: tuple[Player, ...] = (Player(PLAYER_TYPE),)
     weapons: tuple[Weapon, ...] = (GREATSWORD,)
     stages: tuple[Stage, ...] = field(default_factory=lambda: (Stage("a"),))
+    skins: int | None = None  # the seed of each recording's skin (draw_skin); None: one look for all
+    camera_pans: bool = False  # the player looks around now and then (render.camera_pans)
 
     def role(self, index: int) -> Role:
         n_species = max(1, len(self.species))
@@ -360,6 +401,8 @@ class Cast:
             player=self.players[index % len(self.players)],
             weapon=self.weapons[(index // 2) % len(self.weapons)],
             stage=self.stages[(index // n_species) % len(self.stages)],
+            skin=draw_skin(self.skins, index) if self.skins is not None else None,
+            camera_pans=self.camera_pans,
         )
 
     def edges(self) -> dict[str, list[list[int]]]:
@@ -377,9 +420,19 @@ class Cast:
         return out
 
 
-def make_cast(seed: int, species: int = 0, players: int = 1, weapons: int = 1, stages: int = 1) -> Cast:
+def make_cast(
+    seed: int,
+    species: int = 0,
+    players: int = 1,
+    weapons: int = 1,
+    stages: int = 1,
+    skins: bool = False,
+    camera_pans: bool = False,
+) -> Cast:
     """A cast drawn by ``seed``: ``species`` generated species (0: the drake alone), ``players`` player
-    characters, ``weapons`` weapon types (the greatsword, then the short blade), ``stages`` stages."""
+    characters, ``weapons`` weapon types (the greatsword, then the short blade), ``stages`` stages; with
+    ``skins`` each recording's monster and player colours drawn by (seed, index); with ``camera_pans`` the
+    player looks around now and then (the bodies leave the view and come back)."""
     if not 0 <= species <= 20 or not 1 <= players <= len(PLAYER_TYPES) or not 1 <= weapons <= 2 or not 1 <= stages <= 4:
         raise ValueError(
             f"a cast holds 0–20 species, 1–{len(PLAYER_TYPES)} players, 1–2 weapons and 1–4 stages, "
@@ -394,4 +447,6 @@ def make_cast(seed: int, species: int = 0, players: int = 1, weapons: int = 1, s
         ),
         weapons=(GREATSWORD, SHORT_BLADE)[:weapons],
         stages=tuple(Stage("abcd"[k], STAGE_TURN * k, STAGE_LIFT_M * k) for k in range(stages)),
+        skins=int(seed) if skins else None,
+        camera_pans=bool(camera_pans),
     )

@@ -23,7 +23,7 @@ from marionette.schema import load_rig
 from . import sim
 from .cast import GREATSWORD, Cast, make_cast
 from .clips import CLIPS, clip_table
-from .render import DEPTH_ENCODING, Renderer, encode_depth, follow_camera, intrinsics
+from .render import DEPTH_ENCODING, Renderer, camera_pans, encode_depth, follow_camera, intrinsics
 
 RECORDING_EPOCH = 1767225600  # 2026-01-01T00:00:00Z; recording k starts k days later
 NPC_FIELDS = (
@@ -180,7 +180,8 @@ def write_recording(
     present[plan.absent[0] : plan.absent[1]] = False
     cam_valid = np.ones(N, bool)
     cam_valid[plan.camera_invalid[0] : plan.camera_invalid[1]] = False
-    cam_pos, cam_rot = follow_camera(roots["hunter"], yaws["hunter"], roots["monster"], present)
+    pan = camera_pans(seed, index, N, float(fps)) if role.camera_pans else None
+    cam_pos, cam_rot = follow_camera(roots["hunter"], yaws["hunter"], roots["monster"], present, pan)
 
     rigs = {e: load_rig(r) for e, r in RIGS.items()}
     edges = {e: rig_edges(r) for e, r in rigs.items()}
@@ -209,7 +210,7 @@ def write_recording(
             )
         radii[e] = r.capsule_radius_m * scale * (role.player.scale if e == "hunter" else 1.0)
     radii["weapon"] = radii["weapon"][: len(edges["weapon"])]
-    renderer = Renderer(width, height, edges, radii)
+    renderer = Renderer(width, height, edges, radii, colours=role.skin.colours() if role.skin is not None else None)
     encode = encode_depth
     if depth_mapping is not None:
         from terrain_scan.depth import DepthDecoder
@@ -396,15 +397,23 @@ def generate(
     players: int = 1,
     weapons: int = 1,
     stages: int = 1,
+    skins: bool = False,
+    camera_pans: bool = False,
 ) -> list[Path]:
     """Write ``recordings`` synthetic recordings of ``seconds`` s each (in ``workers`` processes);
     returns the sample directories. Each recording depends only on (seed, index), never on ``workers``.
     With ``hidden_depth`` the game encodes depth with a mapping drawn from a family by ``seed``
     (``hidden_depth_mapping``), written only to the truth, as WildWorld does not publish its own. ``species``,
-    ``players``, ``weapons`` and ``stages`` size the cast (``cast.make_cast``; recording k plays ``role(k)``)."""
+    ``players``, ``weapons`` and ``stages`` size the cast (``cast.make_cast``; recording k plays ``role(k)``); with
+    ``skins`` each recording's monster and player have colours of their own (``cast.draw_skin``); with
+    ``camera_pans`` the player looks around now and then (``render.camera_pans``)."""
     out_dir = Path(out_dir)
     spec = {"species": species, "players": players, "weapons": weapons, "stages": stages}
     spec = {k: v for k, v in spec.items() if v != (0 if k == "species" else 1)}
+    if skins:
+        spec["skins"] = True
+    if camera_pans:
+        spec["camera_pans"] = True
     write_edges(out_dir, part, make_cast(seed, **spec))
     mapping = hidden_depth_mapping(seed) if hidden_depth else None
     args = [(out_dir, part, k, seed, seconds, width, height, fps, mapping, spec or None) for k in range(recordings)]

@@ -58,8 +58,16 @@ def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([right, up, back], axis=1)
 
 
-def follow_camera(hunter_root: np.ndarray, hunter_yaw: np.ndarray, monster_root: np.ndarray, present: np.ndarray):
-    """Smoothed third-person camera per frame: positions (N, 3) and camera-to-world rotations (N, 3, 3)."""
+def follow_camera(
+    hunter_root: np.ndarray,
+    hunter_yaw: np.ndarray,
+    monster_root: np.ndarray,
+    present: np.ndarray,
+    pan: np.ndarray | None = None,
+):
+    """Smoothed third-person camera per frame: positions (N, 3) and camera-to-world rotations (N, 3, 3).
+    ``pan`` (N,): the camera's look turned about its own vertical axis (rad; a player looking around, the
+    characters leaving the view and coming back), during which it stops turning to the monster."""
     N = len(hunter_root)
     pos, rot = np.zeros((N, 3)), np.zeros((N, 3, 3))
     eye = look = None
@@ -67,14 +75,34 @@ def follow_camera(hunter_root: np.ndarray, hunter_yaw: np.ndarray, monster_root:
         fwd = np.array([np.sin(hunter_yaw[i]), 0.0, np.cos(hunter_yaw[i])])
         want_eye = hunter_root[i] - 6.0 * fwd + np.array([0.0, 3.0, 0.0])
         want_look = hunter_root[i] + np.array([0.0, 0.6, 0.0]) + 2.0 * fwd
-        if present[i] and np.linalg.norm(monster_root[i] - hunter_root[i]) < 25.0:
+        turned = pan is not None and abs(pan[i]) > 0.2
+        if present[i] and not turned and np.linalg.norm(monster_root[i] - hunter_root[i]) < 25.0:
             want_look = 0.65 * want_look + 0.35 * monster_root[i]
+        if pan is not None and pan[i]:
+            c, s = np.cos(pan[i]), np.sin(pan[i])
+            d = want_look - want_eye
+            want_look = want_eye + np.array([c * d[0] + s * d[2], d[1], -s * d[0] + c * d[2]])
         eye = want_eye if eye is None else eye + 0.12 * (want_eye - eye)
         look = want_look if look is None else look + 0.2 * (want_look - look)
         floor = float(ter.ground_height(eye[0], eye[2])) + 1.5
         eye = np.array([eye[0], max(eye[1], floor), eye[2]])
         pos[i], rot[i] = eye, look_at(eye, look)
     return pos, rot
+
+
+def camera_pans(seed: int, index: int, n_frames: int, fps: float) -> np.ndarray:
+    """(N,) angles of a camera a player turns to look around now and then (``follow_camera``'s ``pan``), drawn by
+    (seed, index): every 2–5 s a swing of 2.5–4 s that eases out to 120–180° either way and back (raised cosine)."""
+    rng = np.random.default_rng([seed, 0x0CB, index])
+    out = np.zeros(n_frames)
+    t = rng.uniform(1.0, 3.0)
+    while t * fps < n_frames:
+        length, angle = rng.uniform(2.5, 4.0), np.radians(rng.uniform(120.0, 180.0)) * rng.choice([-1.0, 1.0])
+        a, b = int(t * fps), min(n_frames, int((t + length) * fps))
+        u = (np.arange(a, b) - a) / max(b - a, 1)
+        out[a:b] = angle * 0.5 * (1.0 - np.cos(2.0 * np.pi * u))
+        t += length + rng.uniform(2.0, 5.0)
+    return out
 
 
 def _capsules(points: np.ndarray, edges: np.ndarray, radius: np.ndarray, sides: int = 5) -> tuple[np.ndarray, np.ndarray]:
@@ -111,8 +139,16 @@ class Renderer:
 
     MATERIALS = ("ground", "wall", "deck", "monster", "hunter", "weapon")
 
-    def __init__(self, width: int, height: int, edges: dict[str, np.ndarray], radii: dict[str, np.ndarray]):
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        edges: dict[str, np.ndarray],
+        radii: dict[str, np.ndarray],
+        colours: dict[str, tuple[float, float, float]] | None = None,
+    ):
         self.width, self.height = width, height
+        self.colours = dict(colours or {})  # a recording's own albedo of a character (cast.Skin), else the game's
         self.K = intrinsics(width, height)
         self.edges, self.radii = edges, radii
         self.terrain = o3d.t.geometry.RaycastingScene()
@@ -178,8 +214,8 @@ class Renderer:
                 0: grass * (1 - steep) + rock * steep,
                 1: rock * (0.8 + 0.2 * (np.floor(p[..., 1:2] * 2) % 2)),
                 2: np.array([0.55, 0.38, 0.2]) * (0.8 + 0.2 * (np.floor(p[..., 0:1] * 3) % 2)),
-                3: np.array([0.6, 0.15, 0.1]),
-                4: np.array([0.15, 0.3, 0.75]),
+                3: np.array(self.colours.get("monster", (0.6, 0.15, 0.1))),
+                4: np.array(self.colours.get("hunter", (0.15, 0.3, 0.75))),
                 5: np.array([0.85, 0.85, 0.9]),
             }
             col = np.zeros((H, W, 3))

@@ -1,0 +1,118 @@
+"""Persistent entity references against appearance drift: the small observation DiT with and without them.
+
+    .venv/bin/python benchmarks/bench_references.py [--recordings 12] [--seconds 40] [--steps 3000] [--out DIR]
+
+A synthetic tree where appearance must be read from the video — each recording's monster and player in colours
+of their own (``synth --skins``) and a player who looks around, so that the bodies leave the view and come back
+(``synth --camera-pans``) — ingested at 36 × 64, its terrain scanned and its pose targets rendered. Three arms of
+the tests' observation recipe (18 × 32, 5-frame clips, patch 2, batch 4, lr 1e-3, a fifth of the clips given
+another chunk's first frame), differing only in what is named: the default model; the same with its first
+frames' bodies drifted in colour (σ 0.3, ``--first-frame-drift``); and with references and that drift
+(``--references``). Each relays every held-out video of 161 frames (40 chunks, 8 sampling steps) from its recorded
+first frame (``quality.relay_videos``, ``quality.entity_drift``); the reference arm also without its references.
+
+Printed: per arm, the per-entity colour error (|mean generated − mean recorded RGB| over the entity's mask, RGB
+in [−1, 1]) over the first and the last quarter of the relay's chunks and their difference (the growth), the
+colour error where the entity stayed in view and where it left the view and came back, and the pixel error's
+growth. ``--out`` keeps the corpus and the runs (a second run with the same --out reuses them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
+
+from marionette.corpus import Corpus
+from marionette.ingest import IngestOptions, VideoSettings, build_corpus
+from marionette.observation.data import ClipSource
+from marionette.observation.quality import drift_growth, entity_drift, relay_videos
+from marionette.observation.references import layout_bands
+from marionette.observation.train import ObservationTrainConfig, load_model, train
+
+RECIPE = ObservationTrainConfig(preset="tiny", batch_size=4, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
+ARMS = {
+    "default": {},
+    "first-frame drift 0.3": {"first_frame_drift": 0.3},
+    "references + drift 0.3": {"references": True, "first_frame_drift": 0.3},
+}
+
+
+def build(root: Path, recordings: int, seconds: float) -> Path:
+    from marionette.bridge.targets import render_pose_targets
+    from marionette.synth import generate
+    from terrain_scan.scan import ScanOptions, scan_stages
+
+    corpus = root / "corpus"
+    if (corpus / "meta" / "info.json").exists():
+        return corpus
+    generate(
+        root / "recordings", recordings=recordings, seconds=seconds, seed=21, width=96, height=54, workers=2, skins=True,
+        camera_pans=True,
+    )  # fmt: skip
+    options = IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28))
+    build_corpus(root / "recordings", corpus, options, workers=2, progress=False)
+    scan_stages(corpus, incremental=True, options=ScanOptions(frame_stride=4), log=lambda *_: None)
+    render_pose_targets(corpus)
+    return corpus
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--recordings", type=int, default=12)
+    ap.add_argument("--seconds", type=float, default=40.0)
+    ap.add_argument("--steps", type=int, default=3000, help="training steps per arm")
+    ap.add_argument("--chunks", type=int, default=40, help="relay chunks per held-out video")
+    ap.add_argument("--out", type=Path, default=None, help="keep the corpus and runs here (default: a temp dir)")
+    a = ap.parse_args()
+    root = a.out or Path(tempfile.mkdtemp(prefix="bench-references-"))
+    t0 = time.perf_counter()
+    corpus = build(root, a.recordings, a.seconds)
+    print(f"corpus {corpus} ready in {time.perf_counter() - t0:.0f} s")
+    c = Corpus(corpus)
+    bands = layout_bands(c.layouts.values())
+    videos = relay_videos(ClipSource(c, "test", RECIPE.frames, (18, 32)), 1 + 4 * a.chunks, 2 * a.chunks)
+    torch.set_num_threads(1)
+    rows = []
+    for name, knobs in ARMS.items():
+        run = root / f"run-{a.steps}-{name.replace(' ', '-').replace('+', 'and')}"
+        if not (run / "summary.json").exists():
+            t0 = time.perf_counter()
+            summary = train(corpus, run, replace(RECIPE, steps=a.steps, **knobs), log=lambda *_: None)
+            print(
+                f"{name}: trained in {time.perf_counter() - t0:.0f} s, held-out loss {summary['evals'][-1]['held_out_loss']:.4f}"
+            )
+        model = load_model(run)
+        for given in (True, False) if model.config.references else (True,):
+            d = entity_drift(model, videos, bands, steps=8, references=given)
+            q = max(1, a.chunks // 4)
+            colour, pixel = d["colour"], d["pixel"]
+            rows.append(
+                [
+                    name + ("" if given else ", references withheld"),
+                    f"{np.nanmean(colour[:q]):.4f}",
+                    f"{np.nanmean(colour[-q:]):.4f}",
+                    f"{drift_growth(colour):+.4f}",
+                    f"{d['in_view']:.4f}",
+                    f"{d['after_gap']:.4f}",
+                    f"{drift_growth(pixel):+.4f}",
+                ]
+            )
+            print(rows[-1], flush=True)
+    print(preamble("Persistent entity references: per-entity appearance error over relays (measured)"))
+    print(
+        f"{len(videos)} held-out videos of {1 + 4 * a.chunks} frames ({a.chunks} chunks of 5), {a.recordings} × "
+        f"{a.seconds:.0f} s recordings, {a.steps} steps per arm; pairs {d['pairs']}"
+    )
+    head = ["arm", "colour, first ¼", "colour, last ¼", "growth", "stayed in view", "after leaving the view", "pixel growth"]
+    print(table(head, rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,111 @@
+"""Persistent entity references: a crop of each entity, taken once, given to every chunk of a relay.
+
+A relayed video is made chunk by chunk, each chunk starting from the last generated frame of the one before, so
+what a body looks like is copied from a frame the model itself painted; errors in it compound over the relay
+(appearance drift, a limitation the paper names). The remedy: each entity's look is taken once, from the first
+frame that shows it, and handed to every later chunk beside its first frame.
+
+- **Entities** are the render-id bands of the bridge's identity channel (``Rig.id_band``): the model's
+  ``reference_bands``, the distinct bands of the corpus's layouts with overlapping ones merged (the monsters of
+  a many-species corpus share one slot; two entities of one rig share a band and so a reference).
+- **A reference** (4, r, r): the RGB (in [−1, 1]) of a square around the entity's pixels in the pose frame's id
+  mask (its side 1.5 × the mask's larger extent plus two pixels, centred on the mask's box), bilinearly
+  resampled to r × r, with the resampled mask as a fourth channel; all zeros where the entity has not been seen
+  (mask 0 says "no reference").
+- **Which frame**: the first frame at or before the chunk's start in which the entity's mask has a pixel. In
+  training, frames of the clip's own chunk up to the clip's start (never the frames the clip must paint); in a
+  relay, the given first frame, then the first generated frame that shows an entity not seen before.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from marionette.bridge.gbuffer import CODE_MAX
+
+REF_PATCHES = 4  # a reference is 4 × 4 of the model's patches
+MARGIN = 1.5  # the crop's side over the mask's larger extent
+
+
+def merge_bands(bands: Iterable[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
+    """Render-id bands [first, last], overlapping ones merged, in increasing order."""
+    out: list[list[int]] = []
+    for a, b in sorted((int(a), int(b)) for a, b in bands):
+        if out and a <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return tuple((a, b) for a, b in out)
+
+
+def layout_bands(layouts: Iterable) -> tuple[tuple[int, int], ...]:
+    """The reference slots of a corpus: the id bands of every rendered entity of its layouts, merged."""
+    return merge_bands(e.rig.id_band for layout in layouts for e in layout.entities if e.rig.id_band is not None)
+
+
+def band_masks(pose: Tensor, bands: Sequence[tuple[int, int]]) -> Tensor:
+    """Pose frames (…, 3, H, W) in [0, 1] → (…, E, H, W) bool: where each band's bones are drawn."""
+    ids = torch.round(pose.narrow(-3, 1, 1) * CODE_MAX).long() * 255  # the 10-bit code of id / 255 → id (exact)
+    ids = torch.div(ids + CODE_MAX // 2, CODE_MAX, rounding_mode="floor")
+    return torch.cat([(ids >= a) & (ids <= b) for a, b in bands], dim=-3)
+
+
+def crop(rgb: Tensor, mask: Tensor, size: int) -> Tensor:
+    """RGB (3, H, W) and one entity's mask (H, W) with a pixel → its reference (4, size, size) (module doc)."""
+    H, W = mask.shape
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    y0, y1, x0, x1 = float(ys.min()), float(ys.max()) + 1.0, float(xs.min()), float(xs.max()) + 1.0
+    side = MARGIN * max(y1 - y0, x1 - x0) + 2.0
+    cy, cx = (y0 + y1) / 2, (x0 + x1) / 2
+    # grid_sample's normalised coordinates (align_corners=False): pixel edge 0 → −1, edge W → +1
+    t = (torch.arange(size, dtype=torch.float32) + 0.5) / size - 0.5  # −½..½ across the crop
+    gy = (cy + side * t) / H * 2 - 1
+    gx = (cx + side * t) / W * 2 - 1
+    grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1)[None]  # (1, r, r, 2) as (x, y)
+    src = torch.cat([rgb.float(), mask[None].float()], dim=0)[None]
+    return F.grid_sample(src, grid.to(src.device), mode="bilinear", padding_mode="zeros", align_corners=False)[0]
+
+
+class EntityReferences:
+    """The references of one video as it is read (training: a chunk; a relay: the frames it has so far): each
+    band's crop from the first frame that shows it."""
+
+    def __init__(self, bands: Sequence[tuple[int, int]], size: int) -> None:
+        self.bands, self.size = tuple(bands), int(size)
+        self.crops: list[Tensor | None] = [None] * len(self.bands)
+        self.frame: list[int | None] = [None] * len(self.bands)  # where each was taken
+
+    def see(self, rgb: Tensor, pose: Tensor, offset: int = 0) -> None:
+        """Take the crop of each entity not seen yet from the first of these frames (T, 3, H, W) that shows it
+        (``offset``: the index of the first of them in the video)."""
+        missing = [e for e, c in enumerate(self.crops) if c is None]
+        if not missing or not len(rgb):
+            return
+        masks = band_masks(pose, [self.bands[e] for e in missing])  # (T, m, H, W)
+        seen = masks.flatten(2).any(-1)  # (T, m)
+        for j, e in enumerate(missing):
+            hits = torch.nonzero(seen[:, j], as_tuple=True)[0]
+            if len(hits):
+                t = int(hits[0])
+                self.crops[e] = crop(rgb[t], masks[t, j], self.size)
+                self.frame[e] = offset + t
+
+    def tensor(self, upto: int | None = None) -> Tensor:
+        """(E, 4, r, r): the crops taken at frames ≤ ``upto`` (all when None), zeros for the others."""
+        out = torch.zeros(len(self.bands), 4, self.size, self.size)
+        for e, c in enumerate(self.crops):
+            if c is not None and (upto is None or self.frame[e] <= upto):
+                out[e] = c
+        return out
+
+
+def chunk_references(rgb: Tensor, pose: Tensor, bands: Sequence[tuple[int, int]], size: int) -> EntityReferences:
+    """The references of a whole chunk (T, 3, H, W): each entity's first frame in it; ``tensor(upto=start)`` gives
+    a clip starting at ``start`` what it may see."""
+    refs = EntityReferences(bands, size)
+    refs.see(rgb, pose)
+    return refs

@@ -1,0 +1,207 @@
+"""Persistent entity references: the crops, what a clip may see, the model's reference slots and their checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from marionette.bridge.gbuffer import CODE_MAX
+from marionette.observation.model import ObservationConfig, VideoDiT, flow_loss, generate
+from marionette.observation.references import (
+    EntityReferences,
+    band_masks,
+    chunk_references,
+    crop,
+    merge_bands,
+)
+
+BANDS = ((60, 64), (105, 150), (195, 230))
+
+
+def pose_with(ids: torch.Tensor) -> torch.Tensor:
+    """(T, H, W) render ids → pose frames (T, 3, H, W) as the clip reader gives them (10-bit codes / 1023)."""
+    code = torch.round(ids.double() / 255 * CODE_MAX) / CODE_MAX
+    return torch.stack([torch.zeros_like(code), code, torch.zeros_like(code)], 1).float()
+
+
+def test_bands_merge_and_every_render_id_decodes_to_its_band():
+    assert merge_bands([(105, 150), (60, 62), (105, 170), (60, 64), (195, 230)]) == ((60, 64), (105, 170), (195, 230))
+    ids = torch.arange(256).view(1, 16, 16)
+    masks = band_masks(pose_with(ids), BANDS)[0]  # (E, 16, 16)
+    for e, (a, b) in enumerate(BANDS):
+        assert torch.equal(masks[e].flatten(), (torch.arange(256) >= a) & (torch.arange(256) <= b))
+
+
+def test_a_crop_is_centred_on_the_entity_and_carries_its_mask():
+    rgb = torch.full((3, 36, 64), -1.0)
+    mask = torch.zeros(36, 64, dtype=torch.bool)
+    mask[10:16, 40:44] = True  # a 6 × 4 body
+    rgb[:, mask] = torch.tensor([0.8, -0.2, 0.4])[:, None]
+    ref = crop(rgb, mask, 8)
+    assert ref.shape == (4, 8, 8)
+    centre = ref[:, 3:5, 3:5]
+    assert torch.allclose(centre[:3], torch.tensor([0.8, -0.2, 0.4])[:, None, None], atol=1e-5)
+    assert torch.all(centre[3] == 1.0)
+    assert float(ref[3, 0, 0]) == 0.0  # the corner is background, and marked so
+    at_edge = torch.zeros(36, 64, dtype=torch.bool)  # a body cut by the frame's corner: the outside reads as zeros
+    at_edge[0:3, 0:2] = True
+    assert torch.isfinite(crop(rgb, at_edge, 8)).all()
+
+
+def test_a_clip_sees_only_entities_shown_at_or_before_its_start():
+    T, H, W = 12, 18, 32
+    ids = torch.zeros(T, H, W, dtype=torch.long)
+    ids[:, 2:6, 3:7] = 120  # the monster from frame 0
+    ids[7:, 10:12, 20:22] = 200  # the player from frame 7
+    rgb = torch.rand(T, 3, H, W) * 2 - 1
+    refs = chunk_references(rgb, pose_with(ids), BANDS, 8)
+    assert refs.frame == [None, 0, 7]
+    early, late = refs.tensor(upto=3), refs.tensor(upto=7)
+    assert early[2].abs().sum() == 0 and late[2, 3].max() == 1.0  # the player's crop only once it has been shown
+    assert torch.equal(early[1], late[1]) and early[0].abs().sum() == 0  # the weapon is never shown: no reference
+    later = EntityReferences(BANDS, 8)  # a relay: frames arrive a chunk at a time, each entity's first sighting kept
+    later.see(rgb[:5], pose_with(ids[:5]))
+    later.see(rgb[5:], pose_with(ids[5:]), offset=5)
+    assert later.frame == [None, 0, 7] and torch.equal(later.tensor(), refs.tensor())
+
+
+def config(**kw) -> ObservationConfig:
+    return ObservationConfig(frames=5, height=8, width_px=16, patch=2, width=32, layers=2, heads=2, **kw)
+
+
+def test_reference_slots_are_checked_and_round_trip_through_json():
+    c = config(reference_bands=BANDS, reference_size=8)
+    assert c.references == 3 and ObservationConfig.from_json(c.to_json()) == c
+    assert ObservationConfig.from_json({k: v for k, v in config().to_json().items() if not k.startswith("reference")}) == config()
+    with pytest.raises(ValueError, match="whole number"):
+        config(reference_bands=BANDS, reference_size=7)
+    with pytest.raises(ValueError, match="render ids"):
+        config(reference_bands=((0, 10),), reference_size=8)
+    with pytest.raises(ValueError, match="without reference_bands"):
+        config(reference_size=8)
+    with pytest.raises(ValueError, match="reference_bands"):
+        ObservationConfig.from_json({**c.to_json(), "reference_bands": [["a", 1]]})
+
+
+def test_the_model_reads_its_references_and_refuses_the_wrong_shape():
+    torch.manual_seed(0)
+    model = VideoDiT(config(reference_bands=BANDS, reference_size=8), seed=1)
+    for p in (model.head.weight, model.final_mod.weight, *(b.modulation.weight for b in model.blocks)):
+        torch.nn.init.normal_(p, 0.0, 0.1)  # past adaLN-Zero's identity start, so inputs reach the output
+    x, pose, first, s = torch.randn(2, 5, 3, 8, 16), torch.rand(2, 5, 3, 8, 16), torch.randn(2, 3, 8, 16), torch.rand(2)
+    refs = torch.randn(2, 3, 4, 8, 8)
+    out = model(x, pose, first, s, refs)
+    assert out.shape == x.shape
+    assert not torch.allclose(out, model(x, pose, first, s, refs.flip(0)))  # the references change the velocity
+    assert torch.equal(model(x, pose, first, s), model(x, pose, first, s, torch.zeros_like(refs)))  # none = zeros
+    with pytest.raises(ValueError, match="references"):
+        model(x, pose, first, s, refs[:, :2])
+    loss = flow_loss(model, x.clamp(-1, 1), pose, torch.Generator().manual_seed(0), refs=refs)
+    loss.backward()
+    assert model.ref_embed.weight.grad.abs().sum() > 0 and model.ref_slot.weight.grad.abs().sum() > 0
+    with torch.no_grad():  # a relay takes its references from what it shows and paints
+        ids = torch.zeros(9, 8, 16, dtype=torch.long)
+        ids[:, 2:5, 3:6] = 120
+        video = generate(model, pose_with(ids), first[0], steps=2)
+    assert video.shape == (9, 3, 8, 16)
+
+
+def test_training_batches_carry_each_clips_references_and_drift_only_the_bodies_of_its_first_frame():
+    from marionette.observation.data import Clip
+    from marionette.observation.train import ChunkReferences, _batch
+
+    T, H, W = 20, 8, 16
+    chunks = []
+    for k in range(3):
+        ids = torch.zeros(T, H, W, dtype=torch.long)
+        ids[:, 1:4, 2:5] = 120  # the monster throughout
+        ids[10:, 5:7, 9:12] = 200  # the player from frame 10
+        chunks.append(Clip(rgb=torch.rand(T, 3, H, W) - 0.5, pose=pose_with(ids), key=f"c{k}", start=0))
+    c = config(reference_bands=BANDS, reference_size=8)
+    refs_of = ChunkReferences(chunks, c)
+    plain = _batch(chunks, 5, 32, seed=1, step=2, control="pose")
+    rgb, pose, first, refs = _batch(chunks, 5, 32, seed=1, step=2, control="pose", refs_of=refs_of, drift=0.5, bands=BANDS)
+    assert plain[3] is None and torch.equal(plain[0], rgb)  # references and drift never change the clips drawn
+    assert refs.shape == (32, 3, 4, 8, 8)
+    rng = __import__("numpy").random.default_rng([1, 2])  # the starts _batch drew
+    picks = rng.integers(0, 3, 32)
+    starts = [int(rng.integers(0, T - 5 + 1)) for _ in picks]
+    for b, s in enumerate(starts):
+        assert bool(refs[b, 1, 3].any())  # the monster is shown from frame 0
+        assert bool(refs[b, 2, 3].any()) == (s >= 10)  # the player only to clips that start once it has been shown
+        assert not refs[b, 0].any()  # no weapon
+    body = band_masks(pose[:, 0], BANDS).any(1)  # (B, H, W)
+    moved = (first - rgb[:, 0]).abs().amax(1) > 0  # (B, H, W)
+    assert torch.equal(moved & ~body, torch.zeros_like(moved))  # only the bodies' pixels drift
+    assert moved.any()
+
+
+def test_appearance_drift_tells_a_look_kept_from_a_look_lost_when_a_body_leaves_the_view():
+    from marionette.observation.data import Clip
+    from marionette.observation.quality import appearance_drift, drift_growth
+
+    T, H, W = 33, 8, 16
+    ids = torch.zeros(T, H, W, dtype=torch.long)
+    ids[:, 1:4, 2:5] = 120  # the monster, always in view
+    ids[:12, 5:7, 9:12] = 200  # the player, out of view for frames 12–19, then back
+    ids[20:, 5:7, 9:12] = 200
+    rgb = torch.full((T, 3, H, W), -0.5)
+    rgb[:, :, 1:4, 2:5] = torch.tensor([0.6, -0.4, 0.2])[:, None, None]
+    rgb[:, :, 5:7, 9:12] = torch.tensor([-0.3, 0.1, 0.7])[:, None, None]
+    video = Clip(rgb=rgb, pose=pose_with(ids), key="v", start=0)
+
+    def truth(pose, first, chunks):
+        return rgb[: 1 + 4 * chunks]
+
+    def forgets(pose, first, chunks):  # paints the player grey once it has been out of view
+        out = rgb[: 1 + 4 * chunks].clone()
+        out[20:, :, 5:7, 9:12] = 0.0
+        return out
+
+    exact = appearance_drift([video], BANDS, 4, truth)
+    assert exact["colour"].shape == (8,) and float(abs(exact["colour"]).max()) == 0.0 and exact["after_gap"] == 0.0
+    assert exact["pairs"] == {"in_view": 32 + 11, "after_gap": 13}  # the monster's 32 frames and the player's
+    lost = appearance_drift([video], BANDS, 4, forgets)
+    assert lost["in_view"] == 0.0 and abs(lost["after_gap"] - (0.3 + 0.1 + 0.7) / 3) < 1e-6
+    assert drift_growth(lost["colour"]) > 0.15 and drift_growth(exact["colour"]) == 0.0
+    assert lost["pixel"][-1] > 0 and lost["pixel"][0] == 0
+
+
+def test_a_model_trained_with_references_takes_them_from_the_corpus_and_a_relay_reads_them(follow_corpus, tmp_path):
+    """Trains (briefly) with references and drifted first frames on the session's posed corpus: the model's slots are
+    the layout's id bands, long relay videos are the segment's consecutive chunks joined, and the references a relay
+    takes reach what it paints (withheld, the relay differs). Whether they keep a look better than no references is
+    bench_references.py's measurement (docs/tradeoffs.md, "Persistent entity references")."""
+    from dataclasses import replace
+
+    from conftest import OBS_SIZE, obs_config
+
+    from marionette.corpus import Corpus
+    from marionette.observation.data import ClipSource
+    from marionette.observation.quality import entity_drift, relay_videos
+    from marionette.observation.references import layout_bands
+    from marionette.observation.train import load_model, train
+
+    corpus = Corpus(follow_corpus)
+    bands = layout_bands(corpus.layouts.values())
+    assert len(bands) == 3  # the hunter's, the drake's and the greatsword's
+    config = replace(obs_config(), steps=12, references=True, first_frame_drift=0.3)
+    summary = train(follow_corpus, tmp_path / "run", config, log=lambda *_: None)
+    assert np.isfinite(summary["evals"][-1]["held_out_loss"])
+    model = load_model(tmp_path / "run")
+    assert model.config.reference_bands == bands and model.config.reference_size == 4 * config.patch
+
+    source = ClipSource(corpus, "test", 5, OBS_SIZE)
+    refs = source.index()
+    videos = relay_videos(source, 1 + 4 * 21, 200)
+    assert videos and all(len(v.rgb) == 85 for v in videos)
+    segment, at = videos[0].key.split("@")
+    run = sorted((r for r in refs if r.key.startswith(segment + "__")), key=lambda r: r.first_frame)
+    a, b = next((a, b) for a, b in zip(run, run[1:]) if a.first_frame == int(at))  # a run of chunks, joined
+    assert b.first_frame == a.first_frame + a.frames
+    assert torch.equal(videos[0].rgb, torch.cat([source.chunk(a).rgb, source.chunk(b).rgb])[:85])
+    given = entity_drift(model, videos[:2], bands, steps=2)
+    withheld = entity_drift(model, videos[:2], bands, steps=2, references=False)
+    assert given["colour"].shape == (21,) and np.isfinite(given["colour"]).all()
+    assert not np.allclose(given["colour"], withheld["colour"])
