@@ -1,12 +1,13 @@
 """Persistent entity references against appearance drift: the small observation DiT with and without them.
 
     .venv/bin/python benchmarks/bench_references.py [--recordings 12] [--seconds 40] [--steps 3000] [--out DIR]
+        [--reduce 2 --patch 2] [--arms default,references]
 
 A synthetic tree where appearance must be read from the video — each recording's monster and player in colours
 of their own (``synth --skins``) and a player who looks around, so that the bodies leave the view and come back
 (``synth --camera-pans``) — ingested at 36 × 64, its terrain scanned and its pose targets rendered. Three arms of
-the tests' observation recipe (18 × 32, 5-frame clips, patch 2, batch 4, lr 1e-3, a fifth of the clips given
-another chunk's first frame), differing only in what is named: the default model; the same with its first
+the tests' observation recipe (18 × 32 and patch 2 unless ``--reduce``/``--patch`` say otherwise, 5-frame clips,
+batch 4, lr 1e-3, a fifth of the clips given another chunk's first frame), differing only in what is named: the default model; the same with its first
 frames' bodies drifted in colour (σ 0.3, ``--first-frame-drift``); and with references and that drift
 (``--references``). Each relays every held-out video of 161 frames (40 chunks, 8 sampling steps) from its recorded
 first frame (``quality.relay_videos``, ``quality.entity_drift``); the reference arm also without its references.
@@ -37,10 +38,10 @@ from marionette.observation.references import layout_bands
 from marionette.observation.train import ObservationTrainConfig, load_model, train
 
 RECIPE = ObservationTrainConfig(preset="tiny", batch_size=4, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
-ARMS = {
-    "default": {},
-    "first-frame drift 0.3": {"first_frame_drift": 0.3},
-    "references + drift 0.3": {"references": True, "first_frame_drift": 0.3},
+ARMS = {  # key: (row name, knobs)
+    "default": ("default", {}),
+    "drift": ("first-frame drift 0.3", {"first_frame_drift": 0.3}),
+    "references": ("references + drift 0.3", {"references": True, "first_frame_drift": 0.3}),
 }
 
 
@@ -70,21 +71,33 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=3000, help="training steps per arm")
     ap.add_argument("--chunks", type=int, default=40, help="relay chunks per held-out video")
     ap.add_argument("--out", type=Path, default=None, help="keep the corpus and runs here (default: a temp dir)")
+    ap.add_argument("--reduce", type=int, default=2, help="the 36 × 64 chunks divided by this for the model")
+    ap.add_argument("--patch", type=int, default=2, help="the model's patch side in pixels")
+    ap.add_argument("--arms", default=",".join(ARMS), help=f"which arms, of {', '.join(ARMS)}")
     a = ap.parse_args()
+    arms = a.arms.split(",")
+    if not arms or any(k not in ARMS for k in arms):
+        ap.error(f"--arms {a.arms!r}: a comma-separated choice of {', '.join(ARMS)}")
+    if 36 % a.reduce or 64 % a.reduce or (36 // a.reduce) % a.patch or (64 // a.reduce) % a.patch:
+        ap.error(f"--reduce {a.reduce} --patch {a.patch}: 36 × 64 must reduce to whole patches")
+    recipe = replace(RECIPE, reduce=a.reduce, patch=a.patch)
+    size = (36 // a.reduce, 64 // a.reduce)
     root = a.out or Path(tempfile.mkdtemp(prefix="bench-references-"))
     t0 = time.perf_counter()
     corpus = build(root, a.recordings, a.seconds)
     print(f"corpus {corpus} ready in {time.perf_counter() - t0:.0f} s")
     c = Corpus(corpus)
     bands = layout_bands(c.layouts.values())
-    videos = relay_videos(ClipSource(c, "test", RECIPE.frames, (18, 32)), 1 + 4 * a.chunks, 2 * a.chunks)
+    videos = relay_videos(ClipSource(c, "test", RECIPE.frames, size), 1 + 4 * a.chunks, 2 * a.chunks)
     torch.set_num_threads(1)
     rows = []
-    for name, knobs in ARMS.items():
-        run = root / f"run-{a.steps}-{name.replace(' ', '-').replace('+', 'and')}"
+    for key in arms:
+        name, knobs = ARMS[key]
+        shape = "" if (a.reduce, a.patch) == (2, 2) else f"-r{a.reduce}p{a.patch}"
+        run = root / f"run-{a.steps}{shape}-{name.replace(' ', '-').replace('+', 'and')}"
         if not (run / "summary.json").exists():
             t0 = time.perf_counter()
-            summary = train(corpus, run, replace(RECIPE, steps=a.steps, **knobs), log=lambda *_: None)
+            summary = train(corpus, run, replace(recipe, steps=a.steps, **knobs), log=lambda *_: None)
             print(
                 f"{name}: trained in {time.perf_counter() - t0:.0f} s, held-out loss {summary['evals'][-1]['held_out_loss']:.4f}"
             )
@@ -107,8 +120,8 @@ def main() -> None:
             print(rows[-1], flush=True)
     print(preamble("Persistent entity references: per-entity appearance error over relays (measured)"))
     print(
-        f"{len(videos)} held-out videos of {1 + 4 * a.chunks} frames ({a.chunks} chunks of 5), {a.recordings} × "
-        f"{a.seconds:.0f} s recordings, {a.steps} steps per arm; pairs {d['pairs']}"
+        f"{len(videos)} held-out videos of {1 + 4 * a.chunks} frames ({a.chunks} chunks of 5) at {size[0]} × {size[1]}, "
+        f"patch {a.patch}, {a.recordings} × {a.seconds:.0f} s recordings, {a.steps} steps per arm; pairs {d['pairs']}"
     )
     head = ["arm", "colour, first ¼", "colour, last ¼", "growth", "stayed in view", "after leaving the view", "pixel growth"]
     print(table(head, rows))
