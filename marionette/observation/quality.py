@@ -103,11 +103,13 @@ def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], ste
                 sums[name][k] += float((e[at] * shown[at]).sum())
         seen = shown_at.numpy()
         for e in range(seen.shape[1]):
-            gone = False
+            was_seen, gone = bool(seen[0, e]), False  # shown before this frame; out of view since then
             for t in range(1, n):
-                gone = gone or (not seen[t, e] and seen[:t, e].any())
                 if seen[t, e]:
                     history["after_gap" if gone else "in_view"].append(float(colour[t - 1, e]))
+                    was_seen = True
+                else:
+                    gone = gone or was_seen
     out: dict[str, np.ndarray | float] = {name: np.where(count > 0, t / np.maximum(count, 1), np.nan) for name, t in sums.items()}
     for name, errs in history.items():
         out[name] = float(np.mean(errs)) if errs else float("nan")

@@ -37,7 +37,7 @@ from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, s
 from marionette.io import check_json_fields
 from marionette.observation.data import ChunkStore, Clip, ClipSource, jittered_targets
 from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
-from marionette.observation.references import REF_PATCHES, EntityReferences, chunk_references
+from marionette.observation.references import REF_PATCHES, EntityReferences, band_masks, chunk_references, layout_bands
 from marionette.training import knob
 
 HELD_OUT = "test"
@@ -132,8 +132,6 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
     patch = config.patch or base.patch
     bands: tuple[tuple[int, int], ...] = ()
     if config.references:
-        from marionette.observation.references import layout_bands
-
         bands = layout_bands(corpus.layouts.values())
         if not bands:
             raise ValueError(f"{corpus.path}: no rendered entity (no rig with an id_band) to take references of")
@@ -204,20 +202,16 @@ def _batch(
     rgb = torch.stack([chunks[i].rgb[s : s + frames] for i, s in zip(picks, starts)])
     ctrl = torch.stack([control_of(chunks[i], control)[s : s + frames] for i, s in zip(picks, starts)])
     first = rgb[:, 0].clone()
+    own = torch.ones(size, dtype=torch.bool)  # the clips whose first frame is their own frame 0
     if swap and len(chunks) > 1:
         for b in np.flatnonzero(rng.random(size) < swap):
             other = chunks[(picks[b] + 1 + rng.integers(0, len(chunks) - 1)) % len(chunks)].rgb
             first[b] = other[rng.integers(0, len(other))]
+            own[b] = False
     if drift and bands:
-        from marionette.observation.references import band_masks
-
-        swapped = ~(first == rgb[:, 0]).flatten(1).all(1)
-        masks = band_masks(ctrl[:, 0], bands)  # (B, E, H, W) of the clips' own frame 0
+        masks = band_masks(ctrl[:, 0], bands).float()  # (B, E, H, W) of the clips' own frame 0; bands never overlap
         shift = torch.from_numpy(rng.normal(0.0, drift, (size, len(bands), 3))).float()  # (B, E, 3)
-        for b in np.flatnonzero(~swapped.numpy()):
-            for e in range(len(bands)):
-                first[b][:, masks[b, e]] += shift[b, e][:, None]
-        first = first.clamp(-1.0, 1.0)
+        first[own] = (first + torch.einsum("behw,bec->bchw", masks, shift))[own].clamp(-1.0, 1.0)
     refs = torch.stack([refs_of(int(i)).tensor(upto=s) for i, s in zip(picks, starts)]) if refs_of is not None else None
     return rgb, ctrl, first, refs
 
@@ -294,11 +288,7 @@ def train(
         run.evals.append({"step": 0, "held_out_loss": held_out_loss(model, held)})
     net = training.ddp(model, torch.device("cpu"))
     refs_of = ChunkReferences(chunks, mc) if mc.references else None
-    drift_bands = ()
-    if config.first_frame_drift:
-        from marionette.observation.references import layout_bands
-
-        drift_bands = layout_bands(corpus.layouts.values())
+    drift_bands = (mc.reference_bands or layout_bands(corpus.layouts.values())) if config.first_frame_drift else ()
 
     def checkpoint(at: int) -> Path | None:
         if rank != 0:
