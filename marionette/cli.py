@@ -570,6 +570,14 @@ def cmd_rollout(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_play(a: argparse.Namespace) -> int:
+    """Serve the play page (live or replay) on 127.0.0.1 until interrupted."""
+    from marionette.play import ARGUMENTS, serve
+
+    serve(**{k: getattr(a, k) for k in ARGUMENTS})
+    return 0
+
+
 class ProgressBars:
     """A ``progress(phase, done, total)`` callback drawing one tqdm bar per phase on stderr (a new phase closes the last bar)."""
 
@@ -1136,6 +1144,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     rollout_arguments(s)
     s.set_defaults(fn=cmd_rollout)
+
+    s = command("play", "play the world model in a browser (keys force tokens, WASD moves a root), or replay state with no model")
+    from marionette.play import add_arguments as play_arguments
+
+    play_arguments(s)
+    s.set_defaults(fn=cmd_play)
 
     s = command("eval", "evaluate a dynamics checkpoint: the paper's three tables, long-horizon curves, state metrics")
     from marionette.eval.protocol import PROTOCOLS

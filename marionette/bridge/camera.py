@@ -123,6 +123,82 @@ def _hold(x: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
+class FollowCamera:
+    """The follow camera of the module docstring, one frame at a time: ``step`` takes the followed entities' roots, A's
+    forward vector and their validity for one frame and gives that frame's camera, so a live rollout is framed exactly as
+    ``follow_cameras`` frames the whole sequence afterwards (which runs this stepper over it)."""
+
+    UP = np.array([0.0, 1.0, 0.0])
+
+    def __init__(self, fps: float, width: int, height: int, start: Cameras | None = None) -> None:
+        if start is not None and (not len(start) or not start.valid[0] or (start.width, start.height) != (width, height)):
+            raise ValueError(f"follow_cameras: the start camera must be a valid camera of the output size {width}×{height}")
+        self.width, self.height, self.start = int(width), int(height), start
+        self.alpha = 1.0 - np.exp(-1.0 / (float(fps) * FOLLOW_TAU_S))
+        self.K_wanted = intrinsics_for(width, height)
+        nan = np.full(3, np.nan)
+        self._a, self._b, self._fwd = nan, nan, nan  # last valid A, B root and A forward
+        self._prev_a: np.ndarray | None = None  # last frame's followed point (B's root before A appears)
+        self._prev_only_b = False
+        self._e: np.ndarray | None = None  # smoothed eye and target, up vector and intrinsics
+        self._g: np.ndarray | None = None
+        self._u, self._k = self.UP, self.K_wanted
+
+    def wanted(self, a: np.ndarray, b: np.ndarray, fwd_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The wanted eye and target (3,) of held roots ``a`` (NaN before A appears), ``b`` (NaN without B) and A's
+        forward vector; NaN where nothing is framed."""
+        have_b = bool(np.isfinite(b).all())
+        d = b - a if have_b else np.zeros(3)
+        d = d * np.array([1.0, 0.0, 1.0])
+        s = float(np.linalg.norm(d))
+        f_h = np.nan_to_num(fwd_a * np.array([1.0, 0.0, 1.0]))
+        nf = float(np.linalg.norm(f_h))
+        f = d / s if have_b and s > 1e-6 else (f_h / nf if nf > 1e-9 else np.array([0.0, 0.0, 1.0]))
+        D = max(3.5, 9.5 - s) if have_b else 3.5  # 3.5 m behind A, at least 9.5 m from B
+        ahead = min(s / 2, 3.0) if have_b else 2.0
+        return a - D * f + (0.2 * D + 0.8) * self.UP, a + ahead * f + 0.25 * self.UP
+
+    def step(
+        self, roots: list[np.ndarray], forward: np.ndarray, valid: list[bool]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+        """One frame: roots [(3,)] (A first, then B if any), A's forward (3,), validities → (eye (3,), target (3,),
+        up (3,), intrinsics (4,), valid); an invalid frame (nothing framed yet) leaves the smoothing where it was."""
+        if valid[0]:
+            self._a, self._fwd = np.asarray(roots[0], np.float64), np.asarray(forward, np.float64)
+        if len(roots) > 1 and valid[1]:
+            self._b = np.asarray(roots[1], np.float64)
+        a, b = self._a, self._b
+        only_b = not np.isfinite(a).all() and np.isfinite(b).all()
+        if only_b:  # before A first appears, frame B alone
+            a, b = b, np.full(3, np.nan)
+        moved = np.zeros(3)  # A's horizontal motion, carried by the eye and the target
+        if self._prev_a is not None and only_b == self._prev_only_b:
+            moved = (a - self._prev_a) * np.array([1.0, 0.0, 1.0])
+        self._prev_a, self._prev_only_b = a, only_b
+        eye_w, tgt_w = self.wanted(a, b, self._fwd)
+        if not np.isfinite(eye_w).all():
+            return np.full(3, np.nan), np.full(3, np.nan), self.UP, self.K_wanted, False
+        if self._e is None and self.start is None:
+            self._e, self._g = eye_w, tgt_w
+        elif self._e is None:  # the first framed frame is the start camera
+            st = self.start
+            self._e = st.pos[0].astype(np.float64)
+            self._g = self._e - max(1.0, float(np.linalg.norm(tgt_w - self._e))) * st.rot[0][:, 2]
+            self._u, self._k = st.rot[0][:, 1].astype(np.float64), st.K[0].astype(np.float64)
+        else:
+            al = self.alpha
+            e, g = self._e + moved, self._g + moved
+            self._e, self._g = e + al * (eye_w - e), g + al * (tgt_w - g)
+            self._u, self._k = self._u + al * (self.UP - self._u), self._k + al * (self.K_wanted - self._k)
+        return self._e, self._g, self._u, self._k, True
+
+    def camera(self, roots: list[np.ndarray], forward: np.ndarray, valid: list[bool]) -> Cameras:
+        """``step`` as a one-frame ``Cameras``."""
+        e, g, u, k, ok = self.step(roots, forward, valid)
+        R = look_at(e, g, u if self.start is not None else None) if ok else np.eye(3)
+        return Cameras(k[None].copy(), e[None].copy(), R[None], np.array([ok]), self.width, self.height)
+
+
 def follow_cameras(
     roots: list[np.ndarray],
     forward: np.ndarray,
@@ -135,54 +211,20 @@ def follow_cameras(
     """The follow camera of the module docstring: roots [(N, 3)] of the articulated entities (A, the player, first),
     A's world forward vectors (N, 3), their validity [(N,)], the frame rate and the output size; ``start``
     (frame 0 of a valid camera of the same output size) seeds the smoothing (module doc, "Seeded start")."""
-    if start is not None and (not len(start) or not start.valid[0] or (start.width, start.height) != (width, height)):
-        raise ValueError(f"follow_cameras: the start camera must be a valid camera of the output size {width}×{height}")
+    cam = FollowCamera(fps, width, height, start)
     n = len(roots[0])
-    a = _hold(np.asarray(roots[0], np.float64), np.asarray(valid[0], bool))
-    b = _hold(np.asarray(roots[1], np.float64), np.asarray(valid[1], bool)) if len(roots) > 1 else np.full((n, 3), np.nan)
-    fwd_a = _hold(np.asarray(forward, np.float64), np.asarray(valid[0], bool))
-    only_b = ~np.isfinite(a).all(-1) & np.isfinite(b).all(-1)
-    a = np.where(only_b[:, None], b, a)  # before A first appears, frame B alone
-    have_b = np.isfinite(b).all(-1) & ~only_b
-    d = np.where(have_b[:, None], b - a, 0.0)
-    d[:, 1] = 0.0
-    s = np.linalg.norm(d, axis=-1)
-    f_h = np.nan_to_num(fwd_a * np.array([1.0, 0.0, 1.0]))
-    nf = np.linalg.norm(f_h, axis=-1)
-    f_own = np.where(nf[:, None] > 1e-9, f_h / np.maximum(nf, 1e-12)[:, None], np.array([0.0, 0.0, 1.0]))
-    pair = have_b & (s > 1e-6)
-    f = np.where(pair[:, None], d / np.maximum(s, 1e-12)[:, None], f_own)
-    D = np.where(have_b, np.maximum(3.5, 9.5 - s), 3.5)  # 3.5 m behind A, at least 9.5 m from B
-    ahead = np.where(have_b, np.minimum(s / 2, 3.0), 2.0)
-    up = np.array([0.0, 1.0, 0.0])
-    eye_w = a - D[:, None] * f + (0.2 * D + 0.8)[:, None] * up
-    tgt_w = a + ahead[:, None] * f + 0.25 * up
-    # A's horizontal motion, carried by the eye and the target (none where the followed entity changes)
-    moved = np.diff(a, axis=0, prepend=a[:1]) * np.array([1.0, 0.0, 1.0])
-    moved[1:][only_b[1:] != only_b[:-1]] = 0.0
-    alpha = 1.0 - np.exp(-1.0 / (fps * FOLLOW_TAU_S))
+    roots = [np.asarray(r, np.float64) for r in roots[:2]]
+    valid = [np.asarray(v, bool) for v in valid[:2]]
+    forward = np.asarray(forward, np.float64)
     eye, tgt = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
-    K_w = intrinsics_for(width, height)
-    K = np.tile(K_w, (n, 1))
-    ups = np.tile(up, (n, 1))
-    e = g = None
-    u, k = up, K_w
+    K = np.tile(cam.K_wanted, (n, 1))
+    ups = np.tile(cam.UP, (n, 1))
     for t in range(n):
-        if not np.isfinite(eye_w[t]).all():
-            continue
-        if e is None and start is None:
-            e, g = eye_w[t], tgt_w[t]
-        elif e is None:  # the first framed frame is the start camera
-            e = start.pos[0].astype(np.float64)
-            g = e - max(1.0, float(np.linalg.norm(tgt_w[t] - e))) * start.rot[0][:, 2]
-            u, k = start.rot[0][:, 1].astype(np.float64), start.K[0].astype(np.float64)
-        else:
-            e, g = e + moved[t], g + moved[t]
-            e, g = e + alpha * (eye_w[t] - e), g + alpha * (tgt_w[t] - g)
-            u, k = u + alpha * (up - u), k + alpha * (K_w - k)
-        if start is not None:
-            ups[t], K[t] = u, k
-        eye[t], tgt[t] = e, g
+        e, g, u, k, ok = cam.step([r[t] for r in roots], forward[t], [bool(v[t]) for v in valid])
+        if ok:
+            eye[t], tgt[t] = e, g
+            if start is not None:
+                ups[t], K[t] = u, k
     ok = np.isfinite(eye).all(-1)
     R = np.tile(np.eye(3), (n, 1, 1))
     R[ok] = look_at(eye[ok], tgt[ok]) if start is None else look_at(eye[ok], tgt[ok], ups[ok])

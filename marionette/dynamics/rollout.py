@@ -308,6 +308,21 @@ class Rollout:
             )
         self.t = 0
 
+    def set_rules(self, enabled: Sequence[str]) -> None:
+        """Switch rules on or off mid-rollout, for every stream (a rule switched on starts from the current frame; the
+        collider needs the terrain field, the cap two articulated entities: ``Rules`` says which is missing)."""
+        wanted = tuple(r for r in RULES if r in set(enabled))
+        if unknown := set(enabled) - set(RULES):
+            raise ValueError(f"unknown rules {sorted(unknown)}; known: {list(RULES)}")
+        fresh = Rules(self.layout, self.field, RuleParams(fps=self.fps), wanted)  # checks what the rules need
+        self.enabled = wanted
+        for sc in self.scenes:
+            if sc.rules is None:
+                sc.rules = Rules(self.layout, self.field, RuleParams(fps=self.fps), wanted)
+                sc.rules.step(sc.world)  # the current frame is the rules' first: taken as given
+            else:
+                sc.rules.enabled = fresh.enabled
+
     # batch-1 views of the first stream
     state = property(lambda self: self.scenes[0].state)
     world = property(lambda self: self.scenes[0].world)
@@ -611,10 +626,13 @@ def rollout_table(
     quats: np.ndarray,
     toks: np.ndarray,
     progs: np.ndarray,
+    name: str | None = None,
 ) -> pa.Table:
+    """The seed rows and the predicted rows of a rollout as one table (corpus state schema) whose segment is ``name``
+    (default ``<segment>-rollout-s<seed>``)."""
     L, h = c.layout, len(states)
     schema = state_schema(L)
-    name = f"{segment}-rollout-s{seed}"
+    name = name or f"{segment}-rollout-s{seed}"
     last = seed_rows.slice(seed_rows.num_rows - 1, 1).to_pylist()[0]
     step_frames = c.fps / ro.fps
 
@@ -696,7 +714,7 @@ def _parse_script(s: str) -> tuple[str, Any]:
     return name, (start, end, velocity)
 
 
-def _parse_rules(s: str) -> str:
+def parse_rules(s: str) -> str:
     """``auto``, ``none`` or a comma list of known rules (returned as given; ``run`` splits it)."""
     if s in ("auto", "none"):
         return s
@@ -747,7 +765,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--force", type=_parse_force, nargs="+", action="extend", default=[], help=force_help)
     script_help = "ENTITY:START:END:VX,VY,VZ (m/s, own frame) or ENTITY:FILE.npy ((horizon, 9) root channels; default: none)"
     ap.add_argument("--script-root", type=_parse_script, nargs="+", action="extend", default=[], help=script_help)
-    ap.add_argument("--rules", type=_parse_rules, default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
+    ap.add_argument("--rules", type=parse_rules, default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
     ap.add_argument("--out", type=Path, required=True, help="STATES.arrow (the corpus state schema)")
     ap.add_argument("--render", type=Path, default=None, help="also render the rollout (follow camera) to this .mkv")
     ap.add_argument("--size", type=size_hxw, default=(352, 640), metavar="HxW", help="render size, HxW")

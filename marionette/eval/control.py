@@ -36,16 +36,16 @@ def held_out_seeds(c: Corpus, seed_frames: int, horizon: int, stride: int = 16, 
     return out
 
 
-def _tip_speeds(c: Corpus, state: np.ndarray, fps: float) -> np.ndarray:
-    """speed[f] (m/s) of the weapon's tip (its last point, in its owner's root frame) from state row f to f + 1."""
-    tip = state[:, c.layout.slice("weapon.points")].reshape(len(state), -1, 3)[:, -1]
+def tip_speeds(layout, state: np.ndarray, fps: float, attachment: str = "weapon") -> np.ndarray:
+    """speed[f] (m/s) of an attachment's tip (its last point, in its owner's root frame) from state row f to f + 1."""
+    tip = state[:, layout.slice(f"{attachment}.points")].reshape(len(state), -1, 3)[:, -1]
     return np.linalg.norm(np.diff(tip, axis=0), axis=1) * fps
 
 
 def tip_speed(c: Corpus, table, seed_frames: int, fps: float = 20.0) -> np.ndarray:
     """Weapon-tip speed (m/s) in its owner's root frame of each predicted frame of a rollout table (from the last seed
     row on; the weapon's last point is its tip)."""
-    return _tip_speeds(c, fixed_rows(table["state"], c.layout.dim)[seed_frames - 1 :], fps)
+    return tip_speeds(c.layout, fixed_rows(table["state"], c.layout.dim)[seed_frames - 1 :], fps)
 
 
 def recorded_swingers(
@@ -60,7 +60,7 @@ def recorded_swingers(
     for seg in c.segment_ids("train"):
         rows = c.dynamics_segment(seg, fps)
         stream = tokens.encode(c.layout, rows)[0][:, i]
-        speed = _tip_speeds(c, fixed_rows(rows["state"], c.layout.dim), fps)
+        speed = tip_speeds(c.layout, fixed_rows(rows["state"], c.layout.dim), fps)
         for f in np.flatnonzero(np.r_[True, stream[1:] != stream[:-1]]):
             t = int(stream[f])
             if classes.get(int(tokens.composites[i][t])) == "attack" and f + frames <= len(speed):

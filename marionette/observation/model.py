@@ -335,6 +335,38 @@ def sample_chunk(
     return x.clamp(-1.0, 1.0)
 
 
+class Relay:
+    """A relayed generation fed one chunk's control at a time (``paint``): each chunk starts from the last frame of the
+    one before (the given first frame for the first), and a model with reference slots is given, at every chunk, each
+    entity's crop from the first frame that showed it (``observation.references``; ``references=False``: none).
+    ``generate`` runs it over a whole control; ``marionette play`` over live pose frames as they come."""
+
+    def __init__(
+        self, model: VideoDiT, first: Tensor, first_control: Tensor, steps: int = 20, seed: int = 0, references: bool = True
+    ) -> None:
+        self.model, self.steps = model.eval(), int(steps)
+        self.cur = first  # (3, H, W): the frame the next chunk starts from
+        self.generator = torch.Generator().manual_seed(int(seed))
+        self.painted = 1  # frames so far, the first included
+        self.seen = None
+        c = model.config
+        if c.references and references:
+            from marionette.observation.references import EntityReferences
+
+            self.seen = EntityReferences(c.reference_bands, c.reference_size)
+            self.seen.see(first[None], first_control[None])
+
+    def paint(self, control: Tensor) -> Tensor:
+        """The chunk of ``control`` (T, ...) whose frame 0 is the current frame: its T − 1 new frames (T − 1, 3, H, W)."""
+        refs = self.seen.tensor()[None].to(self.cur.device) if self.seen is not None else None
+        clip = sample_chunk(self.model, control[None], self.cur[None], self.steps, self.generator, refs)[0]
+        if self.seen is not None:
+            self.seen.see(clip[1:], control[1:], offset=self.painted)
+        self.cur = clip[-1]
+        self.painted += len(clip) - 1
+        return clip[1:]
+
+
 def generate(
     model: VideoDiT,
     control: Tensor,
@@ -345,33 +377,14 @@ def generate(
     references: bool = True,
 ) -> Tensor:
     """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a control (a pose video, or the baseline's action
-    schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds).
-
-    A model with reference slots is given, at every chunk, each entity's crop from the first frame that showed it
-    (the given first frame, then the generated ones; ``observation.references``); ``references=False`` gives it
-    none (a measurement of what they do)."""
+    schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds; ``Relay``:
+    the references)."""
     c = model.config
     check_inputs(c, control, first)
-    pose = control
     step = c.frames - 1
-    n = (len(pose) - 1) // step if chunks is None else int(chunks)
-    if n < 1 or 1 + n * step > len(pose):
-        raise ValueError(f"{n} chunks need {1 + n * step} control frames; the control has {len(pose)}")
-    g = torch.Generator().manual_seed(int(seed))
-    out, cur = [first[None]], first
-    seen = None
-    if c.references and references:
-        from marionette.observation.references import EntityReferences
-
-        seen = EntityReferences(c.reference_bands, c.reference_size)
-        seen.see(first[None], pose[:1])
-    model.eval()
-    for k in range(n):
-        ctrl = pose[k * step : k * step + c.frames]
-        refs = seen.tensor()[None].to(first.device) if seen is not None else None
-        clip = sample_chunk(model, ctrl[None], cur[None], steps, g, refs)[0]
-        if seen is not None:
-            seen.see(clip[1:], ctrl[1:], offset=k * step + 1)
-        out.append(clip[1:])
-        cur = clip[-1]
+    n = (len(control) - 1) // step if chunks is None else int(chunks)
+    if n < 1 or 1 + n * step > len(control):
+        raise ValueError(f"{n} chunks need {1 + n * step} control frames; the control has {len(control)}")
+    relay = Relay(model, first, control[0], steps, seed, references)
+    out = [first[None]] + [relay.paint(control[k * step : k * step + c.frames]) for k in range(n)]
     return torch.cat(out, dim=0)
