@@ -10,6 +10,8 @@ need_apt=()
 for lib in libusb-1.0.so.0 libgomp.so.1 libEGL.so.1 libEGL_mesa.so.0 libgbm.so.1; do
   ldconfig -p 2>/dev/null | grep -q "$lib" || need_apt+=("$lib")
 done
+# the play page's tests drive Debian's Chromium (Playwright never downloads a browser here)
+[ -x /usr/bin/chromium ] || { need_apt+=(chromium); packages="$packages chromium"; }
 if [ ${#need_apt[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then
     apt-get update -qq
@@ -28,7 +30,7 @@ if [ ! -f "$stamp" ]; then
   log=.venv/bootstrap.log
   .venv/bin/pip install "torch==2.13.0" >"$log" 2>&1 || { cat "$log"; exit 1; }
   .venv/bin/pip install -e ".[dev]" >>"$log" 2>&1 || { cat "$log"; exit 1; }
-  .venv/bin/python -c "import marionette, open3d, av, prefect, torch, moderngl, numba"
+  .venv/bin/python -c "import marionette, open3d, av, prefect, torch, moderngl, numba, uvicorn, playwright"
   rm -f .venv/.bootstrap-*
   touch "$stamp"
 fi

@@ -364,3 +364,45 @@ def test_a_painted_session_relays_the_small_observation_model(tiny_dynamics, fol
         LiveSession(
             tiny_dynamics[0], c, segment=seg, seed_frames=SEED, size=(70, 128), observation=pose_run[0], log=lambda *_: None
         )
+
+
+def test_the_live_view_is_what_a_render_of_the_recording_shows_and_wasd_moves_the_root(tiny_dynamics, corpus, tmp_path):
+    """A session recorded from its first frame renders (``marionette render``'s follow camera) to the very ids the
+    live view showed; with the rules off, W at 3 m/s for 20 frames (1 s) carries the hunter 3 m along its heading;
+    switching a rule the scene cannot have is refused by name."""
+    from marionette.bridge.gbuffer import decode_gbuffer
+    from marionette.play.session import LiveSession
+
+    seg = corpus.segment_ids("test")[0]
+    s = LiveSession(tiny_dynamics[0], corpus, segment=seg, seed_frames=SEED, record_dir=tmp_path, log=lambda *_: None)
+    try:
+        live = [s.advance()[1][..., 1].copy()]
+        s.record({"action": "start", "name": "first"})
+        for _ in range(12):
+            live.append(s.advance()[1][..., 1].copy())
+        out = s.record({"action": "stop"})
+        assert s.set_rules({"cap": False})["cap"]["on"] is False
+        with pytest.raises(ValueError, match="collider"):
+            s.set_rules({"collider": True})  # this corpus's stage is not scanned: no terrain to collide with
+        with pytest.raises(ValueError, match="rules"):
+            s.set_rules({"gravity": True})
+        before = np.array(s.status()["entities"]["hunter"]["root"])
+        s.move("hunter", 3.0, 0.0, 0.0)
+        heading = []
+        for _ in range(20):
+            meta, _ = s.advance()
+            heading.append(np.radians(meta["entities"]["hunter"]["heading"]))
+        after = np.array(meta["entities"]["hunter"]["root"])
+        wait_for(lambda: out["done"] or "error" in out, what="the recording's files")
+    finally:
+        s.close()
+    frames, meta = decode_gbuffer(Path(out["mkv"]))
+    assert len(frames) == len(live)
+    for k, (f, g) in enumerate(zip(frames, live)):
+        ids = np.where(f.id < 0, 0, f.id)
+        assert np.array_equal(ids, g.astype(int)), f"frame {k}: the live view's ids differ from the recording's render"
+    step = (after - before)[[0, 2]]
+    h = np.mean(heading)
+    along = step @ np.array([np.sin(h), np.cos(h)])
+    print(f"\nW for 1 s at 3 m/s: {np.linalg.norm(step):.3f} m, {along:.3f} m along the heading")
+    assert abs(np.linalg.norm(step) - 3.0) < 0.15 and along > 2.8

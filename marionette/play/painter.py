@@ -6,13 +6,16 @@ then on every played frame's G-buffer codes are fed in (reduced to the model's s
 ``observation.data.pose_frames``), and whenever a chunk's worth (the model's T − 1 frames after the last painted one)
 is there, ``observation.model.Relay`` paints it from the last painted frame — the relay ``marionette generate``
 runs, at whatever rate the machine manages. The rate and how far painting is behind are reported with every
-painted frame. Painting never holds the live loop: when it is more than ``MAX_BEHIND_CHUNKS`` chunks behind, it
+painted frame. Painting never holds the live loop: its thread runs at a lower priority (``PAINT_NICE``), and
+when it is more than ``MAX_BEHIND_CHUNKS`` chunks behind, it
 skips to the newest whole chunk (and says how many frames it skipped), keeping its last painted frame as the next
 chunk's first.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -28,6 +31,7 @@ from marionette.observation.data import check_size, pose_frames, rgb_frames
 from marionette.observation.model import Relay
 
 MAX_BEHIND_CHUNKS = 2
+PAINT_NICE = 10  # the painting thread's niceness (Linux: per thread)
 
 
 def recorded_frame(corpus: Corpus, segment: str, frame: int) -> np.ndarray:
@@ -99,6 +103,8 @@ class Painter:
         self._thread.join(timeout=60)
 
     def _run(self) -> None:
+        with contextlib.suppress(OSError, AttributeError):  # the live view comes first: this thread (and the torch
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), PAINT_NICE)  # threads it starts) yields to it
         try:
             self._paint()
         except Exception as err:  # noqa: BLE001 - shown in the session's status; the live view goes on
