@@ -681,7 +681,9 @@ def cmd_demo(a: argparse.Namespace) -> int:
         bars.close()
     print(f"    report: {report['report_md']} (plots beside it)")
     print(f"demo finished in {time.time() - t0:.1f} s; corpus at {corpus}")
-    print(f"play it: marionette play {out / 'dynamics'} {corpus} --observation {out / 'observation'}  (then open http://127.0.0.1:8765/)")
+    print(
+        f"play it: marionette play {out / 'dynamics'} {corpus} --observation {out / 'observation'}  (then open http://127.0.0.1:8765/)"
+    )
     return 0
 
 

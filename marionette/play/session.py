@@ -22,6 +22,7 @@ from __future__ import annotations
 import re
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -172,7 +173,7 @@ def _int_field(msg: dict, key: str, lo: int, hi: int, default: int | None = None
     return int(v)
 
 
-class Playable:
+class Playable(ABC):
     """What the page drives, live or replayed: frames one at a time (``advance``), pause and single steps, the camera,
     the stage map, and one dispatcher for the page's messages (``handle``)."""
 
@@ -189,11 +190,13 @@ class Playable:
         self._pixels: np.ndarray | None = None
         self._map: dict = {}
 
+    @abstractmethod
     def advance(self) -> tuple[dict, np.ndarray] | None:
-        raise NotImplementedError
+        """The next frame (meta, pixels), or None when none is due."""
 
+    @abstractmethod
     def status(self) -> dict:
-        raise NotImplementedError
+        """What the page and ``GET /api/status`` show."""
 
     def _may_step(self) -> bool:
         """Whether a frame is due: playing, or a single step queued (which it takes)."""
