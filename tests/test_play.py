@@ -224,6 +224,8 @@ def test_bad_requests_are_400s_naming_what_was_wrong(live):
 def test_a_recorded_session_reloads(live, corpus, tmp_path):
     from marionette.bridge.gbuffer import iter_codes, read_meta
     from marionette.cli import main
+    from marionette.corpus import world_of_rows
+    from marionette.eval.metrics import bone_length_cv, check_rollout_table
     from marionette.io import read_ipc
     from marionette.play.replay import ReplaySession
     from marionette.schema import check_layout
@@ -247,6 +249,11 @@ def test_a_recorded_session_reloads(live, corpus, tmp_path):
     assert done["done"], done
     table = read_ipc(Path(done["arrow"]))
     check_layout(table.schema, corpus.layout, done["arrow"])
+    check_rollout_table(table, corpus.layout, done["arrow"])  # the evaluation's reader takes it as a rollout
+    world = world_of_rows(corpus.layout, table)
+    cv = bone_length_cv(world["hunter"], corpus.layout.entity("hunter").rig.parents)
+    print(f"\nrecorded {table.num_rows} rows; the hunter's bone-length CV {cv:.2e}")
+    assert np.isfinite(cv) and cv < 0.1  # the metric reads it (the tiny model keeps its bones within a few per cent)
     assert table.num_rows == out["frames"] >= 41
     assert table["segment"][0].as_py().endswith("-play-duel-1")
     t = table["t"].to_numpy()
