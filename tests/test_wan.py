@@ -247,3 +247,54 @@ def test_half_precision_keeps_the_float32_modules(release):
     assert {p.dtype for p in m.vae.parameters()} == {torch.float32}
     pose, first = inputs()
     assert torch.isfinite(m.generate(pose, first, steps=1)).all()
+
+
+def test_the_reference_path_prepends_one_latent_frame_of_tokens(model):
+    """``forward_with_reference`` with no reference tokens is the library's forward; with a reference sheet's tokens
+    (through the release's ``ref_conv``) the velocity changes and keeps its shape."""
+    from marionette.observation.wan import forward_with_reference
+
+    g = torch.Generator().manual_seed(3)
+    inp = torch.randn(1, 148, 2, 2, 2, generator=g)  # two latent frames of 2 × 2 latents: one token per frame
+    ts = torch.tensor([[0.0, 500.0]])
+    t = model.transformer
+    with torch.no_grad():
+        plain = t(inp, timestep=ts, encoder_hidden_states=model.context, return_dict=False)[0]
+        none = forward_with_reference(t, inp, ts, model.context, torch.zeros(1, 0, 24))
+        sheet = torch.rand(3, 32, 32, generator=g) * 2 - 1
+        ref = model.reference_tokens(sheet)
+        with_ref = forward_with_reference(t, inp, ts, model.context, ref)
+        other = forward_with_reference(t, inp, ts, model.context, model.reference_tokens(-sheet))
+    assert torch.allclose(none, plain, atol=1e-6, rtol=0)
+    assert ref.shape == (1, 1, 24) and with_ref.shape == plain.shape
+    assert not torch.allclose(with_ref, plain) and not torch.allclose(with_ref, other)
+    with pytest.raises(ValueError, match="one latent frame"):
+        forward_with_reference(t, inp, ts, model.context, torch.zeros(1, 3, 24))
+
+
+def test_a_relay_with_references_keeps_a_sheet_of_first_looks(model, release, tmp_path):
+    """``generate(references=bands)`` gives every chunk the sheet of each entity's first crop (deterministic, and
+    another video than without); a checkpoint without ``ref_conv`` says so."""
+    from marionette.bridge.gbuffer import CODE_MAX
+    from marionette.observation.references import reference_sheet
+
+    pose, first = inputs()
+    ids = torch.zeros(9, 32, 32)
+    ids[:, 8:20, 4:10] = 200  # the hunter's band, in every frame
+    ids[4:, 10:24, 20:28] = 150  # a monster, from frame 4 on (seen first in a generated frame)
+    pose[:, 1] = torch.round(ids / 255 * CODE_MAX) / CODE_MAX
+    bands = ((105, 194), (195, 254))
+    a = model.generate(pose, first, steps=2, seed=0, references=bands)
+    assert torch.equal(a, model.generate(pose, first, steps=2, seed=0, references=bands))
+    assert not torch.allclose(a[1:], model.generate(pose, first, steps=2, seed=0)[1:])
+    assert torch.equal(a[0], first)
+    refs = torch.zeros(2, 4, 8, 8)
+    refs[1, :3], refs[1, 3] = 0.5, 1.0
+    sheet = reference_sheet(refs, 32, 32)
+    assert sheet.shape == (3, 32, 32) and float(sheet[:, :16, 16:].abs().max()) == pytest.approx(0.5)
+    assert float(sheet[:, :16, :16].abs().max()) == 0.0 and float(sheet[:, 16:].abs().max()) == 0.0  # unseen: grey
+    shutil.copytree(release[0] / "vae", tmp_path / "vae")
+    release[1].save_pretrained(tmp_path / "transformer", safe_serialization=True)
+    plain = WanFunControl.from_pretrained(tmp_path, frames=5)
+    with pytest.raises(ValueError, match="no reference-image path"):
+        plain.generate(pose, first, steps=1, references=bands)

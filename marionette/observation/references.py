@@ -109,3 +109,22 @@ def chunk_references(rgb: Tensor, pose: Tensor, bands: Sequence[tuple[int, int]]
     refs = EntityReferences(bands, size)
     refs.see(rgb, pose)
     return refs
+
+
+def reference_sheet(refs: Tensor, height: int, width: int) -> Tensor:
+    """Entity references (E, 4, r, r) as one image (3, H, W) in [−1, 1], for a backbone that takes a reference image
+    (Wan-Fun's ``ref_conv``): each seen entity's crop, grey (0) outside its mask, resized to a square tile of side
+    min(H, W // E) and laid left to right from the top-left corner of a grey canvas; an unseen entity's tile stays
+    grey."""
+    E = len(refs)
+    side = min(int(height), int(width) // max(E, 1))
+    if side < 1:
+        raise ValueError(f"a {height}×{width} reference sheet has no room for {E} entities")
+    sheet = torch.zeros(3, int(height), int(width))
+    for e in range(E):
+        rgb, mask = refs[e, :3], refs[e, 3:4]
+        if not bool((mask > 0).any()):
+            continue
+        tile = F.interpolate((rgb * mask)[None], size=(side, side), mode="bilinear", align_corners=False)[0]
+        sheet[:, :side, e * side : (e + 1) * side] = tile.clamp(-1.0, 1.0)
+    return sheet

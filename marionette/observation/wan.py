@@ -12,8 +12,10 @@ safetensors, never unpickled):
   embedding, zeros (every prompt token padding) unless the caller passes precomputed prompt embeddings.
 
 Loading is strict: a parameter missing, left over or of another shape is a ValueError naming the file and
-the parameters. The release's optional ``ref_conv`` (a reference-image path) is loaded and kept but unused;
-a Control-Camera adapter (``add_control_adapter``) is refused.
+the parameters. The release's optional ``ref_conv`` (a reference-image path) is loaded; ``generate(references=)``
+gives every chunk a sheet of the entities' first looks through it (``forward_with_reference``: its tokens at rotary
+frame 0, before the video's frames, as Wan-Fun's reference path has them); fine-tuning does not use it yet.
+A Control-Camera adapter (``add_control_adapter``) is refused.
 
 Control inputs (VideoX-Fun's Fun-Control layout): per chunk of T = 4k + 1 frames at H × W, latents of
 F = k + 1 frames at H/16 × W/16, each normalised per channel, (z − latents_mean) / latents_std:
@@ -36,6 +38,7 @@ chunk k and the next T − 1 pose frames, so N chunks give 1 + N·(T − 1) fram
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -46,6 +49,7 @@ from torch import Tensor, nn
 
 from marionette.corpus.paths import inside
 from marionette.io import atomic_path, read_json, read_tensors, write_json
+from marionette.observation.references import EntityReferences, reference_sheet
 
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 PICKLES = (".pth", ".pt", ".bin", ".ckpt", ".pkl")
@@ -351,6 +355,39 @@ def _cast(model: nn.Module, dtype: torch.dtype) -> nn.Module:
     return model
 
 
+def forward_with_reference(
+    transformer: WanTransformer3DModel, hidden_states: Tensor, timestep: Tensor, context: Tensor, ref: Tensor
+) -> Tensor:
+    """``WanTransformer3DModel.forward`` with reference tokens ``ref`` (B, n, dim) in front of the video's tokens, as
+    Wan-Fun's reference path has them: n is one latent frame's tokens (or 0: the plain forward, step for step), they
+    sit at rotary frame 0 with the video's frames after them, at timestep 0 (a clean image), every video token
+    attends to them, and they are dropped before the output head. ``timestep`` is per token (B, seq)."""
+    B, C, F, H, W = hidden_states.shape
+    pt, ph, pw = transformer.config.patch_size
+    n = ref.shape[1]
+    if n not in (0, (H // ph) * (W // pw)) or ref.shape[0] != B:
+        raise ValueError(f"reference tokens {tuple(ref.shape)}: {B} × one latent frame's {(H // ph) * (W // pw)} tokens expected")
+    if timestep.ndim != 2:
+        raise ValueError(f"timestep {tuple(timestep.shape)}: per token (B, seq) expected")
+    rotary = transformer.rope(torch.empty(B, C, F + (pt if n else 0), H, W, device="meta"))  # the reference as frame 0
+    rotary = tuple(r.to(hidden_states.device) for r in rotary)
+    x = transformer.patch_embedding(hidden_states).flatten(2).transpose(1, 2)  # (B, seq, dim)
+    x = torch.cat([ref.to(x.dtype), x], dim=1).contiguous()
+    ts = torch.cat([timestep.new_zeros(B, n), timestep], dim=1)  # (B, n + seq)
+    temb, proj, ctx, _ = transformer.condition_embedder(ts.flatten(), context, None, timestep_seq_len=ts.shape[1])
+    proj = proj.unflatten(2, (6, -1))  # (B, n + seq, 6, dim)
+    for block in transformer.blocks:
+        if torch.is_grad_enabled() and transformer.gradient_checkpointing:
+            x = transformer._gradient_checkpointing_func(block, x, ctx, proj, rotary)
+        else:
+            x = block(x, ctx, proj, rotary)
+    x, temb = x[:, n:], temb[:, n:]
+    shift, scale = (transformer.scale_shift_table.unsqueeze(0).to(temb.device) + temb.unsqueeze(2)).chunk(2, dim=2)
+    x = (transformer.norm_out(x.float()) * (1 + scale.squeeze(2)) + shift.squeeze(2)).type_as(x)
+    x = transformer.proj_out(x).reshape(B, F // pt, H // ph, W // pw, pt, ph, pw, -1)
+    return x.permute(0, 7, 1, 4, 2, 5, 3, 6).flatten(6, 7).flatten(4, 5).flatten(2, 3)
+
+
 class WanFunControl:
     """Wan2.2-Fun-5B-Control with the observation model's call shape: ``generate(pose, first, chunks, steps, seed)``."""
 
@@ -445,9 +482,31 @@ class WanFunControl:
         """Normalised latents (1, z, F, h, w) → (4(F − 1) + 1, 3, 16h, 16w) in [−1, 1], on the CPU."""
         return self.vae.decode(latents * self.std + self.mean).sample[0].permute(1, 0, 2, 3).float().cpu()
 
+    def reference_tokens(self, sheet: Tensor) -> Tensor:
+        """A reference image (3, H, W) in [−1, 1] → its tokens (1, n, dim) through the release's ``ref_conv``: the VAE's
+        latent of the image as a one-frame video, patch-embedded (n = one latent frame's tokens)."""
+        if self.ref_conv is None:
+            raise ValueError(
+                "this checkpoint has no reference-image path (its config has no add_ref_conv); paint without references"
+            )
+        latent = self.encode(sheet[None])  # (1, z, 1, h, w)
+        if latent.shape[1] != self.ref_conv.in_channels:
+            raise ValueError(f"ref_conv takes {self.ref_conv.in_channels} latent channels; the VAE gives {latent.shape[1]}")
+        return self.ref_conv(latent[:, :, 0].to(self.dtype)).flatten(2).transpose(1, 2)
+
+    def velocity(self, inp: Tensor, timestep: Tensor, ref: Tensor | None = None) -> Tensor:
+        """The transformer's output for ``inp`` (B, 148, F, h, w) at per-token ``timestep`` (B, seq); with reference
+        tokens ``ref`` (B, n, dim), ``forward_with_reference``."""
+        if ref is None:
+            return self.transformer(inp, timestep=timestep, encoder_hidden_states=self.context, return_dict=False)[0]
+        return forward_with_reference(self.transformer, inp, timestep, self.context, ref)
+
     @torch.inference_mode()
-    def sample_chunk(self, pose: Tensor, first: Tensor, steps: int, generator: torch.Generator) -> Tensor:
-        """One chunk (T, 3, H, W) in [−1, 1] from its pose frames (T, 3, H, W) in [0, 1] and first frame (3, H, W)."""
+    def sample_chunk(
+        self, pose: Tensor, first: Tensor, steps: int, generator: torch.Generator, ref: Tensor | None = None
+    ) -> Tensor:
+        """One chunk (T, 3, H, W) in [−1, 1] from its pose frames (T, 3, H, W) in [0, 1] and first frame (3, H, W)
+        (``ref``: reference tokens, ``reference_tokens``)."""
         control = self.encode(pose * 2.0 - 1.0)  # (1, z, F, h, w)
         masked = torch.zeros(pose.shape)  # the first frame, then zeros
         masked[0] = first.float().cpu()
@@ -466,15 +525,34 @@ class WanFunControl:
         sigmas = flow_sigmas(steps, self.shift).tolist()
         for s, s_next in zip(sigmas[:-1], sigmas[1:]):
             inp = torch.cat([x, cond], dim=1).to(self.dtype)  # (1, 148, F, h, w)
-            v = self.transformer(inp, timestep=1000.0 * s * per_token, encoder_hidden_states=self.context, return_dict=False)[0]
+            v = self.velocity(inp, 1000.0 * s * per_token, ref)
             x = x + (s_next - s) * v.float()
             x[:, :, :1] = given
         return self.decode(x)
 
-    def generate(self, control: Tensor, first: Tensor, chunks: int | None = None, steps: int = 50, seed: int = 0) -> Tensor:
+    def generate(
+        self,
+        control: Tensor,
+        first: Tensor,
+        chunks: int | None = None,
+        steps: int = 50,
+        seed: int = 0,
+        references: Sequence[tuple[int, int]] = (),
+    ) -> Tensor:
         """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a pose video (T', 3, H, W) in [0, 1] and a first frame
-        (3, H, W) in [−1, 1], relayed over N chunks of T = ``frames`` (default: as many as the pose video holds)."""
+        (3, H, W) in [−1, 1], relayed over N chunks of T = ``frames`` (default: as many as the pose video holds).
+
+        ``references`` (render-id bands, one per entity): every chunk is given, through ``ref_conv``, a reference
+        sheet of each entity's crop from the first frame that showed it (the given first frame, then the generated
+        ones; ``observation.references``), so a relay keeps each entity's first look."""
         self.check_inputs(control, first)
+        seen = None
+        if references:
+            if self.ref_conv is None:
+                self.reference_tokens(first)  # says what is missing
+            H, W = first.shape[1:]
+            seen = EntityReferences(references, min(H, W // len(references)))
+            seen.see(first[None].float().cpu(), control[:1])
         step = self.frames - 1
         n = (len(control) - 1) // step if chunks is None else int(chunks)
         if n < 1 or 1 + n * step > len(control):
@@ -484,7 +562,14 @@ class WanFunControl:
         g = torch.Generator().manual_seed(int(seed))
         out, cur = [first[None].float().cpu()], first
         for k in range(n):
-            clip = self.sample_chunk(control[k * step : k * step + self.frames], cur, steps, g)
+            ctrl = control[k * step : k * step + self.frames]
+            ref = None
+            if seen is not None:
+                with torch.inference_mode():
+                    ref = self.reference_tokens(reference_sheet(seen.tensor(), *first.shape[1:]))
+            clip = self.sample_chunk(ctrl, cur, steps, g, ref)
+            if seen is not None:
+                seen.see(clip[1:], ctrl[1:], offset=k * step + 1)
             out.append(clip[1:])
             cur = clip[-1]
         return torch.cat(out, dim=0)
