@@ -139,3 +139,52 @@ def test_the_command_trains_under_ddp_and_generate_paints_with_the_result(follow
     with av.open(str(tmp_path / "painted.mp4")) as c:
         frames = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
     assert len(frames) == 17 and frames[0].shape == (32, 64, 3)
+
+
+def test_training_with_references_trains_the_reference_path_and_generate_relays_it(follow_corpus, tmp_path):
+    """``references``: every window carries its sheet of first looks (cached apart, once), ``ref_conv`` trains with
+    the transformer, the held-out loss falls, and the exported model's settings make ``marionette generate`` relay
+    a sheet (``--no-references``: another video)."""
+    from torch import nn
+
+    torch.manual_seed(0)
+    root = tmp_path / "Wan2.2-Fun-5B-Control"
+    ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)
+    save_original(root, WanTransformer3DModel(**TRANSFORMER).eval(), text_len=TEXT_LEN, ref_conv=ref_conv)
+    AutoencoderKLWan(**VAE).eval().save_pretrained(root / "vae", safe_serialization=True)
+    config = WanTrainConfig(backbone=str(root), references=True, **BASE)
+    s = train(follow_corpus, tmp_path / "run", config, log=lambda *_: None)
+    first, last = _losses(s)
+    print(f"\nwith references: held-out flow loss {first:.4f} → {last:.4f} over {s['steps']} steps, {s['windows']} windows")
+    assert last < 0.8 * first
+    files = list((follow_corpus / "derived" / "wan-latents").glob("*-refs/*.safetensors"))
+    assert len(files) == s["encoded"] == s["windows"] + s["held_out"]
+    assert all(set(load_file(f)) == {"x0", "control", "masked", "ref"} for f in files)
+    again = train(follow_corpus, tmp_path / "again", replace(config, steps=1), log=lambda *_: None)
+    assert again["encoded"] == 0
+    settings = json.loads((tmp_path / "run" / "model" / "marionette-wan.json").read_text())
+    assert settings["reference_bands"] == [[60, 99], [105, 194], [195, 254]]
+    trained = WanFunControl.from_pretrained(tmp_path / "run" / "model", frames=9)
+    assert not torch.equal(trained.ref_conv.weight, ref_conv.weight)
+    rng = np.random.default_rng(0)
+    meta = GBufferMeta(h_min=0.0, h_max=10.0, z_near=0.3, z_far=100.0, width=64, height=32, fps=20.0)
+    codes = [rng.integers(0, 1024, (32, 64, 3), dtype=np.uint16) for _ in range(17)]
+    for c in codes:
+        c[8:20, 4:14, 1] = round(200 / 255 * 1023)  # a hunter's bones in every frame
+    write_gbuffer(tmp_path / "pose.mkv", codes, meta)
+    write_image(tmp_path / "first.png", rng.integers(0, 256, (32, 64, 3), dtype=np.uint8))
+    paint = ["generate", str(tmp_path / "run" / "model"), "--pose", str(tmp_path / "pose.mkv")]
+    paint += ["--first-frame", str(tmp_path / "first.png"), "--steps", "2"]
+    assert cli([*paint, "--out", str(tmp_path / "with.mp4")]) == 0
+    assert cli([*paint, "--out", str(tmp_path / "without.mp4"), "--no-references"]) == 0
+    assert (tmp_path / "with.mp4").read_bytes() != (tmp_path / "without.mp4").read_bytes()
+    with pytest.raises(ValueError, match="no ref_conv"):
+        train(follow_corpus, tmp_path / "none", replace(config, backbone=str(backbone_dir(tmp_path))), log=lambda *_: None)
+
+
+def backbone_dir(tmp_path):
+    """A tiny backbone without a reference path."""
+    root = tmp_path / "plain"
+    save_original(root, WanTransformer3DModel(**TRANSFORMER).eval(), text_len=TEXT_LEN)
+    AutoencoderKLWan(**VAE).eval().save_pretrained(root / "vae", safe_serialization=True)
+    return root

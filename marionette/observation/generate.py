@@ -79,7 +79,17 @@ def wan_settings(path: Path) -> dict:
         raise ValueError(f"{path / WAN_SETTINGS}: frames {frames!r} is not 4k + 1 ≥ 5")
     if not isinstance(shift, int | float) or isinstance(shift, bool) or not shift > 0:
         raise ValueError(f"{path / WAN_SETTINGS}: shift {shift!r} is not a positive number")
-    return {"frames": frames, "shift": float(shift)}
+    bands = d.get("reference_bands", [])
+    ok = isinstance(bands, list) and all(
+        isinstance(b, list)
+        and len(b) == 2
+        and all(isinstance(x, int) and not isinstance(x, bool) for x in b)
+        and 1 <= b[0] <= b[1] <= 254
+        for b in bands
+    )
+    if not ok:
+        raise ValueError(f"{path / WAN_SETTINGS}: reference_bands {bands!r} is not a list of [first, last] render ids in 1..254")
+    return {"frames": frames, "shift": float(shift), "reference_bands": [tuple(b) for b in bands]}
 
 
 def paint_video(
@@ -104,7 +114,8 @@ def paint_video(
         m = read_meta(pose)
         pose_t, first_t = load_inputs(pose, first_frame, (m.height, m.width))
         t0 = time.perf_counter()
-        video = wan.generate(pose_t, first_t, chunks=chunks, steps=steps, seed=seed)
+        bands = settings["reference_bands"] if references else ()
+        video = wan.generate(pose_t, first_t, chunks=chunks, steps=steps, seed=seed, references=bands)
     else:
         model = load_model(ckpt)
         pose_t, first_t = load_inputs(pose, first_frame, model.config.size)

@@ -22,6 +22,12 @@ tenth, gradient clipping at 1; bf16 autocast and gradient checkpointing on reque
 the checkpoints (the trainable weights only, safetensors, with the optimizer) are ``marionette.training``'s;
 the finished run writes ``<out>/model/``: the transformer with any LoRA merged, in the release's layout, and
 the VAE, which ``WanFunControl.from_pretrained`` and ``marionette generate`` load.
+
+**References** (``references``): each window also gets a reference sheet — each entity's crop from the first frame
+of its chunk at or before the window's start that shows it (``observation.references``), tiled on a grey image —
+encoded once into the same cache (a directory of its own, the sheet in the window's digest), and the transformer
+reads its tokens through the release's ``ref_conv`` (``wan.forward_with_reference``), which trains with it. The
+exported model's settings list the reference bands, and ``marionette generate`` relays with a sheet of first looks.
 """
 
 from __future__ import annotations
@@ -45,7 +51,8 @@ from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.io import atomic_path, check_json_fields, file_sha256, read_tensors, write_json
 from marionette.observation.data import Clip, ClipSource, jittered_targets
 from marionette.observation.generate import WAN_SETTINGS
-from marionette.observation.wan import WanFunControl, find_vae, save_original
+from marionette.observation.references import chunk_references, layout_bands, reference_sheet
+from marionette.observation.wan import WanFunControl, find_vae, forward_with_reference, save_original
 from marionette.training import knob
 
 CACHE_DIR = "derived/wan-latents"
@@ -80,6 +87,9 @@ class WanTrainConfig:
         0.0, "training targets rendered from state whose bones are turned by up to this (°)", min=0.0, max=45.0
     )
     jitter_time_s: float = knob(0.0, "training targets rendered from state whose time is warped by up to this (s)", min=0.0)
+    references: bool = knob(
+        False, "give every window a sheet of each entity's first look in its chunk up to the window's start (ref_conv)"
+    )
 
     def __post_init__(self) -> None:
         training.check_knobs(self)
@@ -126,9 +136,20 @@ def windows(clip: Clip, frames: int, box: tuple[int, int, int, int]) -> list[tup
     return [(rgb[s : s + frames], pose[s : s + frames]) for s in range(0, len(rgb) - frames + 1, frames - 1)]
 
 
-def window_digest(rgb: Tensor, pose: Tensor) -> str:
+def window_sheets(clip: Clip, frames: int, box: tuple[int, int, int, int], bands: Sequence[tuple[int, int]]) -> list[Tensor]:
+    """Per window of ``windows``, its reference sheet (3, h, w): each entity's crop from the first frame of the chunk
+    at or before the window's start that shows it (``observation.references``; what a relay has seen by then)."""
+    top, left, h, w = box
+    rgb, pose = clip.rgb[:, :, top : top + h, left : left + w], clip.pose[:, :, top : top + h, left : left + w]
+    seen = chunk_references(rgb, pose, bands, min(h, w // len(bands)))
+    return [reference_sheet(seen.tensor(upto=s), h, w) for s in range(0, len(rgb) - frames + 1, frames - 1)]
+
+
+def window_digest(rgb: Tensor, pose: Tensor, sheet: Tensor | None = None) -> str:
     h = hashlib.sha256(np.ascontiguousarray(rgb.numpy()).tobytes())
     h.update(np.ascontiguousarray(pose.numpy()).tobytes())
+    if sheet is not None:
+        h.update(np.ascontiguousarray(sheet.numpy()).tobytes())
     return h.hexdigest()[:24]
 
 
@@ -136,16 +157,17 @@ class LatentCache:
     """Encoded windows under ``<corpus>/derived/wan-latents/<vae>-<T>x<H>x<W>/`` (module docstring); counts what this
     process ``encoded`` and what it found already there (``reused``)."""
 
-    def __init__(self, corpus: Path, key: str, frames: int, size: tuple[int, int]) -> None:
-        self.dir = Path(corpus) / CACHE_DIR / f"{key}-{frames}x{size[0]}x{size[1]}"
+    def __init__(self, corpus: Path, key: str, frames: int, size: tuple[int, int], references: bool = False) -> None:
+        self.dir = Path(corpus) / CACHE_DIR / f"{key}-{frames}x{size[0]}x{size[1]}{'-refs' if references else ''}"
         self.encoded = self.reused = 0
 
-    def path(self, rgb: Tensor, pose: Tensor) -> Path:
-        return self.dir / f"{window_digest(rgb, pose)}.safetensors"
+    def path(self, rgb: Tensor, pose: Tensor, sheet: Tensor | None = None) -> Path:
+        return self.dir / f"{window_digest(rgb, pose, sheet)}.safetensors"
 
-    def ensure(self, path: Path, rgb: Tensor, pose: Tensor, model: WanFunControl) -> None:
+    def ensure(self, path: Path, rgb: Tensor, pose: Tensor, model: WanFunControl, sheet: Tensor | None = None) -> None:
         """Encode the window into ``path`` unless it is there: its RGB, its pose video read as RGB in [−1, 1], and the
-        masked video (the first frame, then zeros), each (z, F, h, w), stored in bf16."""
+        masked video (the first frame, then zeros), each (z, F, h, w), and its reference sheet (z, 1, h, w) when
+        given, stored in bf16."""
         if path.is_file():
             self.reused += 1
             return
@@ -153,6 +175,8 @@ class LatentCache:
             masked = torch.zeros_like(rgb)
             masked[0] = rgb[0]
             out = {"x0": model.encode(rgb)[0], "control": model.encode(pose * 2.0 - 1.0)[0], "masked": model.encode(masked)[0]}
+            if sheet is not None:
+                out["ref"] = model.encode(sheet[None])[0]
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             save_file({k: v.to(torch.bfloat16).contiguous().cpu() for k, v in out.items()}, str(tmp))
@@ -160,7 +184,7 @@ class LatentCache:
 
 
 def read_latents(path: Path) -> dict[str, Tensor]:
-    """A cached window's {"x0", "control", "masked"} in float32."""
+    """A cached window's {"x0", "control", "masked"[, "ref"]} in float32."""
     return {k: v.float() for k, v in read_tensors(path).items()}
 
 
@@ -185,21 +209,29 @@ def input_box(corpus: Corpus, config: WanTrainConfig, model: WanFunControl) -> t
 
 
 def cache_split(
-    corpus: Corpus, split: str, config: WanTrainConfig, model: WanFunControl, cache: LatentCache, jitter: str | None = None
+    corpus: Corpus,
+    split: str,
+    config: WanTrainConfig,
+    model: WanFunControl,
+    cache: LatentCache,
+    jitter: str | None = None,
+    bands: Sequence[tuple[int, int]] = (),
 ) -> list[Path]:
     """The cache files of every window of the split's chunks (the first ``max_chunks``): rank r of w encodes the
     windows k ≡ r (mod w) that are missing, then every rank waits for the others, so the encoding fans out over
-    the ranks and each reads all of them after."""
+    the ranks and each reads all of them after. With ``bands``, each window carries its reference sheet."""
     rank, world = rank_world()
     size, box = input_box(corpus, config, model)
     paths: list[Path] = []
     for k, clip in enumerate(ClipSource(corpus, split, config.frames, size, jitter=jitter).chunks()):
         if config.max_chunks and k >= config.max_chunks:
             break
-        for rgb, pose in windows(clip, config.frames, box):
-            path = cache.path(rgb, pose)
+        wins = windows(clip, config.frames, box)
+        sheets = window_sheets(clip, config.frames, box, bands) if bands else [None] * len(wins)
+        for (rgb, pose), sheet in zip(wins, sheets):
+            path = cache.path(rgb, pose, sheet)
             if len(paths) % world == rank:
-                cache.ensure(path, rgb, pose, model)
+                cache.ensure(path, rgb, pose, model, sheet)
             paths.append(path)
     if world > 1:
         torch.distributed.barrier()
@@ -221,8 +253,9 @@ class Windows(Sequence):
 
 def flow_batch(
     latents: Sequence[dict[str, Tensor]], picks: Sequence[int], generator: torch.Generator, shift: float, temporal: int
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The transformer's input (B, 148, F, h, w), its per-frame σ (B, F) (0 on frame 0), the target ε − x₀ and x₀."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+    """The transformer's input (B, 148, F, h, w), its per-frame σ (B, F) (0 on frame 0), the target ε − x₀, x₀ and
+    the reference sheets' latents (B, z, 1, h, w) (None without)."""
     items = [latents[i] for i in picks]  # each read once
     x0 = torch.stack([lat["x0"] for lat in items])
     cond_parts = []
@@ -239,20 +272,49 @@ def flow_batch(
     x[:, :, :1] = x0[:, :, :1]
     per_frame = sigma[:, None].expand(-1, x0.shape[2]).clone()
     per_frame[:, 0] = 0.0
-    return torch.cat([x, cond], dim=1), per_frame, eps - x0, x0
+    refs = torch.stack([lat["ref"] for lat in items]) if "ref" in items[0] else None
+    return torch.cat([x, cond], dim=1), per_frame, eps - x0, x0, refs
 
 
 def flow_loss(
-    transformer: nn.Module, patch: Sequence[int], context: Tensor, inp: Tensor, per_frame: Tensor, target: Tensor, bf16: bool
+    transformer: nn.Module,
+    patch: Sequence[int],
+    context: Tensor,
+    inp: Tensor,
+    per_frame: Tensor,
+    target: Tensor,
+    bf16: bool,
+    refs: Tensor | None = None,
 ) -> Tensor:
     """Mean squared error of the predicted velocity on every latent frame but the given one (``patch``: the
-    transformer's (t, h, w) patch size; each token's timestep is its latent frame's σ)."""
+    transformer's (t, h, w) patch size; each token's timestep is its latent frame's σ). With reference latents
+    ``refs``, ``transformer`` is a ``Referenced`` one."""
     pt, ph, pw = patch
     B, _, F, h, w = inp.shape
     per_token = per_frame[:, ::pt, None].expand(B, F // pt, (h // ph) * (w // pw)).reshape(B, -1)
     with torch.autocast(inp.device.type, dtype=torch.bfloat16, enabled=bf16):
-        v = transformer(inp, timestep=1000.0 * per_token, encoder_hidden_states=context.expand(B, -1, -1), return_dict=False)[0]
+        if refs is None:
+            v = transformer(inp, timestep=1000.0 * per_token, encoder_hidden_states=context.expand(B, -1, -1), return_dict=False)[
+                0
+            ]
+        else:
+            v = transformer(inp, 1000.0 * per_token, context.expand(B, -1, -1), refs)
     return ((v.float() - target) ** 2)[:, :, 1:].mean()
+
+
+class Referenced(nn.Module):
+    """The transformer (plain or LoRA-wrapped) and the release's ``ref_conv`` as one module whose forward takes the
+    reference sheets' latents: what DDP wraps and a checkpoint holds when a run trains with references."""
+
+    def __init__(self, transformer: nn.Module, ref_conv: nn.Conv2d) -> None:
+        super().__init__()
+        self.transformer, self.ref_conv = transformer, ref_conv
+        base = transformer.base_model.model if hasattr(transformer, "base_model") else transformer  # LoRA sits inside
+        object.__setattr__(self, "_base", base)  # the same modules, not registered twice
+
+    def forward(self, inp: Tensor, timestep: Tensor, context: Tensor, refs: Tensor) -> Tensor:
+        tokens = self.ref_conv(refs[:, :, 0].to(self.ref_conv.weight.dtype)).flatten(2).transpose(1, 2)  # (B, n, dim)
+        return forward_with_reference(self._base, inp, timestep, context, tokens)
 
 
 class Trainable(nn.Module):
@@ -288,8 +350,8 @@ def held_out_loss(
     total = 0.0
     for i in range(len(latents)):
         for _ in range(EVAL_DRAWS):
-            inp, per_frame, target, _ = flow_batch(latents, [i], g, config.shift, temporal)
-            total += float(flow_loss(transformer, patch, context, inp, per_frame, target, config.bf16))
+            inp, per_frame, target, _, refs = flow_batch(latents, [i], g, config.shift, temporal)
+            total += float(flow_loss(transformer, patch, context, inp, per_frame, target, config.bf16, refs))
     transformer.train()
     return total / max(len(latents) * EVAL_DRAWS, 1)
 
@@ -329,11 +391,17 @@ def train(
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
     backbone = Path(config.backbone)
     model = WanFunControl.from_pretrained(backbone, frames=config.frames, shift=config.shift)
-    cache = LatentCache(corpus.path, vae_key(find_vae(backbone)), config.frames, input_box(corpus, config, model)[1][2:])
+    bands: tuple[tuple[int, int], ...] = ()
+    if config.references:
+        if model.ref_conv is None:
+            raise ValueError(f"{backbone}: --references trains the release's reference path, and this checkpoint has no ref_conv")
+        bands = layout_bands(corpus.layouts.values())
+    box = input_box(corpus, config, model)[1]
+    cache = LatentCache(corpus.path, vae_key(find_vae(backbone)), config.frames, box[2:], config.references)
     jitter = jittered_targets(corpus, config.jitter_root_m, config.jitter_joint_deg, config.jitter_time_s, config.seed, log)
-    latents = Windows(cache_split(corpus, "train", config, model, cache, jitter))  # held out: the recorded state's
+    latents = Windows(cache_split(corpus, "train", config, model, cache, jitter, bands))  # held out: the recorded state's
     held_split = HELD_OUT if corpus.segment_ids(HELD_OUT) else "train"
-    held = Windows(cache_split(corpus, held_split, config, model, cache))
+    held = Windows(cache_split(corpus, held_split, config, model, cache, bands=bands))
     if not len(latents):
         raise ValueError(f"{corpus.path}: no train window of {config.frames} frames with a pose target")
     encoded, reused = (int(v) for v in summed([cache.encoded, cache.reused]))
@@ -345,6 +413,8 @@ def train(
     if config.gradient_checkpointing:
         (transformer.base_model.model if config.lora_rank else transformer).enable_gradient_checkpointing()
     transformer.train()
+    if config.references:  # the reference path trains with the rest (and is all that sees the sheets)
+        transformer = Referenced(transformer, model.ref_conv.float().requires_grad_(True))
     trainable = Trainable(transformer)
     opt = torch.optim.AdamW(trainable.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=0.0)
     sched = training.warmup_cosine(opt, config.warmup, config.steps, 0.1)
@@ -374,8 +444,8 @@ def train(
         rng = np.random.default_rng([config.seed, step] if rank == 0 else [config.seed, step, rank])
         picks = rng.integers(0, len(latents), config.batch_size).tolist()
         g = training.noise_generator(config.seed, step, rank)
-        inp, per_frame, target, _ = flow_batch(latents, picks, g, config.shift, model.temporal)
-        return {"loss": flow_loss(net, patch, context, inp, per_frame, target, config.bf16)}
+        inp, per_frame, target, _, refs = flow_batch(latents, picks, g, config.shift, model.temporal)
+        return {"loss": flow_loss(net, patch, context, inp, per_frame, target, config.bf16, refs)}
 
     end = config.steps if stop_at is None else min(stop_at, config.steps)
     training.run_steps(
@@ -402,7 +472,10 @@ def train(
     exported = None
     if rank == 0 and run.step >= config.steps:
         settings = {"frames": config.frames, "shift": config.shift}
-        exported = export_model(transformer, backbone, out_dir / "model", model.context.shape[1], model.ref_conv, settings)
+        if bands:
+            settings["reference_bands"] = [list(b) for b in bands]
+        plain = transformer.transformer if isinstance(transformer, Referenced) else transformer
+        exported = export_model(plain, backbone, out_dir / "model", model.context.shape[1], model.ref_conv, settings)
         log(f"wrote {exported}: `marionette generate {exported} --pose ... --first-frame ...` paints with it")
     evals = run.evals
     if rank == 0:
