@@ -14,7 +14,7 @@ safetensors, never unpickled):
 Loading is strict: a parameter missing, left over or of another shape is a ValueError naming the file and
 the parameters. The release's optional ``ref_conv`` (a reference-image path) is loaded; ``generate(references=)``
 gives every chunk a sheet of the entities' first looks through it (``forward_with_reference``: its tokens at rotary
-frame 0, before the video's frames, as Wan-Fun's reference path has them); fine-tuning does not use it yet.
+frame 0, before the video's frames, as Wan-Fun's reference path has them), and ``wan_train`` trains it (``references``).
 A Control-Camera adapter (``add_control_adapter``) is refused.
 
 Control inputs (VideoX-Fun's Fun-Control layout): per chunk of T = 4k + 1 frames at H × W, latents of
