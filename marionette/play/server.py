@@ -24,6 +24,7 @@ import threading
 import time
 from collections import deque
 from importlib import resources
+from typing import Any
 
 import numpy as np
 from starlette.applications import Starlette
@@ -34,7 +35,8 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from .session import Playable
 
-QUEUE_FRAMES = 2
+QUEUE_FRAMES = 1
+QUICK = {"control", "move"}  # handled on the event loop itself: they only take the controls' lock, briefly
 QUEUE_PAINTED = 256
 HOST = "127.0.0.1"  # never another interface: the page drives a model on this machine
 MAX_BODY = 64 << 10
@@ -156,6 +158,14 @@ class Outbox:
         return self.items.popleft()[1]
 
 
+async def handled(session: Playable, msg: Any) -> dict:
+    """``session.handle(msg)``: a control at once (the key's latency is the product), anything else in a worker
+    thread (a reset or a rule waits for the frame being made)."""
+    if isinstance(msg, dict) and msg.get("type") in QUICK:
+        return session.handle(msg)
+    return await asyncio.get_running_loop().run_in_executor(None, session.handle, msg)
+
+
 def _page() -> str:
     return resources.files("marionette.play").joinpath("page.html").read_text(encoding="utf-8")
 
@@ -215,7 +225,7 @@ def create_app(session: Playable, fps: float | None = None, log=print) -> Starle
         if not isinstance(body, dict):
             return JSONResponse({"error": f"the body is a JSON object, not {type(body).__name__}"}, 400)
         try:
-            reply = await asyncio.get_running_loop().run_in_executor(None, session.handle, {**body, "type": kind})
+            reply = await handled(session, {**body, "type": kind})
         except ValueError as err:
             return JSONResponse({"error": str(err)}, 400)
         player.asked(reply)
@@ -238,14 +248,13 @@ def create_app(session: Playable, fps: float | None = None, log=print) -> Starle
                 await websocket.send_bytes(data)
 
         async def receive() -> None:
-            loop = asyncio.get_running_loop()
             while True:
                 raw = await websocket.receive_text()
                 seq = None
                 try:
                     msg = json.loads(raw)
                     seq = msg.get("seq") if isinstance(msg, dict) else None
-                    reply = await loop.run_in_executor(None, session.handle, msg)
+                    reply = await handled(session, msg)
                     player.asked(reply)
                     await websocket.send_text(json.dumps({"type": "reply", "seq": seq, "result": reply}))
                 except (ValueError, json.JSONDecodeError) as err:

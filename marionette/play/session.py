@@ -299,6 +299,7 @@ class LiveSession(Playable):
         self.record_dir = Path(record_dir)
         self.log = log
         super().__init__()
+        self.controls_lock = threading.RLock()  # the controls' own: taken between frames and by requests, briefly
         self.ro = Rollout(ckpt, self.corpus, temperature=temperature, seed=seed, rules="none")
         self.fps = self.ro.fps
         self.names = [e.name for e in self.layout.articulated]
@@ -378,10 +379,11 @@ class LiveSession(Playable):
         last = self.seed_rows.slice(self.seed_rows.num_rows - 1, 1)
         self.view.reset_camera(self._recorded_camera(segment, last) if self.painter is not None else None)
         self.history = _History()
-        self._forced, self._moves = {}, {}
+        with self.controls_lock:
+            self._forced, self._moves = {}, {}
+            self._ack = self._seq
         self.recording = None
         self.frame = 0
-        self._ack = self._seq
         self._prev_state = np.asarray(self.ro.state, np.float32)
         if paused is not None:
             self.paused = paused
@@ -468,7 +470,7 @@ class LiveSession(Playable):
         i = self.entity_index(entity)
         if "token" not in msg and "root" not in msg:
             raise ValueError("a control gives a token or a root velocity")
-        with self.lock:
+        with self.controls_lock:  # never the step's lock: a control is taken while a frame is made
             self._seq += 1
             seq = self._seq
             if "token" in msg:
@@ -510,7 +512,7 @@ class LiveSession(Playable):
         rig = self.layout.articulated[i].rig
         fwd = np.asarray(rig.forward_axis, np.float64)
         left = np.cross([0.0, 1.0, 0.0], fwd)
-        with self.lock:
+        with self.controls_lock:  # never the step's lock: a control is taken while a frame is made
             if forward == 0 and right == 0 and turn == 0:
                 self._moves.pop(i, None)
                 self._seq += 1
@@ -547,6 +549,10 @@ class LiveSession(Playable):
     def _step_controls(self) -> tuple[dict[int, int], np.ndarray | None, list[int], int]:
         """This frame's forced tokens, root override (root stream, state units), replayed entities and the newest
         control it answers; counts the windows down."""
+        with self.controls_lock:
+            return self._take_controls()
+
+    def _take_controls(self) -> tuple[dict[int, int], np.ndarray | None, list[int], int]:
         forced, restart, ack = {}, [], self._ack
         for i, f in list(self._forced.items()):
             forced[i] = f.token
