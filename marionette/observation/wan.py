@@ -388,6 +388,11 @@ def forward_with_reference(
     return x.permute(0, 7, 1, 4, 2, 5, 3, 6).flatten(6, 7).flatten(4, 5).flatten(2, 3)
 
 
+def ref_tokens(ref_conv: nn.Conv2d, latent: Tensor) -> Tensor:
+    """Reference latents (B, z, 1, h, w) → their tokens (B, n, dim) through ``ref_conv`` (one latent frame's worth)."""
+    return ref_conv(latent[:, :, 0].to(ref_conv.weight.dtype)).flatten(2).transpose(1, 2)
+
+
 class WanFunControl:
     """Wan2.2-Fun-5B-Control with the observation model's call shape: ``generate(pose, first, chunks, steps, seed)``."""
 
@@ -485,14 +490,18 @@ class WanFunControl:
     def reference_tokens(self, sheet: Tensor) -> Tensor:
         """A reference image (3, H, W) in [−1, 1] → its tokens (1, n, dim) through the release's ``ref_conv``: the VAE's
         latent of the image as a one-frame video, patch-embedded (n = one latent frame's tokens)."""
+        self.need_ref_conv()
+        latent = self.encode(sheet[None])  # (1, z, 1, h, w)
+        if latent.shape[1] != self.ref_conv.in_channels:
+            raise ValueError(f"ref_conv takes {self.ref_conv.in_channels} latent channels; the VAE gives {latent.shape[1]}")
+        return ref_tokens(self.ref_conv, latent)
+
+    def need_ref_conv(self) -> None:
+        """A ValueError unless this checkpoint has the release's reference-image path."""
         if self.ref_conv is None:
             raise ValueError(
                 "this checkpoint has no reference-image path (its config has no add_ref_conv); paint without references"
             )
-        latent = self.encode(sheet[None])  # (1, z, 1, h, w)
-        if latent.shape[1] != self.ref_conv.in_channels:
-            raise ValueError(f"ref_conv takes {self.ref_conv.in_channels} latent channels; the VAE gives {latent.shape[1]}")
-        return self.ref_conv(latent[:, :, 0].to(self.dtype)).flatten(2).transpose(1, 2)
 
     def velocity(self, inp: Tensor, timestep: Tensor, ref: Tensor | None = None) -> Tensor:
         """The transformer's output for ``inp`` (B, 148, F, h, w) at per-token ``timestep`` (B, seq); with reference
@@ -548,8 +557,7 @@ class WanFunControl:
         self.check_inputs(control, first)
         seen = None
         if references:
-            if self.ref_conv is None:
-                self.reference_tokens(first)  # says what is missing
+            self.need_ref_conv()
             H, W = first.shape[1:]
             seen = EntityReferences(references, min(H, W // len(references)))
             seen.see(first[None].float().cpu(), control[:1])

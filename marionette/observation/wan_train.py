@@ -52,7 +52,7 @@ from marionette.io import atomic_path, check_json_fields, file_sha256, read_tens
 from marionette.observation.data import Clip, ClipSource, jittered_targets
 from marionette.observation.generate import WAN_SETTINGS
 from marionette.observation.references import chunk_references, layout_bands, reference_sheet
-from marionette.observation.wan import WanFunControl, find_vae, forward_with_reference, save_original
+from marionette.observation.wan import WanFunControl, find_vae, forward_with_reference, ref_tokens, save_original
 from marionette.training import knob
 
 CACHE_DIR = "derived/wan-latents"
@@ -313,8 +313,7 @@ class Referenced(nn.Module):
         object.__setattr__(self, "_base", base)  # the same modules, not registered twice
 
     def forward(self, inp: Tensor, timestep: Tensor, context: Tensor, refs: Tensor) -> Tensor:
-        tokens = self.ref_conv(refs[:, :, 0].to(self.ref_conv.weight.dtype)).flatten(2).transpose(1, 2)  # (B, n, dim)
-        return forward_with_reference(self._base, inp, timestep, context, tokens)
+        return forward_with_reference(self._base, inp, timestep, context, ref_tokens(self.ref_conv, refs))
 
 
 class Trainable(nn.Module):

@@ -334,7 +334,8 @@ class LiveSession(Playable):
 
     def segments(self) -> list[str]:
         """Segments long enough to seed a session."""
-        return [s for s in self.corpus.segment_ids() if self.corpus.segment_row(s)["frames"] > 0]
+        seg = self.corpus.segments  # one read of the table, not one per segment
+        return [s for s, n in zip(seg["segment"].to_pylist(), seg["frames"].to_pylist()) if n > 0]
 
     def reset(self, segment: str | None = None, start: int = 0, paused: bool | None = None) -> dict:
         """Seed the rollout again from ``segment`` (default: the current one) at dynamics frame ``start``; checked now,
@@ -344,7 +345,8 @@ class LiveSession(Playable):
             raise ValueError(f"{self.corpus.path}: no segment {segment!r} (`marionette inspect CORPUS --segments` lists them)")
         if isinstance(start, bool) or not isinstance(start, int):
             raise ValueError(f"start {start!r} is not an integer")
-        n = self.corpus.dynamics_segment(segment, self.fps).num_rows
+        view = self.corpus.dynamics_segment(segment, self.fps)
+        n = view.num_rows
         if start < 0 or n < start + self.seed_frames:
             raise ValueError(
                 f"segment {segment} has {n} dynamics frames; a {self.seed_frames}-frame seed from frame {start} does not fit"
@@ -352,11 +354,10 @@ class LiveSession(Playable):
         if paused is not None and not isinstance(paused, bool):
             raise ValueError(f"paused is true or false, not {paused!r}")
         with self.lock:
-            self._pending = (segment, int(start), paused)
+            self._pending = (segment, view, int(start), paused)
         return {"segment": segment, "start": int(start), "pending": True}
 
-    def _reset_now(self, segment: str, start: int, paused: bool | None) -> None:
-        view = self.corpus.dynamics_segment(segment, self.fps)
+    def _reset_now(self, segment: str, view: pa.Table, start: int, paused: bool | None) -> None:
         stage = self.corpus.stage_of(segment)
         first = self.view is None
         if stage != self.stage:  # the terrain (collider, render, map) of the new stage
