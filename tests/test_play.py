@@ -83,8 +83,10 @@ def attack(corpus, tiny_dynamics):
 
 
 @pytest.fixture(scope="module")
-def live(corpus, tiny_dynamics, attack, tmp_path_factory):
-    """A live session of the tiny checkpoint served on 127.0.0.1 (a free port), the attack bound to key J."""
+def live(corpus, tiny_dynamics, attack, pose_run, baseline_run, tmp_path_factory):
+    """A live session of the tiny checkpoint served on 127.0.0.1 (a free port), the attack bound to key J. It starts
+    once the session's background observation trainings are done (``pose_run``, ``baseline_run``): frame rates and
+    key latency are measured on a machine doing nothing else, as a player's is."""
     from marionette.play.server import Server
     from marionette.play.session import LiveSession
 
