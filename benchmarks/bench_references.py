@@ -1,21 +1,24 @@
 """Persistent entity references against appearance drift: the small observation DiT with and without them.
 
     .venv/bin/python benchmarks/bench_references.py [--recordings 12] [--seconds 40] [--steps 3000] [--out DIR]
-        [--reduce 2 --patch 2] [--arms default,references]
+        [--reduce 2 --patch 2] [--arms default,drift,references,tokens]
 
 A synthetic tree where appearance must be read from the video — each recording's monster and player in colours
 of their own (``synth --skins``) and a player who looks around, so that the bodies leave the view and come back
-(``synth --camera-pans``) — ingested at 36 × 64, its terrain scanned and its pose targets rendered. Three arms of
+(``synth --camera-pans``) — ingested at 36 × 64, its terrain scanned and its pose targets rendered. Four arms of
 the tests' observation recipe (18 × 32 and patch 2 unless ``--reduce``/``--patch`` say otherwise, 5-frame clips,
 batch 4, lr 1e-3, a fifth of the clips given another chunk's first frame), differing only in what is named: the default model; the same with its first
 frames' bodies drifted in colour (σ 0.3, ``--first-frame-drift``); and with references and that drift
-(``--references``). Each relays every held-out video of 161 frames (40 chunks, 8 sampling steps) from its recorded
-first frame (``quality.relay_videos``, ``quality.entity_drift``); the reference arm also without its references.
+(``--references``: each entity's crop read as tokens and laid over its body in every frame); and the same with the
+crops only read as tokens (``--no-reference-paint``). Each relays every held-out video of 161 frames (40 chunks, 8 sampling steps) from its recorded
+first frame (``quality.relay_videos``, ``quality.entity_drift``); the reference arms also without their references.
 
 Printed: per arm, the per-entity colour error (|mean generated − mean recorded RGB| over the entity's mask, RGB
 in [−1, 1]) over the first and the last quarter of the relay's chunks and their difference (the growth), the
 colour error where the entity stayed in view and where it left the view and came back, and the pixel error's
-growth. ``--out`` keeps the corpus and the runs (a second run with the same --out reuses them).
+growth; and the same colour error with every chunk started from its recorded frame (``forced``: no relay, the
+references from the recorded frames) — its growth is what the later frames ask anyway (bodies turned from their first
+look, back into view), and the growth of relayed − forced is the relay's own drift. ``--out`` keeps the corpus and the runs (a second run with the same --out reuses them).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ ARMS = {  # key: (row name, knobs)
     "default": ("default", {}),
     "drift": ("first-frame drift 0.3", {"first_frame_drift": 0.3}),
     "references": ("references + drift 0.3", {"references": True, "first_frame_drift": 0.3}),
+    "tokens": ("reference tokens only + drift 0.3", {"references": True, "reference_paint": False, "first_frame_drift": 0.3}),
 }
 
 
@@ -104,6 +108,7 @@ def main() -> None:
         model = load_model(run)
         for given in (True, False) if model.config.references else (True,):
             d = entity_drift(model, videos, bands, steps=8, references=given)
+            f = entity_drift(model, videos, bands, steps=8, references=given, forced=True)["colour"]
             q = max(1, a.chunks // 4)
             colour, pixel = d["colour"], d["pixel"]
             rows.append(
@@ -112,6 +117,9 @@ def main() -> None:
                     f"{np.nanmean(colour[:q]):.4f}",
                     f"{np.nanmean(colour[-q:]):.4f}",
                     f"{drift_growth(colour):+.4f}",
+                    f"{np.nanmean(f[:q]):.4f} → {np.nanmean(f[-q:]):.4f}",
+                    f"{drift_growth(f):+.4f}",
+                    f"{drift_growth(colour - f):+.4f}",
                     f"{d['in_view']:.4f}",
                     f"{d['after_gap']:.4f}",
                     f"{drift_growth(pixel):+.4f}",
@@ -123,7 +131,18 @@ def main() -> None:
         f"{len(videos)} held-out videos of {1 + 4 * a.chunks} frames ({a.chunks} chunks of 5) at {size[0]} × {size[1]}, "
         f"patch {a.patch}, {a.recordings} × {a.seconds:.0f} s recordings, {a.steps} steps per arm; pairs {d['pairs']}"
     )
-    head = ["arm", "colour, first ¼", "colour, last ¼", "growth", "stayed in view", "after leaving the view", "pixel growth"]
+    head = [
+        "arm",
+        "colour, first ¼",
+        "colour, last ¼",
+        "growth",
+        "forced: first ¼ → last ¼",
+        "forced growth",
+        "the relay's growth",
+        "stayed in view",
+        "after leaving the view",
+        "pixel growth",
+    ]
     print(table(head, rows))
 
 

@@ -14,6 +14,7 @@ from marionette.observation.references import (
     chunk_references,
     crop,
     merge_bands,
+    paint,
 )
 
 BANDS = ((60, 64), (105, 150), (195, 230))
@@ -66,6 +67,57 @@ def test_a_clip_sees_only_entities_shown_at_or_before_its_start():
     assert later.frame == [None, 0, 7] and torch.equal(later.tensor(), refs.tensor())
 
 
+def test_a_reference_is_laid_over_its_body_in_every_frame_fitted_to_where_the_body_is_now():
+    """The crop of a two-coloured body (top red, bottom blue), laid over the same body moved and grown: the top of
+    its new box reads red, the bottom blue; pixels of no entity, and an entity without a reference, read zeros."""
+    H, W = 36, 64
+    rgb = torch.full((3, H, W), -1.0)
+    ids = torch.zeros(1, H, W, dtype=torch.long)
+    ids[0, 4:12, 6:10] = 120  # an 8 × 4 monster
+    rgb[:, 4:8, 6:10] = torch.tensor([0.9, -0.9, -0.9])[:, None, None]
+    rgb[:, 8:12, 6:10] = torch.tensor([-0.9, -0.9, 0.9])[:, None, None]
+    mask = band_masks(pose_with(ids), BANDS)[0, 1]
+    refs = torch.zeros(1, 3, 4, 16, 16)
+    refs[0, 1] = crop(rgb, mask, 16)
+    now = torch.zeros(3, H, W, dtype=torch.long)
+    now[0, 4:12, 6:10] = 120  # where it was
+    now[1, 20:36, 40:48] = 120  # moved and twice the size, cut by the frame's bottom edge at row 36
+    now[1, 0:3, 0:3] = 200  # the player, never seen: no reference
+    laid = paint(refs, pose_with(now)[None], BANDS)[0]  # (3, 4, H, W)
+    assert laid.shape == (3, 4, H, W)
+    red, blue = torch.tensor([0.9, -0.9, -0.9])[:, None, None], torch.tensor([-0.9, -0.9, 0.9])[:, None, None]
+    # away from the body's outline and the seam (a resampled crop blends there)
+    assert torch.allclose(laid[0, :3, 5:7, 7:9], red, atol=1e-4) and torch.allclose(laid[0, :3, 9:11, 7:9], blue, atol=1e-4)
+    assert torch.allclose(laid[1, :3, 22:26, 42:46], red, atol=1e-4)
+    assert torch.allclose(laid[1, :3, 30:34, 42:46], blue, atol=1e-4)
+    assert bool((laid[1, 0, 20:36, 40:48] > -0.9 - 1e-4).all())  # the outline blends red and blue, nothing else
+    on = now[:, None] == 120
+    assert torch.equal(laid[:, 3:] > 0, on) and torch.all(laid[:, 3][on[:, 0]] == 1.0)
+    assert torch.equal(laid.abs().sum(1) > 0, on[:, 0])  # nothing off the monster's pixels, nothing for the player
+    assert laid[2].abs().sum() == 0  # a frame without the body
+
+
+def test_painting_holds_at_the_extremes_one_pixel_bodies_a_body_filling_the_frame_half_precision():
+    H, W = 8, 16
+    ids = torch.zeros(2, 1, H, W, dtype=torch.long)
+    ids[0, 0, 3, 5] = 120  # a one-pixel body
+    ids[1, 0] = 120  # a body filling the frame
+    rgb = torch.full((2, 3, H, W), -1.0)
+    rgb[0, :, 3, 5] = torch.tensor([0.5, 0.2, -0.4])
+    rgb[1] = torch.tensor([0.3, -0.6, 0.8])[:, None, None]
+    pose = torch.stack([pose_with(ids[0]), pose_with(ids[1])])  # (2, 1, 3, H, W)
+    masks = band_masks(pose[:, 0], BANDS)  # (2, E, H, W)
+    refs = torch.zeros(2, 3, 4, 8, 8)
+    refs[0, 1], refs[1, 1] = crop(rgb[0], masks[0, 1], 8), crop(rgb[1], masks[1, 1], 8)
+    for dtype in (torch.float32, torch.float16):
+        laid = paint(refs.to(dtype), pose.to(dtype), BANDS).float()
+        assert laid.shape == (2, 1, 4, H, W) and torch.isfinite(laid).all() and laid.abs().max() <= 1.0 + 1e-3
+        assert float(laid[0, 0, 3, 3, 5]) == 1.0 and float(laid[0, 0, 3].sum()) == 1.0  # one pixel laid
+        # the one-pixel body's look is its own colour blended with its surroundings' by the crop's resampling
+        assert torch.allclose(laid[0, 0, :3, 3, 5], torch.tensor([0.5, 0.2, -0.4]), atol=0.02)
+        assert torch.allclose(laid[1, 0, :3], rgb[1], atol=2e-3)  # a full frame reads its own colour everywhere
+
+
 def config(**kw) -> ObservationConfig:
     return ObservationConfig(frames=5, height=8, width_px=16, patch=2, width=32, layers=2, heads=2, **kw)
 
@@ -80,13 +132,18 @@ def test_reference_slots_are_checked_and_round_trip_through_json():
         config(reference_bands=((0, 10),), reference_size=8)
     with pytest.raises(ValueError, match="without reference_bands"):
         config(reference_size=8)
+    with pytest.raises(ValueError, match="reference_paint without reference_bands"):
+        config(reference_paint=True)
+    painted = config(reference_bands=BANDS, reference_size=8, reference_paint=True)
+    assert ObservationConfig.from_json(painted.to_json()) == painted and painted.in_channels == c.in_channels + 4
     with pytest.raises(ValueError, match="reference_bands"):
         ObservationConfig.from_json({**c.to_json(), "reference_bands": [["a", 1]]})
 
 
-def test_the_model_reads_its_references_and_refuses_the_wrong_shape():
+@pytest.mark.parametrize("painted", [False, True])
+def test_the_model_reads_its_references_and_refuses_the_wrong_shape(painted):
     torch.manual_seed(0)
-    model = VideoDiT(config(reference_bands=BANDS, reference_size=8), seed=1)
+    model = VideoDiT(config(reference_bands=BANDS, reference_size=8, reference_paint=painted), seed=1)
     for p in (model.head.weight, model.final_mod.weight, *(b.modulation.weight for b in model.blocks)):
         torch.nn.init.normal_(p, 0.0, 0.1)  # past adaLN-Zero's identity start, so inputs reach the output
     x, pose, first, s = torch.randn(2, 5, 3, 8, 16), torch.rand(2, 5, 3, 8, 16), torch.randn(2, 3, 8, 16), torch.rand(2)
@@ -100,11 +157,38 @@ def test_the_model_reads_its_references_and_refuses_the_wrong_shape():
     loss = flow_loss(model, x.clamp(-1, 1), pose, torch.Generator().manual_seed(0), refs=refs)
     loss.backward()
     assert model.ref_embed.weight.grad.abs().sum() > 0 and model.ref_slot.weight.grad.abs().sum() > 0
+    if painted:  # the laid references reach the velocity without the tokens: through the pixels' own input channels
+        laid = model.embed.weight.grad.view(32, -1, 2, 2)[:, 10:14]
+        assert model.config.in_channels == 14 and laid.abs().sum() > 0
+        with torch.no_grad():
+            model.ref_embed.weight.zero_(), model.ref_embed.bias.zero_(), model.ref_slot.weight.zero_()
+            assert not torch.allclose(model(x, pose, first, s, refs), model(x, pose, first, s, refs.flip(0)))
     with torch.no_grad():  # a relay takes its references from what it shows and paints
         ids = torch.zeros(9, 8, 16, dtype=torch.long)
         ids[:, 2:5, 3:6] = 120
         video = generate(model, pose_with(ids), first[0], steps=2)
     assert video.shape == (9, 3, 8, 16)
+
+
+@pytest.mark.parametrize("painted", [False, True])
+def test_a_forced_relay_is_the_relay_when_the_recording_is_what_the_relay_painted(painted):
+    """``forced_chunks`` starts every chunk from the recorded frame (and takes references from recorded frames): given
+    the relay's own video as the recording, it is that video bit for bit; given the real recording it is not."""
+    from marionette.observation.quality import forced_chunks
+
+    torch.manual_seed(0)
+    model = VideoDiT(config(reference_bands=BANDS, reference_size=8, reference_paint=painted), seed=1)
+    for p in (model.head.weight, model.final_mod.weight, *(b.modulation.weight for b in model.blocks)):
+        torch.nn.init.normal_(p, 0.0, 0.1)
+    ids = torch.zeros(13, 8, 16, dtype=torch.long)
+    ids[:, 2:5, 3:6] = 120
+    ids[6:, 5:7, 9:12] = 200  # the player first shown in the second chunk
+    pose, recorded = pose_with(ids), torch.rand(13, 3, 8, 16) * 2 - 1
+    with torch.no_grad():
+        relayed = generate(model, pose, recorded[0], steps=2, seed=3)
+        assert torch.equal(forced_chunks(model, pose, relayed, 3, steps=2, seed=3), relayed)
+        forced = forced_chunks(model, pose, recorded, 3, steps=2, seed=3)
+    assert torch.equal(forced[:5], relayed[:5]) and not torch.allclose(forced[5:], relayed[5:])
 
 
 def test_training_batches_carry_each_clips_references_and_drift_only_the_bodies_of_its_first_frame():

@@ -29,6 +29,10 @@ Persistent entity references (``reference_bands``, ``observation.references``): 
 also reads, per entity slot, a crop of that entity (RGB and its mask, ``reference_size`` pixels square) as
 (r/p)² tokens of its own — a linear patch embedding of their own, the patch row and column embeddings and a learnt
 embedding of the slot — that every token attends to and none is painted from; a slot with nothing seen is zeros.
+With ``reference_paint`` each crop is also laid over its entity's pixels in every frame (``references.paint``: 3
+colour channels and a mask, four more input channels a pixel), so a token reads the look of the body it paints
+where it paints it; tokens alone must find the right slot by attention (docs/tradeoffs.md, "Persistent entity
+references").
 
 The pixel-AR baseline of the paper is the same network with ``control="actions"``: no pose channels;
 instead each frame's tokens get the sum of per-entity embeddings of that frame's action tokens (the
@@ -50,6 +54,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from marionette.io import check_json_fields
+from marionette.observation.references import paint
 
 RGB, POSE = 3, 3
 CONTROLS = ("pose", "actions")
@@ -77,6 +82,7 @@ class ObservationConfig:
     # and a reference's side in pixels; () and 0: none
     reference_bands: tuple[tuple[int, int], ...] = ()
     reference_size: int = 0
+    reference_paint: bool = False  # the references also laid over their bodies in every frame (references.paint)
 
     def __post_init__(self) -> None:
         if self.format != FORMAT:
@@ -93,6 +99,8 @@ class ObservationConfig:
             )
         if self.width % self.heads:
             raise ValueError(f"observation config: width {self.width} does not split into {self.heads} heads")
+        if not isinstance(self.reference_paint, bool):
+            raise ValueError(f"observation config: reference_paint {self.reference_paint!r} is not true or false")
         if self.reference_bands:
             if self.reference_size < self.patch or self.reference_size % self.patch:
                 raise ValueError(
@@ -103,8 +111,8 @@ class ObservationConfig:
                     raise ValueError(f"observation config: reference band [{a}, {b}] is not within the render ids 1–254")
             if self.control != "pose":
                 raise ValueError("observation config: entity references need pose control (their masks come from it)")
-        elif self.reference_size:
-            raise ValueError("observation config: reference_size without reference_bands")
+        elif self.reference_size or self.reference_paint:
+            raise ValueError("observation config: reference_size or reference_paint without reference_bands")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -117,8 +125,8 @@ class ObservationConfig:
     @property
     def in_channels(self) -> int:
         """Per pixel: noisy RGB, the pose frame (pose control only), the given frame (the first frame on frame 0,
-        zeros after) and its mask."""
-        return RGB + (POSE if self.control == "pose" else 0) + RGB + 1
+        zeros after) and its mask, and (``reference_paint``) the references laid over their bodies and their mask."""
+        return RGB + (POSE if self.control == "pose" else 0) + RGB + 1 + (RGB + 1 if self.reference_paint else 0)
 
     @property
     def references(self) -> int:
@@ -252,18 +260,22 @@ class VideoDiT(nn.Module):
         given = torch.zeros(B, T, RGB + 1, *x_s.shape[3:], dtype=x_s.dtype, device=x_s.device)  # Wan's masked video + mask
         given[:, 0, :RGB], given[:, 0, RGB] = first, 1.0
         parts = [x_s, control, given] if c.control == "pose" else [x_s, given]
-        tokens = self.embed(self.patchify(torch.cat(parts, dim=2))) + self.pos
-        if self.actions is not None:
-            per_frame = sum(emb(control[..., i]) for i, emb in enumerate(self.actions))  # (B, T, width)
-            tokens = (tokens.view(B, T, -1, c.width) + per_frame[:, :, None]).view(B, -1, c.width)
-        n = tokens.shape[1]
         if c.references:
             r = c.reference_size
             if refs is None:
                 refs = torch.zeros(B, c.references, RGB + 1, r, r, dtype=x_s.dtype, device=x_s.device)
             if tuple(refs.shape) != (B, c.references, RGB + 1, r, r):
                 raise ValueError(f"references {tuple(refs.shape)}: the model takes ({B}, {c.references}, {RGB + 1}, {r}, {r})")
-            per = self.ref_embed(self.patchify(refs.to(x_s.dtype))).view(B, c.references, -1, c.width)
+            refs = refs.to(x_s.dtype)
+            if c.reference_paint:
+                parts.append(paint(refs, control, c.reference_bands).to(x_s.dtype))
+        tokens = self.embed(self.patchify(torch.cat(parts, dim=2))) + self.pos
+        if self.actions is not None:
+            per_frame = sum(emb(control[..., i]) for i, emb in enumerate(self.actions))  # (B, T, width)
+            tokens = (tokens.view(B, T, -1, c.width) + per_frame[:, :, None]).view(B, -1, c.width)
+        n = tokens.shape[1]
+        if c.references:
+            per = self.ref_embed(self.patchify(refs)).view(B, c.references, -1, c.width)
             per = per + self.ref_pos + self.ref_slot.weight[:, None]
             tokens = torch.cat([tokens, per.reshape(B, -1, c.width)], dim=1)
         cond = self.time(sincos(s * 1000.0, c.width).to(x_s.dtype))  # (B, width)

@@ -13,7 +13,11 @@ benchmarks share.
   first frame leaves them). Pairs are chosen whose masks overlap little, so that the two are told apart.
 - ``entity_drift``: appearance drift over a relay. Per relay chunk, the per-entity appearance error: for each
   entity (render-id band) and frame in which the recorded pose shows it, the mean |generated − recorded| over its
-  mask's pixels; its growth from the first chunks to the last is what persistent references are for.
+  mask's pixels; its growth from the first chunks to the last is what persistent references are for. With
+  ``forced`` every chunk starts from the recorded frame instead of the last painted one (and a model with references
+  takes them from the recorded frames): the same error without the relay, so that what the relay adds (relayed −
+  forced) is told from what the video's later frames ask anyway (bodies turned away from their first look, bodies
+  come back into view).
 """
 
 from __future__ import annotations
@@ -58,19 +62,46 @@ def entity_drift(
     steps: int = 16,
     seed: int = 0,
     references: bool = True,
+    forced: bool = False,
 ) -> dict[str, np.ndarray | float]:
     """``appearance_drift`` of the model's relays (``references``: whether a model with reference slots is given
-    them)."""
+    them; ``forced``: each chunk from its recorded first frame, ``forced_chunks``)."""
 
-    def paint(pose: Tensor, first: Tensor, chunks: int) -> Tensor:
-        return generate(model, pose, first, chunks=chunks, steps=steps, seed=seed, references=references)
+    def paint(pose: Tensor, recorded: Tensor, chunks: int) -> Tensor:
+        if forced:
+            return forced_chunks(model, pose, recorded, chunks, steps=steps, seed=seed, references=references)
+        return generate(model, pose, recorded[0], chunks=chunks, steps=steps, seed=seed, references=references)
 
     return appearance_drift(videos, bands, model.config.frames - 1, paint)
 
 
+def forced_chunks(
+    model: VideoDiT, pose: Tensor, recorded: Tensor, chunks: int, steps: int = 16, seed: int = 0, references: bool = True
+) -> Tensor:
+    """A video made as a relay's (1 + N·(T − 1) frames, noise from one generator seeded by ``seed``) but with every chunk
+    started from the recorded frame at its start, and a model with reference slots given each entity's crop from the
+    first recorded frame up to that start that shows it: the relay's error without its hand-offs."""
+    from marionette.observation.references import EntityReferences
+
+    c = model.config
+    step = c.frames - 1
+    g = torch.Generator().manual_seed(int(seed))
+    seen = EntityReferences(c.reference_bands, c.reference_size) if c.references and references else None
+    out, upto = [recorded[:1]], 0
+    for k in range(chunks):
+        a = k * step
+        refs = None
+        if seen is not None:
+            seen.see(recorded[upto : a + 1], pose[upto : a + 1], offset=upto)
+            upto, refs = a + 1, seen.tensor()[None]
+        with torch.no_grad():
+            out.append(sample_chunk(model.eval(), pose[None, a : a + c.frames], recorded[None, a], steps, g, refs)[0, 1:])
+    return torch.cat(out)
+
+
 def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], step: int, paint) -> dict[str, np.ndarray | float]:
-    """Appearance drift over relays: each video relayed by ``paint(pose, first frame, chunks)`` from its recorded
-    first frame over as many chunks K of ``step`` new frames as the shortest holds. Per (entity, frame) where the
+    """Appearance drift over relays: each video relayed by ``paint(pose, recorded video, chunks)`` from its recorded
+    first frame (a relay reads only that frame of the recording) over as many chunks K of ``step`` new frames as the shortest holds. Per (entity, frame) where the
     recorded pose shows the entity, its colour error |mean generated RGB − mean recorded RGB| over the entity's mask
     (its look, whatever the shape) and its pixel error (mean |generated − recorded| over the mask: look and shape).
     Returns
@@ -88,7 +119,7 @@ def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], ste
     history = {"in_view": [], "after_gap": []}
     for v in videos:
         pose, rgb = v.pose[:n], v.rgb[:n]
-        video = paint(pose, rgb[0], K)[1:]
+        video = paint(pose, rgb, K)[1:]
         masks = band_masks(pose, bands).float()[:, :, None]  # (n, E, 1, H, W)
         shown_at = masks.flatten(2).sum(-1) > 0  # (n, E)
         masks, shown = masks[1:], shown_at[1:].float()

@@ -10,8 +10,13 @@ frame that shows it, and handed to every later chunk beside its first frame.
   a many-species corpus share one slot; two entities of one rig share a band and so a reference).
 - **A reference** (4, r, r): the RGB (in [−1, 1]) of a square around the entity's pixels in the pose frame's id
   mask (its side 1.5 × the mask's larger extent plus two pixels, centred on the mask's box), bilinearly
-  resampled to r × r, with the resampled mask as a fourth channel; all zeros where the entity has not been seen
-  (mask 0 says "no reference").
+  resampled to r × r, with the resampled mask as a fourth channel; where a sample touches the body (mask > 0) its
+  colour is the body's pixels' alone (mask-weighted), so a body a few pixels across keeps its colour rather than a
+  blend with the ground around it; all zeros where the entity has not been seen (mask 0 says "no reference").
+- **Painted onto the bodies** (``paint``, a model's ``reference_paint``): besides being read as tokens, each
+  entity's crop is laid over its pixels in every frame's pose frame — the crop's square fitted, as it was cut, to
+  the box of the entity's mask in that frame, its body pixels where it has them and the crop's mean body colour
+  elsewhere — so a token finds the look of the body it paints at its own pixels, with no search over slots.
 - **Which frame**: the first frame at or before the chunk's start in which the entity's mask has a pixel. In
   training, frames of the clip's own chunk up to the clip's start (never the frames the clip must paint); in a
   relay, the given first frame, then the first generated frame that shows an entity not seen before.
@@ -66,8 +71,13 @@ def crop(rgb: Tensor, mask: Tensor, size: int) -> Tensor:
     gy = (cy + side * t) / H * 2 - 1
     gx = (cx + side * t) / W * 2 - 1
     grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1)[None]  # (1, r, r, 2) as (x, y)
-    src = torch.cat([rgb.float(), mask[None].float()], dim=0)[None]
-    return F.grid_sample(src, grid.to(src.device), mode="bilinear", padding_mode="zeros", align_corners=False)[0]
+    m = mask[None].float()
+    src = torch.cat([rgb.float(), rgb.float() * m, m], dim=0)[None]
+    out = F.grid_sample(src, grid.to(src.device), mode="bilinear", padding_mode="zeros", align_corners=False)[0]
+    # where a sample touches the body, the body's colour alone (its pixels' colours over their weights): a small
+    # body's look is not washed out by what surrounds it; elsewhere the surroundings as they are
+    body = out[6:7]
+    return torch.cat([torch.where(body > 0, out[3:6] / body.clamp_min(1e-6), out[:3]), body], dim=0)
 
 
 class EntityReferences:
@@ -128,3 +138,48 @@ def reference_sheet(refs: Tensor, height: int, width: int) -> Tensor:
         tile = F.interpolate((rgb * mask)[None], size=(side, side), mode="bilinear", align_corners=False)[0]
         sheet[:, :side, e * side : (e + 1) * side] = tile.clamp(-1.0, 1.0)
     return sheet
+
+
+def boxes(masks: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Masks (…, H, W) bool → each mask's box as (y0, y1, x0, x1) in pixel edges (floats) and whether it has a pixel;
+    an empty mask's box is (0, H, 0, W)."""
+    H, W = masks.shape[-2:]
+    rows, cols = masks.any(-1), masks.any(-2)
+    y0 = rows.float().argmax(-1).float()  # the first row with a pixel
+    y1 = H - rows.flip(-1).float().argmax(-1).float()
+    x0 = cols.float().argmax(-1).float()
+    x1 = W - cols.flip(-1).float().argmax(-1).float()
+    return y0, y1, x0, x1, rows.any(-1)
+
+
+def paint(refs: Tensor, pose: Tensor, bands: Sequence[tuple[int, int]]) -> Tensor:
+    """Entity references (B, E, 4, r, r) and pose frames (B, T, 3, H, W) → (B, T, 4, H, W): each seen entity's crop
+    laid over its mask in every frame (module doc; RGB, then 1 where a reference was laid), zeros elsewhere.
+
+    The crop was cut as a square of side ``MARGIN`` × the mask's larger extent (+ 2 px) centred on its box; a frame's
+    pixel (y, x) reads the crop where it would lie had the crop been cut from that frame: at ((y + ½ − cy) / side,
+    (x + ½ − cx) / side) of the crop's extent, (cy, cx) and side from that frame's mask."""
+    B, E = refs.shape[:2]
+    T, H, W = pose.shape[1], pose.shape[-2], pose.shape[-1]
+    masks = band_masks(pose.float(), bands)  # (B, T, E, H, W)
+    y0, y1, x0, x1, _ = boxes(masks)
+    side = MARGIN * torch.maximum(y1 - y0, x1 - x0) + 2.0  # (B, T, E)
+    cy, cx = (y0 + y1) / 2, (x0 + x1) / 2
+    ys = torch.arange(H, dtype=torch.float32, device=pose.device) + 0.5
+    xs = torch.arange(W, dtype=torch.float32, device=pose.device) + 0.5
+    # grid_sample's coordinates (align_corners=False): the crop's extent is −1..1, so twice the fraction of a side
+    gy = 2 * (ys - cy[..., None]) / side[..., None]  # (B, T, E, H)
+    gx = 2 * (xs - cx[..., None]) / side[..., None]  # (B, T, E, W)
+    grid = torch.stack(torch.broadcast_tensors(gx[..., None, :], gy[..., :, None]), dim=-1)  # (B, T, E, H, W, 2)
+    rgb, body = refs[:, :, :3].float(), refs[:, :, 3:].float()  # (B, E, ·, r, r)
+    src = torch.cat([rgb * body, body], dim=2)  # the body's colour only (premultiplied by its mask)
+    src = src[:, None].expand(B, T, *src.shape[1:]).reshape(B * T * E, *src.shape[2:])
+    laid = F.grid_sample(src, grid.reshape(B * T * E, H, W, 2), mode="bilinear", padding_mode="zeros", align_corners=False)
+    laid = laid.view(B, T, E, 4, H, W)
+    weight = body.sum((-1, -2))  # (B, E, 1)
+    mean = (rgb * body).sum((-1, -2)) / weight.clamp_min(1e-6)  # (B, E, 3): the crop's mean body colour
+    seen = (weight[..., 0] > 0).float()[:, None, :, None, None, None]  # (B, 1, E, 1, 1, 1)
+    on = masks[:, :, :, None].float() * seen  # (B, T, E, 1, H, W): this entity's pixels, where it has a reference
+    colour = laid[:, :, :, :3] + mean[:, None, :, :, None, None] * (1 - laid[:, :, :, 3:])
+    out = torch.cat([colour * on, on], dim=3).sum(2)  # bands are disjoint: at most one entity a pixel
+    return out.to(refs.dtype)

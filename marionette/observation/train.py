@@ -79,6 +79,11 @@ class ObservationTrainConfig:
         "give every clip a crop of each entity from the first frame of its chunk that shows it, up to the clip's "
         "start (persistent references against appearance drift over a relay; observation.references)",
     )
+    reference_paint: bool = knob(
+        True,
+        "with --references: also lay each entity's crop over its pixels in every frame's control (four more input "
+        "channels a pixel); off: the references are only read as tokens (docs/tradeoffs.md, 'Persistent entity references')",
+    )
     first_frame_drift: float = knob(
         0.0,
         "each entity's pixels in a clip's given first frame shifted by a random colour (per channel, this standard "
@@ -150,6 +155,7 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
         vocab_sizes=vocab,
         reference_bands=bands,
         reference_size=REF_PATCHES * patch if bands else 0,
+        reference_paint=bool(bands) and config.reference_paint,
     )
 
 
