@@ -16,10 +16,11 @@ config, world size and device).
 
 Under DDP (``launch`` with nproc > 1, or more than one node, relaunches the command under torchrun) every
 rank runs the same loop on its own batches; gradients are averaged by ``DistributedDataParallel``
-(``ddp``), the logged terms by ``mean_over_ranks``; rank 0 (the global rank: node 0's first process) alone
-logs, shows the progress bar and writes checkpoints and the summary. On several machines (``--nnodes``,
-``distributed.Nodes``) the training directory is one they share, and ``resume`` checks that every rank
-found the same checkpoint there.
+(``ddp``; or onto each rank's shard of the weights by FSDP, ``fsdp``), the logged terms by
+``mean_over_ranks``; rank 0 (the global rank: node 0's first process) alone logs, shows the progress
+bar and writes checkpoints and the summary. On several machines (``--nnodes``, ``distributed.Nodes``)
+the training directory is one they share, and ``resume`` checks that every rank found the same
+checkpoint there.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from marionette.distributed import (
     rank_world,
     train_under_torchrun,
 )
-from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
+from marionette.dynamics.checkpoint import is_dtensor, latest_checkpoint, load_checkpoint, read_meta
 from marionette.io import write_json
 from marionette.options import Parser
 
@@ -255,6 +256,24 @@ def ddp(module: nn.Module, device: torch.device) -> nn.Module:
     return nn.parallel.DistributedDataParallel(module, device_ids=[device.index] if device.type == "cuda" else None)
 
 
+def fsdp(module: nn.Module, units: Sequence[nn.Module], device: torch.device) -> nn.Module:
+    """``module`` sharded in place by FSDP2 (``fully_shard``) over the ranks of a process group of more than one:
+    each of ``units`` (its submodules, the transformer's blocks) a unit whose weights are gathered for its
+    forward and backward and freed after, then ``module`` the root unit holding the rest. Its parameters become
+    DTensor shards (build the optimizer on them after this; checkpoints gather them whole, ``full_state``) and
+    every forward is collective. In one process: ``module`` unchanged."""
+    world = rank_world()[1]
+    if world == 1:
+        return module
+    from torch.distributed.device_mesh import init_device_mesh
+    from torch.distributed.fsdp import fully_shard
+
+    mesh = init_device_mesh(device.type, (world,))
+    for unit in units:
+        fully_shard(unit, mesh=mesh)
+    return fully_shard(module, mesh=mesh)
+
+
 def mean_over_ranks(values: Tensor) -> Tensor:
     """``values`` averaged over the ranks of the process group (in place; unchanged outside one)."""
     world = rank_world()[1]
@@ -387,6 +406,8 @@ def run_steps(
             optimizer.zero_grad(set_to_none=True)
             terms[objective].backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+        if is_dtensor(grad_norm):  # FSDP's shards: the whole gradient's norm, a DTensor replicated on every rank
+            grad_norm = grad_norm.full_tensor()
         lr = optimizer.param_groups[0]["lr"]
         optimizer.step()
         scheduler.step()

@@ -1,11 +1,14 @@
 """Fine-tuning Wan2.2-Fun-Control (issue 18) on a tiny model built from the real classes (test_wan's): the latent
 cache is written once and read after, full fine-tuning and LoRA both lower the held-out flow loss, a resumed run
 continues the same loss sequence, and the finished run's model loads with ``WanFunControl.from_pretrained`` and
-generates."""
+generates; in two processes under DDP and under FSDP, which trains as DDP does, resumes exactly and checkpoints
+whole tensors that one process loads."""
 
 from __future__ import annotations
 
 import json
+import math
+import shutil
 from dataclasses import replace
 
 import av
@@ -15,12 +18,14 @@ import torch
 from diffusers import AutoencoderKLWan, WanTransformer3DModel
 from safetensors.torch import load_file
 from test_wan import TEXT_LEN, TRANSFORMER, VAE
+from torch import nn
 
 from marionette.bridge.gbuffer import GBufferMeta, write_gbuffer
 from marionette.cli import main as cli
+from marionette.dynamics.checkpoint import load_checkpoint
 from marionette.observation.generate import write_image
 from marionette.observation.wan import WanFunControl, save_original
-from marionette.observation.wan_train import WanTrainConfig, crop_box, train
+from marionette.observation.wan_train import Trainable, WanTrainConfig, crop_box, train, trainable_transformer
 
 # 9-frame windows (3 latent frames), the follow corpus's 36×64 chunks cropped to 32×64 (2×4 latents): 10 windows per
 # 81-frame chunk; 4 train chunks, 2 held out
@@ -102,7 +107,12 @@ def test_a_resumed_run_continues_the_same_loss_sequence(follow_corpus, backbone,
         train(follow_corpus, tmp_path / "cut", replace(config, lr=1e-3), log=lambda *_: None)
 
 
-def test_bad_configs_and_crops_are_named():
+def test_bad_configs_and_crops_are_named(monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="device: cuda, and this torch sees no CUDA GPU"):
+        WanTrainConfig(backbone="x", device="cuda")
+    assert cli(["train", "wan", "corpus", "--out", "out", "--backbone", "x", "--device", "cuda", "--nproc", "2"]) == 2
+    assert "no CUDA GPU" in capsys.readouterr().err  # refused before anything is launched or read
     with pytest.raises(ValueError, match="backbone"):
         WanTrainConfig()
     with pytest.raises(ValueError, match="4k \\+ 1"):
@@ -114,14 +124,28 @@ def test_bad_configs_and_crops_are_named():
         crop_box((18, 32), 32)
 
 
-def test_the_command_trains_under_ddp_and_generate_paints_with_the_result(follow_corpus, backbone, tmp_path):
-    argv = ["train", "wan", str(follow_corpus), "--out", str(tmp_path), "--backbone", str(backbone), "--no-progress"]
-    argv += ["--steps", "2", "--frames", "9", "--max-chunks", "1", "--lora-rank", "2", "--bf16", "--gradient-checkpointing"]
-    assert cli([*argv, "--nproc", "2"]) == 0  # two processes under torchrun (DDP, gloo); one process loads the result
-    assert (tmp_path / "model" / "config.json").is_file() and (tmp_path / "model" / "vae" / "config.json").is_file()
-    assert json.loads((tmp_path / "summary.json").read_text())["steps"] == 2
+def wan_argv(corpus, backbone, out, *flags: str) -> list[str]:
+    """``marionette train wan`` of a tiny run: 9-frame windows of the first chunk (10 of them, and 10 held out)."""
+    argv = ["train", "wan", str(corpus), "--out", str(out), "--backbone", str(backbone), "--no-progress"]
+    return [*argv, "--frames", "9", "--max-chunks", "1", *flags]
+
+
+LORA_FLAGS = ("--steps", "2", "--lora-rank", "2", "--bf16", "--gradient-checkpointing")
+
+
+@pytest.fixture(scope="module")
+def ddp_lora(follow_corpus, backbone, tmp_path_factory):
+    """Two LoRA steps of the command in two processes under torchrun (DDP, gloo): its training directory."""
+    out = tmp_path_factory.mktemp("wan-ddp")
+    assert cli([*wan_argv(follow_corpus, backbone, out, *LORA_FLAGS), "--nproc", "2"]) == 0
+    return out
+
+
+def test_the_command_trains_under_ddp_and_generate_paints_with_the_result(ddp_lora, follow_corpus, backbone, tmp_path):
+    assert (ddp_lora / "model" / "config.json").is_file() and (ddp_lora / "model" / "vae" / "config.json").is_file()
+    assert json.loads((ddp_lora / "summary.json").read_text())["steps"] == 2
     with pytest.raises(SystemExit):
-        cli([*argv, "--lora-rank", "-1"])
+        cli([*wan_argv(follow_corpus, backbone, tmp_path, *LORA_FLAGS), "--lora-rank", "-1"])
     # `marionette generate` paints with the fine-tuned model at the pose video's size, in its 9-frame chunks
     rng = np.random.default_rng(0)
     meta = GBufferMeta(h_min=0.0, h_max=10.0, z_near=0.3, z_far=100.0, width=64, height=32, fps=20.0)
@@ -129,7 +153,7 @@ def test_the_command_trains_under_ddp_and_generate_paints_with_the_result(follow
     write_image(tmp_path / "first.png", rng.integers(0, 256, (32, 64, 3), dtype=np.uint8))
     paint = [
         "generate",
-        str(tmp_path / "model"),
+        str(ddp_lora / "model"),
         "--pose",
         str(tmp_path / "pose.mkv"),
         "--first-frame",
@@ -141,12 +165,93 @@ def test_the_command_trains_under_ddp_and_generate_paints_with_the_result(follow
     assert len(frames) == 17 and frames[0].shape == (32, 64, 3)
 
 
+def read_checkpoint(ckpt) -> tuple[dict, dict, dict]:
+    """A checkpoint's weights, its optimizer tensors (the RNG state left out) and its meta."""
+    optimizer = {k: v for k, v in load_file(ckpt / "optimizer.safetensors").items() if k != "rng.torch"}
+    return load_file(ckpt / "model.safetensors"), optimizer, json.loads((ckpt / "meta.json").read_text())
+
+
+def losses(meta: dict) -> list[float]:
+    return [round(r["loss"], 5) for r in meta["losses"]]
+
+
+def test_lora_trains_under_fsdp_as_under_ddp(ddp_lora, follow_corpus, backbone, tmp_path):
+    """``--fsdp`` with LoRA (frozen and trained weights in one unit), bf16 and gradient checkpointing: the losses, the
+    gradient norms (clipped over the shards), the checkpoint (whole tensors, the same names) and the exported model
+    are DDP's, to float rounding."""
+    assert cli([*wan_argv(follow_corpus, backbone, tmp_path, *LORA_FLAGS), "--fsdp", "--nproc", "2"]) == 0
+    weights, optimizer, meta = read_checkpoint(tmp_path / "step-00000002")
+    ddp_weights, ddp_optimizer, ddp_meta = read_checkpoint(ddp_lora / "step-00000002")
+    print(f"\nLoRA under FSDP: losses {losses(meta)}, under DDP {losses(ddp_meta)}")
+    assert meta["names"] == ddp_meta["names"] and all(".lora_A." in n or ".lora_B." in n for n in meta["names"])
+    for key in ("loss", "grad_norm"):
+        assert [r[key] for r in meta["losses"]] == pytest.approx([r[key] for r in ddp_meta["losses"]], rel=1e-5)
+    for mine, theirs in ((weights, ddp_weights), (optimizer, ddp_optimizer)):
+        assert mine.keys() == theirs.keys()
+        for k in mine:
+            assert mine[k].shape == theirs[k].shape and torch.allclose(mine[k], theirs[k], rtol=1e-5, atol=1e-7), k
+    exported = load_file(tmp_path / "model" / "diffusion_pytorch_model.safetensors")
+    ddp_exported = load_file(ddp_lora / "model" / "diffusion_pytorch_model.safetensors")
+    assert exported.keys() == ddp_exported.keys()
+    assert all(torch.allclose(exported[k], ddp_exported[k], rtol=1e-5, atol=1e-7) for k in exported)
+
+
+def test_the_command_trains_under_fsdp_resumes_exactly_and_one_process_loads_the_result(follow_corpus, backbone, tmp_path):
+    """``--fsdp`` in two processes, every weight and the reference path training (bf16, gradient checkpointing): a
+    run resumed under FSDP from its step-2 checkpoint ends in the same losses and bit-identical weights and AdamW
+    state; the checkpoint's tensors are whole (one process loads them into the unsharded model), the exported model
+    holds them, and ``generate`` paints with it."""
+    root = tmp_path / "Wan2.2-Fun-5B-Control"
+    torch.manual_seed(0)
+    ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)
+    save_original(root, WanFunControl.from_pretrained(backbone, frames=9).transformer, text_len=TEXT_LEN, ref_conv=ref_conv)
+    shutil.copytree(backbone / "vae", root / "vae")  # the backbone's VAE: its latent cache
+    corpus = shutil.copytree(follow_corpus, tmp_path / "corpus")  # its reference sheets' cache stays out of the shared one
+    flags = ("--steps", "3", "--lr", "2e-3", "--warmup", "1", "--references", "--bf16", "--gradient-checkpointing", "--fsdp")
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    assert cli([*wan_argv(corpus, root, whole, *flags), "--checkpoint-every", "1", "--nproc", "2"]) == 0
+    cut.mkdir()
+    shutil.copytree(whole / "step-00000002", cut / "step-00000002")  # as if the run had stopped after step 2
+    (cut / "latest").write_text("step-00000002\n")
+    assert cli([*wan_argv(corpus, root, cut, *flags), "--nproc", "2"]) == 0
+    weights, optimizer, meta = read_checkpoint(whole / "step-00000003")
+    resumed_weights, resumed_optimizer, resumed_meta = read_checkpoint(cut / "step-00000003")
+    print(f"\nfull fine-tuning under FSDP: losses {losses(meta)}, resumed at step 2 {losses(resumed_meta)}")
+    assert len(meta["losses"]) == 3 and all(math.isfinite(r["loss"]) and r["grad_norm"] > 0 for r in meta["losses"])
+    evals = json.loads((whole / "summary.json").read_text())["evals"]  # every rank evaluated (a forward is collective)
+    print(f"held-out flow loss {evals[0]['held_out_loss']:.4f} → {evals[-1]['held_out_loss']:.4f}")
+    assert [e["step"] for e in evals] == [0, 3] and evals[1]["held_out_loss"] < 0.95 * evals[0]["held_out_loss"]
+    assert resumed_meta["losses"] == meta["losses"]
+    assert resumed_weights.keys() == weights.keys() and all(torch.equal(resumed_weights[k], weights[k]) for k in weights)
+    assert resumed_optimizer.keys() == optimizer.keys()
+    assert all(torch.equal(resumed_optimizer[k], optimizer[k]) for k in optimizer)
+    # whole tensors: one process loads the checkpoint into the unsharded model, and the exported model holds them
+    config = WanTrainConfig.from_json(meta["train_config"])
+    module = trainable_transformer(WanFunControl.from_pretrained(root, frames=9), config, torch.device("cpu"))
+    trainable = Trainable(module)
+    opt = torch.optim.AdamW(trainable.parameters())
+    load_checkpoint(whole / "step-00000003", trainable, opt)
+    assert trainable.names == meta["names"] and meta["names"][-2:] == ["ref_conv.weight", "ref_conv.bias"]
+    assert all(optimizer[f"state.{i}.exp_avg"].shape == p.shape for i, p in enumerate(trainable.params))
+    assert opt.state_dict()["state"][0]["exp_avg"].shape == trainable.params[0].shape
+    model = WanFunControl.from_pretrained(whole / "model", frames=9)
+    exported = {f"transformer.{n}": p for n, p in model.transformer.named_parameters()}
+    exported |= {f"ref_conv.{n}": p for n, p in model.ref_conv.named_parameters()}
+    original = dict(WanFunControl.from_pretrained(root, frames=9).transformer.named_parameters())
+    for i, name in enumerate(meta["names"]):
+        assert torch.equal(exported[name], weights[f"params.{i}"]) and torch.equal(trainable.params[i], weights[f"params.{i}"])
+    assert not torch.equal(model.ref_conv.weight, ref_conv.weight)
+    assert not torch.equal(model.transformer.blocks[0].attn1.to_q.weight, original["blocks.0.attn1.to_q.weight"])
+    bands = json.loads((whole / "model" / "marionette-wan.json").read_text())["reference_bands"]
+    pose, first_frame = torch.rand(17, 3, 32, 64), torch.rand(3, 32, 64) * 2 - 1
+    video = model.generate(pose, first_frame, steps=2, seed=0, references=[tuple(b) for b in bands])
+    assert video.shape == (17, 3, 32, 64) and torch.isfinite(video).all()
+
+
 def test_training_with_references_trains_the_reference_path_and_generate_relays_it(follow_corpus, tmp_path):
     """``references``: every window carries its sheet of first looks (cached apart, once), ``ref_conv`` trains with
     the transformer, the held-out loss falls, and the exported model's settings make ``marionette generate`` relay
     a sheet (``--no-references``: another video)."""
-    from torch import nn
-
     torch.manual_seed(0)
     root = tmp_path / "Wan2.2-Fun-5B-Control"
     ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)

@@ -14,6 +14,11 @@ The directory is written under a temporary name and renamed into place, so a cra
 half-written checkpoint, and ``<out>/latest`` (a one-line text file, replaced atomically) names the
 newest complete one. Loading reads tensors through safetensors only (no pickle, no code) and checks
 that every optimizer tensor belongs to a parameter of the model.
+
+A model sharded by FSDP (parameters and optimizer state as DTensor shards) is saved in the same format,
+whole: every rank takes part in ``full_state`` (each tensor's shards are gathered from all of them) and
+rank 0 alone passes the result to ``write_checkpoint``. Loading into such a model, every rank reads the
+whole checkpoint and keeps its own shard of each tensor (``shard_like``).
 """
 
 from __future__ import annotations
@@ -22,12 +27,14 @@ import json
 import os
 import re
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 from safetensors.torch import save_file
+from torch import Tensor
 
 from marionette.io import read_json, read_tensors, write_bytes
 
@@ -45,6 +52,45 @@ def _json_safe(v: Any) -> Any:
     return v
 
 
+def is_dtensor(t: Any) -> bool:
+    """Whether ``t`` is a DTensor (an FSDP shard). Asked without importing ``torch.distributed.tensor``, which
+    takes a second or two: before something imported it, no DTensor exists."""
+    module = sys.modules.get("torch.distributed.tensor")
+    return module is not None and isinstance(t, module.DTensor)
+
+
+def full_tensor(t: Tensor) -> Tensor:
+    """``t`` whole, detached, on the CPU: a DTensor's shards gathered from every rank (collective: each rank
+    calls it for the same tensors in the same order), any other tensor as it is."""
+    if is_dtensor(t):
+        t = t.detach().full_tensor()
+    return t.detach().contiguous().cpu()
+
+
+def full_state(
+    model: torch.nn.Module, optimizer: torch.optim.Optimizer | None = None, keep: bool = True
+) -> tuple[dict[str, Tensor], dict | None]:
+    """What a checkpoint holds of ``model`` and ``optimizer``: the model's ``state_dict`` and the optimizer's
+    (``{"state": {param index: {key: value}}, "param_groups": ...}``) with every tensor whole on the CPU
+    (``full_tensor``). Under FSDP every rank calls it; the ranks that do not write pass ``keep`` False and hold
+    one gathered tensor at a time (they get empty dicts)."""
+    weights = {}
+    for name, value in model.state_dict().items():
+        whole = full_tensor(value)
+        if keep:
+            weights[name] = whole
+    if optimizer is None:
+        return weights, None
+    sd = optimizer.state_dict()
+    state: dict[int, dict[str, Any]] = {}
+    for idx, st in sd["state"].items():
+        for key, val in st.items():
+            whole = full_tensor(val if isinstance(val, Tensor) else torch.tensor(val))
+            if keep:
+                state.setdefault(idx, {})[key] = whole
+    return weights, {"state": state, "param_groups": sd["param_groups"] if keep else []}
+
+
 def save_checkpoint(
     out: Path,
     step: int,
@@ -53,23 +99,35 @@ def save_checkpoint(
     scheduler: Any = None,
     meta: dict | None = None,
 ) -> Path:
-    """Write ``<out>/step-<step>/`` atomically and point ``<out>/latest`` at it; returns its path."""
+    """Write ``<out>/step-<step>/`` atomically and point ``<out>/latest`` at it; returns its path. A model
+    sharded over several ranks: ``full_state`` on every rank, then ``write_checkpoint`` on one."""
+    weights, optimizer_state = full_state(model, optimizer)
+    return write_checkpoint(out, step, weights, optimizer_state, scheduler, meta)
+
+
+def write_checkpoint(
+    out: Path,
+    step: int,
+    weights: dict[str, Tensor],
+    optimizer_state: dict | None = None,
+    scheduler: Any = None,
+    meta: dict | None = None,
+) -> Path:
+    """``save_checkpoint`` of the state ``full_state`` took: ``weights`` (whole CPU tensors) and the optimizer's
+    state dict (its tensors whole too), or None without an optimizer."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     final = out / f"step-{step:08d}"
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=out))
     try:
-        weights = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
         save_file(weights, str(tmp / "model.safetensors"))
         info: dict[str, Any] = {"version": CHECKPOINT_VERSION, "step": int(step), **(meta or {})}
-        tensors: dict[str, torch.Tensor] = {"rng.torch": torch.get_rng_state()}
-        if optimizer is not None:
-            sd = optimizer.state_dict()
-            for idx, st in sd["state"].items():
+        tensors: dict[str, Tensor] = {"rng.torch": torch.get_rng_state()}
+        if optimizer_state is not None:
+            for idx, st in optimizer_state["state"].items():
                 for key, val in st.items():
-                    t = val if isinstance(val, torch.Tensor) else torch.tensor(val)
-                    tensors[f"state.{idx}.{key}"] = t.detach().contiguous().cpu()
-            info["optimizer"] = {"param_groups": _json_safe(sd["param_groups"])}
+                    tensors[f"state.{idx}.{key}"] = val
+            info["optimizer"] = {"param_groups": _json_safe(optimizer_state["param_groups"])}
         if scheduler is not None:
             info["scheduler"] = _json_safe(scheduler.state_dict())
         save_file(tensors, str(tmp / "optimizer.safetensors"))
@@ -109,6 +167,16 @@ def read_meta(ckpt: Path) -> dict:
     return d
 
 
+def shard_like(whole: Tensor, like: Tensor) -> Tensor:
+    """``whole`` laid out as ``like``: this rank's shard of it where ``like`` is a DTensor (FSDP; cut locally,
+    as every rank read the same ``whole``), else ``whole`` itself."""
+    if is_dtensor(like):
+        from torch.distributed.tensor import distribute_tensor
+
+        return distribute_tensor(whole, like.device_mesh, like.placements, src_data_rank=None)
+    return whole
+
+
 def load_checkpoint(
     ckpt: Path,
     model: torch.nn.Module,
@@ -120,6 +188,8 @@ def load_checkpoint(
     ckpt = Path(ckpt)
     meta = read_meta(ckpt)
     weights = read_tensors(ckpt / "model.safetensors")
+    own = model.state_dict()
+    weights = {k: shard_like(v, own[k]) if k in own and v.shape == own[k].shape else v for k, v in weights.items()}
     missing, unexpected = model.load_state_dict(weights, strict=False)
     if missing or unexpected:
         raise ValueError(f"{ckpt}: weights do not fit the model (missing {missing[:3]}, unexpected {unexpected[:3]})")
@@ -127,15 +197,16 @@ def load_checkpoint(
     if optimizer is not None:
         if "optimizer" not in meta:
             raise ValueError(f"{ckpt}: holds no optimizer state")
-        n_params = sum(len(g["params"]) for g in optimizer.param_groups)
-        state: dict[int, dict[str, torch.Tensor]] = {}
+        params = [p for g in optimizer.param_groups for p in g["params"]]
+        state: dict[int, dict[str, Tensor]] = {}
         for name, t in tensors.items():
             if not name.startswith("state."):
                 continue
             _, idx, key = name.split(".", 2)
-            if not 0 <= int(idx) < n_params:
-                raise ValueError(f"{ckpt}: optimizer state for parameter {idx}, the model has {n_params}")
-            state.setdefault(int(idx), {})[key] = t
+            if not 0 <= int(idx) < len(params):
+                raise ValueError(f"{ckpt}: optimizer state for parameter {idx}, the model has {len(params)}")
+            param = params[int(idx)]  # a state tensor shaped like its parameter is sharded like it
+            state.setdefault(int(idx), {})[key] = shard_like(t, param) if t.shape == param.shape else t
         optimizer.load_state_dict({"state": state, "param_groups": meta["optimizer"]["param_groups"]})
     if scheduler is not None and "scheduler" in meta:
         scheduler.load_state_dict(meta["scheduler"])

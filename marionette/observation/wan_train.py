@@ -28,6 +28,17 @@ of its chunk at or before the window's start that shows it (``observation.refere
 encoded once into the same cache (a directory of its own, the sheet in the window's digest), and the transformer
 reads its tokens through the release's ``ref_conv`` (``wan.forward_with_reference``), which trains with it. The
 exported model's settings list the reference bands, and ``marionette generate`` relays with a sheet of first looks.
+
+**Several processes** (``--nproc``, ``--nnodes``): each rank trains on its own windows; by default every rank
+holds the whole model and DDP averages the gradients. With ``fsdp`` the model is sharded instead (FSDP2,
+``training.fsdp``): each transformer block is a unit whose weights are gathered for its forward and backward, the
+rest (embeddings, head, ``ref_conv``) the root unit, and every rank holds only its shard of the weights, gradients
+and AdamW state. A forward is then collective, so every rank computes the held-out loss. The checkpoints are the
+same whole-tensor files either way (``checkpoint.full_state`` gathers the shards, rank 0 writes; each rank keeps its
+shard on resume), and ``<out>/model/`` is built on rank 0 from the backbone and the final checkpoint.
+``device`` cuda trains on each process's GPU (``LOCAL_RANK``); the latent cache is encoded on the CPU either way.
+Under torchrun the process group is NCCL's wherever torch sees a GPU (``distributed.process_group_from_env``), so
+there several processes train with ``device`` cuda.
 """
 
 from __future__ import annotations
@@ -47,7 +58,7 @@ from torch import Tensor, nn
 from marionette import training
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
-from marionette.dynamics.checkpoint import save_checkpoint
+from marionette.dynamics.checkpoint import full_state, load_checkpoint, write_checkpoint
 from marionette.io import atomic_path, check_json_fields, file_sha256, read_tensors, write_json
 from marionette.observation.data import Clip, ClipSource, jittered_targets
 from marionette.observation.generate import WAN_SETTINGS
@@ -90,6 +101,14 @@ class WanTrainConfig:
     references: bool = knob(
         False, "give every window a sheet of each entity's first look in its chunk up to the window's start (ref_conv)"
     )
+    fsdp: bool = knob(
+        False,
+        "with several processes, shard the weights, gradients and optimizer state over them (FSDP2, each transformer "
+        "block a unit) instead of copying the model to each (DDP); checkpoints stay whole; one process: no effect",
+    )
+    device: str = knob(
+        "cpu", "where the transformer trains: cpu, or cuda (each process its LOCAL_RANK's GPU)", choices=("cpu", "cuda")
+    )
 
     def __post_init__(self) -> None:
         training.check_knobs(self)
@@ -97,6 +116,8 @@ class WanTrainConfig:
             raise ValueError(f"WanTrainConfig.frames: windows are 4k + 1 frames, not {self.frames}")
         if not self.backbone:
             raise ValueError("WanTrainConfig.backbone: the Wan checkpoint directory to fine-tune is required")
+        if self.device == "cuda" and not torch.cuda.is_available():
+            raise ValueError("WanTrainConfig.device: cuda, and this torch sees no CUDA GPU (torch.cuda.is_available() is False)")
 
     @property
     def alpha(self) -> float:
@@ -188,11 +209,12 @@ def read_latents(path: Path) -> dict[str, Tensor]:
     return {k: v.float() for k, v in read_tensors(path).items()}
 
 
-def summed(values: list[float]) -> list[float]:
-    """``values`` summed over the ranks of the process group (as they are in one process)."""
+def summed(values: list[float], device: torch.device | None = None) -> list[float]:
+    """``values`` summed over the ranks of the process group (as they are in one process); ``device``: where the
+    group's backend sums (a GPU under NCCL)."""
     if rank_world()[1] == 1:
         return values
-    t = torch.tensor(values, dtype=torch.float64)
+    t = torch.tensor(values, dtype=torch.float64, device=device)
     torch.distributed.all_reduce(t)
     return t.tolist()
 
@@ -288,7 +310,8 @@ def flow_loss(
 ) -> Tensor:
     """Mean squared error of the predicted velocity on every latent frame but the given one (``patch``: the
     transformer's (t, h, w) patch size; each token's timestep is its latent frame's σ). With reference latents
-    ``refs``, ``transformer`` is a ``Referenced`` one."""
+    ``refs``, ``transformer`` is a ``Referenced`` one. The batch moves to the device of ``context`` (the model's)."""
+    inp, per_frame, target = (t.to(context.device) for t in (inp, per_frame, target))
     pt, ph, pw = patch
     B, _, F, h, w = inp.shape
     per_token = per_frame[:, ::pt, None].expand(B, F // pt, (h // ph) * (w // pw)).reshape(B, -1)
@@ -298,7 +321,7 @@ def flow_loss(
                 0
             ]
         else:
-            v = transformer(inp, 1000.0 * per_token, context.expand(B, -1, -1), refs)
+            v = transformer(inp, 1000.0 * per_token, context.expand(B, -1, -1), refs.to(context.device))
     return ((v.float() - target) ** 2)[:, :, 1:].mean()
 
 
@@ -309,11 +332,17 @@ class Referenced(nn.Module):
     def __init__(self, transformer: nn.Module, ref_conv: nn.Conv2d) -> None:
         super().__init__()
         self.transformer, self.ref_conv = transformer, ref_conv
-        base = transformer.base_model.model if hasattr(transformer, "base_model") else transformer  # LoRA sits inside
-        object.__setattr__(self, "_base", base)  # the same modules, not registered twice
+        object.__setattr__(self, "_base", diffusers_transformer(transformer))  # the same modules, not registered twice
 
     def forward(self, inp: Tensor, timestep: Tensor, context: Tensor, refs: Tensor) -> Tensor:
         return forward_with_reference(self._base, inp, timestep, context, ref_tokens(self.ref_conv, refs))
+
+
+def diffusers_transformer(module: nn.Module) -> nn.Module:
+    """The ``WanTransformer3DModel`` of a module that trains: itself, inside peft's LoRA wrapper, or a ``Referenced``'s."""
+    if isinstance(module, Referenced):
+        module = module.transformer
+    return module.base_model.model if hasattr(module, "base_model") else module  # LoRA sits inside
 
 
 class Trainable(nn.Module):
@@ -332,6 +361,22 @@ def add_lora(transformer: nn.Module, rank: int, alpha: float, seed: int) -> nn.M
 
     torch.manual_seed(seed)
     return get_peft_model(transformer, LoraConfig(r=rank, lora_alpha=alpha, target_modules=list(LORA_TARGETS)))
+
+
+def trainable_transformer(model: WanFunControl, config: WanTrainConfig, device: torch.device) -> nn.Module:
+    """What trains, in float32 on ``device``: the transformer (every weight, or LoRA adapters at ``lora_rank`` and the
+    rest frozen; gradient checkpointing on request), and under ``references`` the release's ``ref_conv`` with it
+    (``Referenced``)."""
+    transformer = model.transformer.float().requires_grad_(True)
+    if config.lora_rank:
+        transformer.requires_grad_(False)
+        transformer = add_lora(transformer, config.lora_rank, config.alpha, config.seed)
+    if config.gradient_checkpointing:
+        diffusers_transformer(transformer).enable_gradient_checkpointing()
+    transformer.train()
+    if config.references:  # the reference path trains with the rest (and is all that sees the sheets)
+        transformer = Referenced(transformer, model.ref_conv.float().requires_grad_(True))
+    return transformer.to(device)
 
 
 @torch.no_grad()
@@ -372,6 +417,23 @@ def export_model(
     return out
 
 
+def trained_model(
+    transformer: nn.Module, model: WanFunControl, config: WanTrainConfig, last: Path | None, sharded: bool
+) -> tuple[nn.Module, nn.Module | None]:
+    """The trained transformer (LoRA-wrapped or not) and ``ref_conv``, whole in this process, for ``export_model``.
+    Sharded (FSDP), the weights are rebuilt from the backbone on the CPU with the final checkpoint ``last`` loaded
+    into them: it holds every trained weight whole, and the frozen ones are the backbone's."""
+    if sharded:
+        if last is None:
+            raise ValueError("an FSDP run exports its model from its final checkpoint, and there is none")
+        backbone = WanFunControl.from_pretrained(Path(config.backbone), frames=config.frames, shift=config.shift)
+        transformer = trainable_transformer(backbone, config, torch.device("cpu"))
+        load_checkpoint(last, Trainable(transformer), restore_rng=False)
+    if isinstance(transformer, Referenced):
+        return transformer.transformer, transformer.ref_conv
+    return transformer, model.ref_conv
+
+
 def train(
     corpus_path: Corpus | Path | str,
     out_dir: Path | str,
@@ -384,7 +446,9 @@ def train(
     """Fine-tune (or resume from the latest checkpoint in ``out_dir``) for ``config.steps`` steps; returns a summary
     (``encoded`` / ``reused``: the windows the latent cache encoded and read). ``stop_at`` ends the run early
     (checkpointed), as an interruption would."""
-    rank = rank_world()[0]
+    rank, world = rank_world()
+    sharded = config.fsdp and world > 1  # each rank holds a shard of the weights: every forward is collective
+    device = torch.device("cuda", torch.cuda.current_device()) if config.device == "cuda" else torch.device("cpu")
     log = training.rank_zero_log(log)
     out_dir = Path(out_dir)
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path))
@@ -403,31 +467,35 @@ def train(
     held = Windows(cache_split(corpus, held_split, config, model, cache, bands=bands))
     if not len(latents):
         raise ValueError(f"{corpus.path}: no train window of {config.frames} frames with a pose target")
-    encoded, reused = (int(v) for v in summed([cache.encoded, cache.reused]))
+    encoded, reused = (int(v) for v in summed([cache.encoded, cache.reused], device))
     log(f"latent cache {cache.dir}: {encoded} windows encoded, {reused} already there")
-    transformer = model.transformer.float().requires_grad_(True)
-    if config.lora_rank:
-        transformer.requires_grad_(False)
-        transformer = add_lora(transformer, config.lora_rank, config.alpha, config.seed)
-    if config.gradient_checkpointing:
-        (transformer.base_model.model if config.lora_rank else transformer).enable_gradient_checkpointing()
-    transformer.train()
-    if config.references:  # the reference path trains with the rest (and is all that sees the sheets)
-        transformer = Referenced(transformer, model.ref_conv.float().requires_grad_(True))
+    transformer = trainable_transformer(model, config, device)
+    if sharded:  # before the optimizer, which then holds the shards
+        training.fsdp(transformer, diffusers_transformer(transformer).blocks, device)
     trainable = Trainable(transformer)
     opt = torch.optim.AdamW(trainable.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=0.0)
     sched = training.warmup_cosine(opt, config.warmup, config.steps, 0.1)
-    run = training.resume(out_dir, trainable, opt, sched, {"train_config": config}, may_change=training.CADENCE_FIELDS)
+    # the checkpoint's tensors are whole whatever the sharding: a run may resume with or without FSDP
+    run = training.resume(out_dir, trainable, opt, sched, {"train_config": config}, may_change=(*training.CADENCE_FIELDS, "fsdp"))
     if run.resumed_from is not None:
         log(f"resumed from {run.resumed_from} at step {run.step}")
     n_train = sum(p.numel() for p in trainable.parameters())
     log(f"{len(latents)} train windows, {len(held)} held-out ({held_split}); {n_train:,} trainable parameters")
-    context, patch = model.context.float(), tuple(model.transformer.config.patch_size)
-    if not run.evals and rank == 0:
-        run.evals.append({"step": 0, "held_out_loss": held_out_loss(transformer, patch, context, held, config, model.temporal)})
-    net = training.ddp(transformer, torch.device("cpu"))
+    context, patch = model.context.float().to(device), tuple(model.transformer.config.patch_size)
+    evaluates = rank == 0 or sharded  # rank 0 alone, unless the forward is collective
+
+    def evaluate(step: int) -> None:
+        loss = held_out_loss(transformer, patch, context, held, config, model.temporal)
+        run.evals.append({"step": step, "held_out_loss": loss})
+
+    if not run.evals and evaluates:
+        evaluate(0)
+    net = transformer if sharded else training.ddp(transformer, device)
 
     def checkpoint(at: int) -> Path | None:
+        if rank != 0 and not sharded:
+            return None
+        weights, optimizer_state = full_state(trainable, opt, keep=rank == 0)  # sharded: every rank gathers
         if rank != 0:
             return None
         meta = {
@@ -437,7 +505,7 @@ def train(
             "kind": "wan",
             "names": trainable.names,
         }
-        return save_checkpoint(out_dir, at, trainable, opt, sched, meta)
+        return write_checkpoint(out_dir, at, weights, optimizer_state, sched, meta)
 
     def loss_at(step: int) -> dict[str, Tensor]:
         rng = np.random.default_rng([config.seed, step] if rank == 0 else [config.seed, step, rank])
@@ -463,18 +531,16 @@ def train(
         progress=progress,
         desc="train wan" + (f" (LoRA rank {config.lora_rank})" if config.lora_rank else ""),
     )
-    if run.step > run.started and rank == 0:
-        run.evals.append(
-            {"step": run.step, "held_out_loss": held_out_loss(transformer, patch, context, held, config, model.temporal)}
-        )
+    if run.step > run.started and evaluates:
+        evaluate(run.step)
     last = training.final_checkpoint(run, checkpoint)
     exported = None
     if rank == 0 and run.step >= config.steps:
         settings = {"frames": config.frames, "shift": config.shift}
         if bands:
             settings["reference_bands"] = [list(b) for b in bands]
-        plain = transformer.transformer if isinstance(transformer, Referenced) else transformer
-        exported = export_model(plain, backbone, out_dir / "model", model.context.shape[1], model.ref_conv, settings)
+        plain, ref_conv = trained_model(transformer, model, config, last, sharded)
+        exported = export_model(plain, backbone, out_dir / "model", model.context.shape[1], ref_conv, settings)
         log(f"wrote {exported}: `marionette generate {exported} --pose ... --first-frame ...` paints with it")
     evals = run.evals
     if rank == 0:
