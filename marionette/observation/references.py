@@ -140,16 +140,16 @@ def reference_sheet(refs: Tensor, height: int, width: int) -> Tensor:
     return sheet
 
 
-def boxes(masks: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Masks (…, H, W) bool → each mask's box as (y0, y1, x0, x1) in pixel edges (floats) and whether it has a pixel;
-    an empty mask's box is (0, H, 0, W)."""
+def boxes(masks: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Masks (…, H, W) bool → each mask's box as (y0, y1, x0, x1) in pixel edges (floats); an empty mask's is
+    (0, H, 0, W)."""
     H, W = masks.shape[-2:]
     rows, cols = masks.any(-1), masks.any(-2)
     y0 = rows.float().argmax(-1).float()  # the first row with a pixel
     y1 = H - rows.flip(-1).float().argmax(-1).float()
     x0 = cols.float().argmax(-1).float()
     x1 = W - cols.flip(-1).float().argmax(-1).float()
-    return y0, y1, x0, x1, rows.any(-1)
+    return y0, y1, x0, x1
 
 
 def paint(refs: Tensor, pose: Tensor, bands: Sequence[tuple[int, int]]) -> Tensor:
@@ -162,7 +162,7 @@ def paint(refs: Tensor, pose: Tensor, bands: Sequence[tuple[int, int]]) -> Tenso
     B, E = refs.shape[:2]
     T, H, W = pose.shape[1], pose.shape[-2], pose.shape[-1]
     masks = band_masks(pose.float(), bands)  # (B, T, E, H, W)
-    y0, y1, x0, x1, _ = boxes(masks)
+    y0, y1, x0, x1 = boxes(masks)
     side = MARGIN * torch.maximum(y1 - y0, x1 - x0) + 2.0  # (B, T, E)
     cy, cx = (y0 + y1) / 2, (x0 + x1) / 2
     ys = torch.arange(H, dtype=torch.float32, device=pose.device) + 0.5

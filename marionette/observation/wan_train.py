@@ -37,8 +37,8 @@ and AdamW state. A forward is then collective, so every rank computes the held-o
 same whole-tensor files either way (``checkpoint.full_state`` gathers the shards, rank 0 writes; each rank keeps its
 shard on resume), and ``<out>/model/`` is built on rank 0 from the backbone and the final checkpoint.
 ``device`` cuda trains on each process's GPU (``LOCAL_RANK``); the latent cache is encoded on the CPU either way.
-Under torchrun the process group is NCCL's wherever torch sees a GPU (``distributed.process_group_from_env``), so
-there several processes train with ``device`` cuda.
+Under torchrun the process group routes CUDA tensors through NCCL and CPU tensors through gloo
+(``distributed.process_group_from_env``), so either device trains in several processes on a GPU machine.
 """
 
 from __future__ import annotations
