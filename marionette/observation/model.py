@@ -268,7 +268,7 @@ class VideoDiT(nn.Module):
                 raise ValueError(f"references {tuple(refs.shape)}: the model takes ({B}, {c.references}, {RGB + 1}, {r}, {r})")
             refs = refs.to(x_s.dtype)
             if c.reference_paint:
-                parts.append(paint(refs, control, c.reference_bands).to(x_s.dtype))
+                parts.append(paint(refs, control, c.reference_bands))  # in the references' dtype, x_s's
         tokens = self.embed(self.patchify(torch.cat(parts, dim=2))) + self.pos
         if self.actions is not None:
             per_frame = sum(emb(control[..., i]) for i, emb in enumerate(self.actions))  # (B, T, width)

@@ -32,6 +32,7 @@ from torch import Tensor, nn
 from marionette.bridge.gbuffer import CODE_MAX
 from marionette.observation.data import Clip
 from marionette.observation.model import VideoDiT, generate, sample_chunk
+from marionette.observation.references import EntityReferences, band_masks
 from marionette.observation.train import control_of
 
 
@@ -81,8 +82,6 @@ def forced_chunks(
     """A video made as a relay's (1 + N·(T − 1) frames, noise from one generator seeded by ``seed``) but with every chunk
     started from the recorded frame at its start, and a model with reference slots given each entity's crop from the
     first recorded frame up to that start that shows it: the relay's error without its hand-offs."""
-    from marionette.observation.references import EntityReferences
-
     c = model.config
     step = c.frames - 1
     g = torch.Generator().manual_seed(int(seed))
@@ -101,8 +100,8 @@ def forced_chunks(
 
 def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], step: int, paint) -> dict[str, np.ndarray | float]:
     """Appearance drift over relays: each video relayed by ``paint(pose, recorded video, chunks)`` from its recorded
-    first frame (a relay reads only that frame of the recording) over as many chunks K of ``step`` new frames as the shortest holds. Per (entity, frame) where the
-    recorded pose shows the entity, its colour error |mean generated RGB − mean recorded RGB| over the entity's mask
+    first frame (a relay reads only that frame of the recording) over as many chunks K of ``step`` new frames as the
+    shortest holds. Per (entity, frame) where the recorded pose shows the entity, its colour error |mean generated RGB − mean recorded RGB| over the entity's mask
     (its look, whatever the shape) and its pixel error (mean |generated − recorded| over the mask: look and shape).
     Returns
 
@@ -110,7 +109,6 @@ def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], ste
     - ``in_view``, ``after_gap``: the mean colour error where the entity has stayed in view since it was first
       shown, and where it left the view and came back (what a relay without references must paint from nothing);
       ``pairs``: how many of each."""
-    from marionette.observation.references import band_masks
 
     K = min((len(v.rgb) - 1) // step for v in videos)
     n = 1 + K * step
