@@ -67,6 +67,40 @@ def test_a_clip_sees_only_entities_shown_at_or_before_its_start():
     assert later.frame == [None, 0, 7] and torch.equal(later.tensor(), refs.tensor())
 
 
+def test_a_reference_is_retaken_up_a_ladder_as_its_entity_comes_into_view_larger():
+    """A monster coming into view a pixel at a time (1, 3, 8, 9, 4, 20 pixels at frames 0, 2, 5, 6, 7, 9): its crop is
+    taken at frame 0 and retaken where it first shows twice the pixels of the view last taken (frames 2, 5 and 9),
+    never for a smaller or a barely larger view; each clip start gets the latest crop taken by then, whether the frames
+    come at once or a chunk at a time."""
+    from marionette.observation.references import RETAKE
+
+    assert RETAKE == 2.0
+    T, H, W = 12, 18, 32
+    ids = torch.zeros(T, H, W, dtype=torch.long)
+    rgb = torch.zeros(T, 3, H, W)
+    sizes = {0: (1, 1), 1: (1, 1), 2: (1, 3), 3: (1, 3), 4: (1, 3), 5: (2, 4), 6: (3, 3), 7: (2, 2), 8: (2, 2), 9: (4, 5)}
+    for t in range(T):
+        h, w = sizes.get(t, (4, 5))
+        ids[t, 6 : 6 + h, 10 : 10 + w] = 120
+        rgb[t] = -0.3 + 0.05 * t  # each frame in a shade of its own, so a crop says which frame it came from
+    pose = pose_with(ids)
+    refs = chunk_references(rgb, pose, BANDS, 8)
+    assert [f for f, _ in refs.taken[1]] == [0, 2, 5, 9] and refs.frame[1] == 9 and refs.pixels[1] == 20
+
+    def shade(upto=None, of=refs):
+        return float(of.tensor(upto=upto)[1, 0, 4, 4])
+
+    for upto, frame in ((0, 0), (1, 0), (4, 2), (5, 5), (8, 5), (11, 9), (None, 9)):
+        assert shade(upto) == pytest.approx(-0.3 + 0.05 * frame, abs=1e-6)
+    relay = EntityReferences(BANDS, 8)
+    for a in (0, 1, 5, 9):  # the first frame, then chunks of generated frames
+        b = {0: 1, 1: 5, 5: 9, 9: T}[a]
+        relay.see(rgb[a:b], pose[a:b], offset=a)
+        assert shade(of=relay) == shade(upto=b - 1)
+    assert [f for f, _ in relay.taken[1]] == [0, 2, 5, 9] and torch.equal(relay.tensor(), refs.tensor())
+    assert not relay.tensor()[0].any() and not relay.tensor()[2].any()  # never shown: no reference
+
+
 def test_a_reference_is_laid_over_its_body_in_every_frame_fitted_to_where_the_body_is_now():
     """The crop of a two-coloured body (top red, bottom blue), laid over the same body moved and grown: the top of
     its new box reads red, the bottom blue; pixels of no entity, and an entity without a reference, read zeros."""

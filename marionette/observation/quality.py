@@ -81,7 +81,7 @@ def forced_chunks(
 ) -> Tensor:
     """A video made as a relay's (1 + N·(T − 1) frames, noise from one generator seeded by ``seed``) but with every chunk
     started from the recorded frame at its start, and a model with reference slots given each entity's crop from the
-    first recorded frame up to that start that shows it: the relay's error without its hand-offs."""
+    recorded frames up to that start (as a relay takes it): the relay's error without its hand-offs."""
     c = model.config
     step = c.frames - 1
     g = torch.Generator().manual_seed(int(seed))

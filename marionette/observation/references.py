@@ -1,9 +1,10 @@
-"""Persistent entity references: a crop of each entity, taken once, given to every chunk of a relay.
+"""Persistent entity references: a crop of each entity, kept and given to every chunk of a relay.
 
 A relayed video is made chunk by chunk, each chunk starting from the last generated frame of the one before, so
 what a body looks like is copied from a frame the model itself painted; errors in it compound over the relay
-(appearance drift, a limitation the paper names). The remedy: each entity's look is taken once, from the first
-frame that shows it, and handed to every later chunk beside its first frame.
+(appearance drift, a limitation the paper names). The remedy: each entity's look is taken from the first frame
+that shows it (retaken only when a frame shows it at twice the size, "Which frame" below) and handed to every later
+chunk beside its first frame.
 
 - **Entities** are the render-id bands of the bridge's identity channel (``Rig.id_band``): the model's
   ``reference_bands``, the distinct bands of the corpus's layouts with overlapping ones merged (the monsters of
@@ -17,13 +18,17 @@ frame that shows it, and handed to every later chunk beside its first frame.
   entity's crop is laid over its pixels in every frame's pose frame — the crop's square fitted, as it was cut, to
   the box of the entity's mask in that frame, its body pixels where it has them and the crop's mean body colour
   elsewhere — so a token finds the look of the body it paints at its own pixels, with no search over slots.
-- **Which frame**: the first frame at or before the chunk's start in which the entity's mask has a pixel. In
-  training, frames of the clip's own chunk up to the clip's start (never the frames the clip must paint); in a
-  relay, the given first frame, then the first generated frame that shows an entity not seen before.
+- **Which frame**: the first frame in which the entity's mask has a pixel, then — an entity often comes into view a
+  few pixels at a time, at the frame's edge or far off — retaken from the first later frame whose mask has at least
+  ``RETAKE`` (2) × the pixels of the one it was last taken from, and so on: the best view so far, up a ladder of at
+  most log₂ of the frame's pixels steps, never a look that changes frame to frame. In training, frames of the clip's
+  own chunk up to the clip's start (never the frames the clip must paint); in a relay, the given first frame, then
+  the generated frames as they are painted (an entity first seen in them, or seen larger than before).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 
 import torch
@@ -34,6 +39,7 @@ from marionette.bridge.gbuffer import CODE_MAX
 
 REF_PATCHES = 4  # a reference is 4 × 4 of the model's patches
 MARGIN = 1.5  # the crop's side over the mask's larger extent
+RETAKE = 2.0  # a reference is retaken from a view of its entity with this many times the pixels (docs/tradeoffs.md)
 
 
 def merge_bands(bands: Iterable[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
@@ -81,41 +87,53 @@ def crop(rgb: Tensor, mask: Tensor, size: int) -> Tensor:
 
 
 class EntityReferences:
-    """The references of one video as it is read (training: a chunk; a relay: the frames it has so far): each
-    band's crop from the first frame that shows it."""
+    """The references of one video as it is read (training: a chunk; a relay: the frames it has so far): each band's
+    crop from the first frame that shows it, retaken from a later frame that shows the entity with at least
+    ``RETAKE`` × the pixels of the view it was last taken from (module doc, "Which frame")."""
 
     def __init__(self, bands: Sequence[tuple[int, int]], size: int) -> None:
         self.bands, self.size = tuple(bands), int(size)
-        self.crops: list[Tensor | None] = [None] * len(self.bands)
-        self.frame: list[int | None] = [None] * len(self.bands)  # where each was taken
+        self.crops: list[Tensor | None] = [None] * len(self.bands)  # each entity's latest crop
+        self.frame: list[int | None] = [None] * len(self.bands)  # where it was taken
+        self.pixels: list[int] = [0] * len(self.bands)  # the entity's mask pixels in that frame
+        self.taken: list[list[tuple[int, Tensor]]] = [[] for _ in self.bands]  # every (frame, crop), in order
 
     def see(self, rgb: Tensor, pose: Tensor, offset: int = 0) -> None:
-        """Take the crop of each entity not seen yet from the first of these frames (T, 3, H, W) that shows it
-        (``offset``: the index of the first of them in the video)."""
-        missing = [e for e, c in enumerate(self.crops) if c is None]
-        if not missing or not len(rgb):
+        """Read these frames (T, 3, H, W), the video's frames ``offset`` … ``offset`` + T − 1, in order: an entity not
+        seen yet is taken from the first that shows it, one seen is retaken from the first that shows it with at
+        least ``RETAKE`` × its pixels (and so on, up the ladder)."""
+        if not len(rgb):
             return
-        masks = band_masks(pose, [self.bands[e] for e in missing])  # (T, m, H, W)
-        seen = masks.flatten(2).any(-1)  # (T, m)
-        for j, e in enumerate(missing):
-            hits = torch.nonzero(seen[:, j], as_tuple=True)[0]
-            if len(hits):
-                t = int(hits[0])
-                self.crops[e] = crop(rgb[t], masks[t, j], self.size)
-                self.frame[e] = offset + t
+        masks = band_masks(pose, self.bands)  # (T, E, H, W)
+        area = masks.flatten(2).sum(-1)  # (T, E)
+        for e in range(len(self.bands)):
+            t = 0
+            while True:
+                need = max(1, math.ceil(RETAKE * self.pixels[e])) if self.crops[e] is not None else 1
+                hits = torch.nonzero(area[t:, e] >= need, as_tuple=True)[0]
+                if not len(hits):
+                    break
+                t += int(hits[0])
+                self.crops[e] = crop(rgb[t], masks[t, e], self.size)
+                self.frame[e], self.pixels[e] = offset + t, int(area[t, e])
+                self.taken[e].append((offset + t, self.crops[e]))
+                t += 1
 
     def tensor(self, upto: int | None = None) -> Tensor:
-        """(E, 4, r, r): the crops taken at frames ≤ ``upto`` (all when None), zeros for the others."""
+        """(E, 4, r, r): each entity's latest crop taken at a frame ≤ ``upto`` (the latest of all when None), zeros
+        for an entity not seen by then."""
         out = torch.zeros(len(self.bands), 4, self.size, self.size)
-        for e, c in enumerate(self.crops):
-            if c is not None and (upto is None or self.frame[e] <= upto):
+        for e, taken in enumerate(self.taken):
+            for frame, c in taken:
+                if upto is not None and frame > upto:
+                    break
                 out[e] = c
         return out
 
 
 def chunk_references(rgb: Tensor, pose: Tensor, bands: Sequence[tuple[int, int]], size: int) -> EntityReferences:
-    """The references of a whole chunk (T, 3, H, W): each entity's first frame in it; ``tensor(upto=start)`` gives
-    a clip starting at ``start`` what it may see."""
+    """The references of a whole chunk (T, 3, H, W), every crop it takes kept; ``tensor(upto=start)`` gives a clip
+    starting at ``start`` what a relay would have by then."""
     refs = EntityReferences(bands, size)
     refs.see(rgb, pose)
     return refs

@@ -76,8 +76,8 @@ class ObservationTrainConfig:
 
     references: bool = knob(
         False,
-        "give every clip a crop of each entity from the first frame of its chunk that shows it, up to the clip's "
-        "start (persistent references against appearance drift over a relay; observation.references)",
+        "give every clip a crop of each entity from its chunk's frames up to the clip's start, taken as a relay "
+        "takes it (persistent references against appearance drift over a relay; observation.references)",
     )
     reference_paint: bool = knob(
         True,
@@ -201,7 +201,7 @@ def _batch(
     """Step ``step``'s clips, their controls, their given first frames (with probability ``swap`` a random frame
     of another chunk, reference swap, else the clip's own frame 0, whose pixels of each entity of ``bands`` are
     shifted by a colour drawn from N(0, ``drift``²) per channel) and, with ``refs_of``, their entity references
-    (each from the first frame of the clip's own chunk that shows it, up to the clip's start)."""
+    (each from the clip's own chunk up to the clip's start, as ``references.EntityReferences`` takes it)."""
     rng = np.random.default_rng([seed, step] if rank == 0 else [seed, step, rank])
     picks = rng.integers(0, len(chunks), size)
     starts = [int(rng.integers(0, chunks[i].rgb.shape[0] - frames + 1)) for i in picks]

@@ -23,8 +23,8 @@ the checkpoints (the trainable weights only, safetensors, with the optimizer) ar
 the finished run writes ``<out>/model/``: the transformer with any LoRA merged, in the release's layout, and
 the VAE, which ``WanFunControl.from_pretrained`` and ``marionette generate`` load.
 
-**References** (``references``): each window also gets a reference sheet — each entity's crop from the first frame
-of its chunk at or before the window's start that shows it (``observation.references``), tiled on a grey image —
+**References** (``references``): each window also gets a reference sheet — each entity's crop from its chunk's
+frames up to the window's start, as a relay takes it (``observation.references``), tiled on a grey image —
 encoded once into the same cache (a directory of its own, the sheet in the window's digest), and the transformer
 reads its tokens through the release's ``ref_conv`` (``wan.forward_with_reference``), which trains with it. The
 exported model's settings list the reference bands, and ``marionette generate`` relays with a sheet of first looks.
@@ -158,8 +158,8 @@ def windows(clip: Clip, frames: int, box: tuple[int, int, int, int]) -> list[tup
 
 
 def window_sheets(clip: Clip, frames: int, box: tuple[int, int, int, int], bands: Sequence[tuple[int, int]]) -> list[Tensor]:
-    """Per window of ``windows``, its reference sheet (3, h, w): each entity's crop from the first frame of the chunk
-    at or before the window's start that shows it (``observation.references``; what a relay has seen by then)."""
+    """Per window of ``windows``, its reference sheet (3, h, w): each entity's crop from the chunk's frames up to the
+    window's start (``observation.references``; what a relay has taken by then)."""
     top, left, h, w = box
     rgb, pose = clip.rgb[:, :, top : top + h, left : left + w], clip.pose[:, :, top : top + h, left : left + w]
     seen = chunk_references(rgb, pose, bands, min(h, w // len(bands)))
