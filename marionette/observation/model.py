@@ -350,7 +350,8 @@ def sample_chunk(
 class Relay:
     """A relayed generation fed one chunk's control at a time (``paint``): each chunk starts from the last frame of the
     one before (the given first frame for the first), and a model with reference slots is given, at every chunk, each
-    entity's crop from the first frame that showed it (``observation.references``; ``references=False``: none).
+    entity's crop from the frames so far (``observation.references``: the first that showed it, retaken as it shows
+    larger; ``references=False``: none).
     ``generate`` runs it over a whole control; ``marionette play`` over live pose frames as they come."""
 
     def __init__(
