@@ -93,10 +93,18 @@ class EntityReferences:
 
     def __init__(self, bands: Sequence[tuple[int, int]], size: int) -> None:
         self.bands, self.size = tuple(bands), int(size)
-        self.crops: list[Tensor | None] = [None] * len(self.bands)  # each entity's latest crop
-        self.frame: list[int | None] = [None] * len(self.bands)  # where it was taken
-        self.pixels: list[int] = [0] * len(self.bands)  # the entity's mask pixels in that frame
         self.taken: list[list[tuple[int, Tensor]]] = [[] for _ in self.bands]  # every (frame, crop), in order
+        self.pixels: list[int] = [0] * len(self.bands)  # the entity's mask pixels in the frame of its latest crop
+
+    @property
+    def crops(self) -> list[Tensor | None]:
+        """Each entity's latest crop (None: not seen)."""
+        return [t[-1][1] if t else None for t in self.taken]
+
+    @property
+    def frame(self) -> list[int | None]:
+        """Where each entity's latest crop was taken (None: not seen)."""
+        return [t[-1][0] if t else None for t in self.taken]
 
     def see(self, rgb: Tensor, pose: Tensor, offset: int = 0) -> None:
         """Read these frames (T, 3, H, W), the video's frames ``offset`` … ``offset`` + T − 1, in order: an entity not
@@ -109,14 +117,13 @@ class EntityReferences:
         for e in range(len(self.bands)):
             t = 0
             while True:
-                need = max(1, math.ceil(RETAKE * self.pixels[e])) if self.crops[e] is not None else 1
+                need = max(1, math.ceil(RETAKE * self.pixels[e]))  # 1 for an entity not seen yet
                 hits = torch.nonzero(area[t:, e] >= need, as_tuple=True)[0]
                 if not len(hits):
                     break
                 t += int(hits[0])
-                self.crops[e] = crop(rgb[t], masks[t, e], self.size)
-                self.frame[e], self.pixels[e] = offset + t, int(area[t, e])
-                self.taken[e].append((offset + t, self.crops[e]))
+                self.taken[e].append((offset + t, crop(rgb[t], masks[t, e], self.size)))
+                self.pixels[e] = int(area[t, e])
                 t += 1
 
     def tensor(self, upto: int | None = None) -> Tensor:
