@@ -1,24 +1,29 @@
 """Persistent entity references against appearance drift: the small observation DiT with and without them.
 
     .venv/bin/python benchmarks/bench_references.py [--recordings 12] [--seconds 40] [--steps 3000] [--out DIR]
-        [--reduce 2 --patch 2] [--arms default,drift,references,tokens]
+        [--reduce 2 --patch 2] [--arms default,drift,references,tokens,handoff,references-handoff] [--given-only]
+        [--handoff SIGMA] [--seed 0]
 
 A synthetic tree where appearance must be read from the video — each recording's monster and player in colours
 of their own (``synth --skins``) and a player who looks around, so that the bodies leave the view and come back
-(``synth --camera-pans``) — ingested at 36 × 64, its terrain scanned and its pose targets rendered. Four arms of
+(``synth --camera-pans``) — ingested at 36 × 64, its terrain scanned and its pose targets rendered. Arms of
 the tests' observation recipe (18 × 32 and patch 2 unless ``--reduce``/``--patch`` say otherwise, 5-frame clips,
 batch 4, lr 1e-3, a fifth of the clips given another chunk's first frame), differing only in what is named: the default model; the same with its first
 frames' bodies drifted in colour (σ 0.3, ``--first-frame-drift``); and with references and that drift
 (``--references``: each entity's crop read as tokens and laid over its body in every frame); and the same with the
-crops only read as tokens (``--no-reference-paint``). Each relays every held-out video of 161 frames (40 chunks, 8 sampling steps) from its recorded
-first frame (``quality.relay_videos``, ``quality.entity_drift``); the reference arms also without their references.
+crops only read as tokens (``--no-reference-paint``); the drift arm and the reference arm with hand-off noise 0.4
+(``--handoff-noise``: relayed at the model's σ, or ``--handoff``'s). Each relays every held-out video of 161 frames
+(40 chunks, 8 sampling steps) from its recorded first frame (``quality.relay_videos``, ``quality.entity_drift``); the
+reference arms also without their references (unless ``--given-only``).
 
 Printed: per arm, the per-entity colour error (|mean generated − mean recorded RGB| over the entity's mask, RGB
 in [−1, 1]) over the first and the last quarter of the relay's chunks and their difference (the growth), the
 colour error where the entity stayed in view and where it left the view and came back, and the pixel error's
 growth; and the same colour error with every chunk started from its recorded frame (``forced``: no relay, the
 references from the recorded frames) — its growth is what the later frames ask anyway (bodies turned from their first
-look, back into view), and the growth of relayed − forced is the relay's own drift. ``--out`` keeps the corpus and the runs (a second run with the same --out reuses them).
+look, back into view), and the growth of relayed − forced is the relay's own drift; and the colour error of the
+bodies the relay's first frame showed (whose look it was given: their drift, relayed and forced) apart from the
+others' (a look the relay must invent). ``--out`` keeps the corpus and the runs (a second run with the same --out reuses them).
 """
 
 from __future__ import annotations
@@ -46,6 +51,11 @@ ARMS = {  # key: (row name, knobs)
     "drift": ("first-frame drift 0.3", {"first_frame_drift": 0.3}),
     "references": ("references + drift 0.3", {"references": True, "first_frame_drift": 0.3}),
     "tokens": ("reference tokens only + drift 0.3", {"references": True, "reference_paint": False, "first_frame_drift": 0.3}),
+    "handoff": ("drift 0.3 + hand-off noise 0.4", {"first_frame_drift": 0.3, "handoff_noise": 0.4}),
+    "references-handoff": (
+        "references + drift 0.3 + hand-off noise 0.4",
+        {"references": True, "first_frame_drift": 0.3, "handoff_noise": 0.4},
+    ),
 }
 
 
@@ -78,13 +88,20 @@ def main() -> None:
     ap.add_argument("--reduce", type=int, default=2, help="the 36 × 64 chunks divided by this for the model")
     ap.add_argument("--patch", type=int, default=2, help="the model's patch side in pixels")
     ap.add_argument("--arms", default=",".join(ARMS), help=f"which arms, of {', '.join(ARMS)}")
+    ap.add_argument("--seed", type=int, default=0, help="the arms' training seed (weights, clips, noise)")
+    ap.add_argument("--handoff", type=float, default=None, help="hand-off noise arms: the relay's σ (default: the model's)")
+    ap.add_argument("--given-only", action="store_true", help="reference arms: skip the relays with references withheld")
     a = ap.parse_args()
+    if a.handoff is not None and not 0 <= a.handoff <= 2:
+        ap.error(f"--handoff {a.handoff}: a noise σ within [0, 2]")
     arms = a.arms.split(",")
     if not arms or any(k not in ARMS for k in arms):
         ap.error(f"--arms {a.arms!r}: a comma-separated choice of {', '.join(ARMS)}")
     if 36 % a.reduce or 64 % a.reduce or (36 // a.reduce) % a.patch or (64 // a.reduce) % a.patch:
         ap.error(f"--reduce {a.reduce} --patch {a.patch}: 36 × 64 must reduce to whole patches")
-    recipe = replace(RECIPE, reduce=a.reduce, patch=a.patch)
+    if a.seed < 0:
+        ap.error(f"--seed {a.seed}: a seed is ≥ 0")
+    recipe = replace(RECIPE, reduce=a.reduce, patch=a.patch, seed=a.seed)
     size = (36 // a.reduce, 64 // a.reduce)
     root = a.out or Path(tempfile.mkdtemp(prefix="bench-references-"))
     t0 = time.perf_counter()
@@ -97,7 +114,7 @@ def main() -> None:
     rows = []
     for key in arms:
         name, knobs = ARMS[key]
-        shape = "" if (a.reduce, a.patch) == (2, 2) else f"-r{a.reduce}p{a.patch}"
+        shape = ("" if (a.reduce, a.patch) == (2, 2) else f"-r{a.reduce}p{a.patch}") + (f"-seed{a.seed}" if a.seed else "")
         run = root / f"run-{a.steps}{shape}-{name.replace(' ', '-').replace('+', 'and')}"
         if not (run / "summary.json").exists():
             t0 = time.perf_counter()
@@ -106,9 +123,12 @@ def main() -> None:
                 f"{name}: trained in {time.perf_counter() - t0:.0f} s, held-out loss {summary['evals'][-1]['held_out_loss']:.4f}"
             )
         model = load_model(run)
-        for given in (True, False) if model.config.references else (True,):
-            d = entity_drift(model, videos, bands, steps=8, references=given)
-            f = entity_drift(model, videos, bands, steps=8, references=given, forced=True)["colour"]
+        for given in (True, False) if model.config.references and not a.given_only else (True,):
+            d = entity_drift(
+                model, videos, bands, steps=8, references=given, handoff=a.handoff if model.config.handoff_noise else None
+            )
+            forced = entity_drift(model, videos, bands, steps=8, references=given, forced=True)
+            f = forced["colour"]
             q = max(1, a.chunks // 4)
             colour, pixel = d["colour"], d["pixel"]
             rows.append(
@@ -123,6 +143,10 @@ def main() -> None:
                     f"{d['in_view']:.4f}",
                     f"{d['after_gap']:.4f}",
                     f"{drift_growth(pixel):+.4f}",
+                    f"{np.nanmean(d['known'][:q]):.4f} → {np.nanmean(d['known'][-q:]):.4f}",
+                    f"{drift_growth(d['known']):+.4f}",
+                    f"{drift_growth(forced['known']):+.4f}",
+                    f"{np.nanmean(d['unknown'][:q]):.4f} → {np.nanmean(d['unknown'][-q:]):.4f}",
                 ]
             )
             print(rows[-1], flush=True)
@@ -142,6 +166,10 @@ def main() -> None:
         "stayed in view",
         "after leaving the view",
         "pixel growth",
+        "shown in the first frame: first ¼ → last ¼",
+        "its growth",
+        "its forced growth",
+        "not shown in the first frame: first ¼ → last ¼",
     ]
     print(table(head, rows))
 

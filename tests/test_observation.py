@@ -280,3 +280,45 @@ def test_ddp_two_processes_gloo(obs_corpus, tmp_path):
     assert r.stdout.count("held-out flow loss") == 1  # rank 0 alone logs
     model = load_model(out)
     assert model.config.frames == 5 and all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_handoff_noise_trains_on_noised_first_frames_and_a_relay_gives_its_hand_offs_noised():
+    from marionette.observation.data import Clip
+    from marionette.observation.train import _batch
+
+    chunks = [Clip(rgb=torch.rand(9, 3, 8, 8) - 0.5, pose=torch.zeros(9, 3, 8, 8), key=f"c{k}", start=0) for k in range(3)]
+    plain = _batch(chunks, 5, 16, seed=3, step=7, control="pose", swap=0.3)
+    rgb, _, first, refs, level = _batch(chunks, 5, 16, seed=3, step=7, control="pose", swap=0.3, noise=0.4)
+    assert plain[4] is None and refs is None
+    assert torch.equal(plain[0], rgb)  # the noise is drawn last: the clips, swaps and drifts of a run without it stay
+    assert level.shape == (16,) and float(level.min()) >= 0 and float(level.max()) <= 0.4 and float(level.std()) > 0.05
+    spread = (first - plain[2]).flatten(1).std(1)  # 192 values a clip
+    assert torch.allclose(spread, level, rtol=0.25, atol=0.01)
+
+    class Seen(VideoDiT):  # the real network, recording what each call is given
+        def forward(self, x_s, control, first, s, refs=None, level=None):
+            self.given.append((first.clone(), level))
+            return super().forward(x_s, control, first, s, refs, level)
+
+    c = ObservationConfig(frames=5, height=16, width_px=16, patch=4, width=32, layers=1, heads=2, handoff_noise=0.4)
+    model = Seen(c)
+    model.given = []
+    start = torch.rand(3, 16, 16) - 0.5
+    video = generate(model, torch.zeros(9, 3, 16, 16), start, chunks=2, steps=3, seed=0)
+    assert len(model.given) == 6
+    for given, lv in model.given[:3]:  # the first chunk starts from the given frame, clean
+        assert lv is None and torch.equal(given[0], start)  # (the network reads no level as level 0)
+    for given, lv in model.given[3:]:  # the second from the first chunk's last frame, noised at half the trained range
+        assert torch.equal(lv, torch.full((1,), 0.2))
+        assert abs(float((given[0] - video[4]).std()) - 0.2) < 0.03
+    assert "given_level.weight" in model.state_dict()
+    assert "given_level.weight" not in VideoDiT(replace(c, handoff_noise=0.0)).state_dict()  # older checkpoints load
+    assert ObservationConfig.from_json(c.to_json()) == c
+    for bad in (-0.1, 2.5, True):
+        with pytest.raises(ValueError, match="handoff_noise"):
+            replace(c, handoff_noise=bad)
+    with pytest.raises(ValueError, match="handoff_noise"):
+        ObservationTrainConfig(handoff_noise=3.0)
+    for bad_model, bad in ((model, -0.1), (VideoDiT(replace(c, handoff_noise=0.0)), 0.2)):
+        with pytest.raises(ValueError, match="hand-off noise"):
+            generate(bad_model, torch.zeros(9, 3, 16, 16), start, chunks=2, steps=3, handoff=bad)

@@ -43,7 +43,7 @@ def baseline_model(baseline_run) -> VideoDiT:
 
 def test_reference_swap_draws_first_frames_from_other_chunks():
     chunks = [Clip(rgb=torch.full((9, 3, 2, 2), float(k)), pose=torch.zeros(9, 3, 2, 2), key=f"c{k}", start=0) for k in range(4)]
-    rgb, _, first, _ = _batch(chunks, 5, 64, seed=3, step=7, control="pose", swap=0.5)
+    rgb, _, first, _, _ = _batch(chunks, 5, 64, seed=3, step=7, control="pose", swap=0.5)
     own = (first == rgb[:, 0]).flatten(1).all(1)
     assert 16 < int((~own).sum()) < 48  # about half swapped
     assert torch.equal(first[own], rgb[own, 0])

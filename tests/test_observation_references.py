@@ -71,7 +71,7 @@ def test_a_reference_is_retaken_up_a_ladder_as_its_entity_comes_into_view_larger
     """A monster coming into view a pixel at a time (1, 3, 8, 9, 4, 20 pixels at frames 0, 2, 5, 6, 7, 9): its crop is
     taken at frame 0 and retaken where it first shows twice the pixels of the view last taken (frames 2, 5 and 9),
     never for a smaller or a barely larger view; each clip start gets the latest crop taken by then, whether the frames
-    come at once or a chunk at a time."""
+    come at once or a chunk at a time; a relay's painted frames never replace a crop of a recorded frame."""
     from marionette.observation.references import RETAKE
 
     assert RETAKE == 2.0
@@ -99,6 +99,17 @@ def test_a_reference_is_retaken_up_a_ladder_as_its_entity_comes_into_view_larger
         assert shade(of=relay) == shade(upto=b - 1)
     assert [f for f, _ in relay.taken[1]] == [0, 2, 5, 9] and torch.equal(relay.tensor(), refs.tensor())
     assert not relay.tensor()[0].any() and not relay.tensor()[2].any()  # never shown: no reference
+    # a relay's painted frames: a look the given first frame showed is kept; one it did not is taken and retaken
+    kept = EntityReferences(BANDS, 8)
+    kept.see(rgb[:1], pose[:1])
+    kept.see(rgb[1:], pose[1:], offset=1, painted=True)
+    assert [f for f, _ in kept.taken[1]] == [0] and kept.recorded[1]
+    late = ids.clone()
+    late[0] = 0  # the monster not in the given frame: first painted at frame 1
+    unseen = EntityReferences(BANDS, 8)
+    unseen.see(rgb[:1], pose_with(late[:1]))
+    unseen.see(rgb[1:], pose_with(late[1:]), offset=1, painted=True)
+    assert [f for f, _ in unseen.taken[1]] == [1, 2, 5, 9] and not unseen.recorded[1]
 
 
 def test_a_reference_is_laid_over_its_body_in_every_frame_fitted_to_where_the_body_is_now():
@@ -239,7 +250,7 @@ def test_training_batches_carry_each_clips_references_and_drift_only_the_bodies_
     c = config(reference_bands=BANDS, reference_size=8)
     refs_of = ChunkReferences(chunks, c)
     plain = _batch(chunks, 5, 32, seed=1, step=2, control="pose")
-    rgb, pose, first, refs = _batch(chunks, 5, 32, seed=1, step=2, control="pose", refs_of=refs_of, drift=0.5, bands=BANDS)
+    rgb, pose, first, refs, _ = _batch(chunks, 5, 32, seed=1, step=2, control="pose", refs_of=refs_of, drift=0.5, bands=BANDS)
     assert plain[3] is None and torch.equal(plain[0], rgb)  # references and drift never change the clips drawn
     assert refs.shape == (32, 3, 4, 8, 8)
     rng = __import__("numpy").random.default_rng([1, 2])  # the starts _batch drew
@@ -264,9 +275,11 @@ def test_appearance_drift_tells_a_look_kept_from_a_look_lost_when_a_body_leaves_
     ids[:, 1:4, 2:5] = 120  # the monster, always in view
     ids[:12, 5:7, 9:12] = 200  # the player, out of view for frames 12–19, then back
     ids[20:, 5:7, 9:12] = 200
+    ids[24:, 6:8, 0:2] = 62  # the weapon, from frame 24: a look the first frame never gave
     rgb = torch.full((T, 3, H, W), -0.5)
     rgb[:, :, 1:4, 2:5] = torch.tensor([0.6, -0.4, 0.2])[:, None, None]
     rgb[:, :, 5:7, 9:12] = torch.tensor([-0.3, 0.1, 0.7])[:, None, None]
+    rgb[:, :, 6:8, 0:2] = 0.2
     video = Clip(rgb=rgb, pose=pose_with(ids), key="v", start=0)
 
     def truth(pose, first, chunks):
@@ -279,11 +292,21 @@ def test_appearance_drift_tells_a_look_kept_from_a_look_lost_when_a_body_leaves_
 
     exact = appearance_drift([video], BANDS, 4, truth)
     assert exact["colour"].shape == (8,) and float(abs(exact["colour"]).max()) == 0.0 and exact["after_gap"] == 0.0
-    assert exact["pairs"] == {"in_view": 32 + 11, "after_gap": 13}  # the monster's 32 frames and the player's
+    assert exact["pairs"] == {"in_view": 32 + 11 + 9, "after_gap": 13}  # the monster's 32 frames, the player's, the weapon's
     lost = appearance_drift([video], BANDS, 4, forgets)
     assert lost["in_view"] == 0.0 and abs(lost["after_gap"] - (0.3 + 0.1 + 0.7) / 3) < 1e-6
-    assert drift_growth(lost["colour"]) > 0.15 and drift_growth(exact["colour"]) == 0.0
+    assert drift_growth(lost["colour"]) > 0.1 and drift_growth(exact["colour"]) == 0.0
     assert lost["pixel"][-1] > 0 and lost["pixel"][0] == 0
+    # the looks the first frame gave (monster, player) apart from the one it did not (the weapon, chunks 5–7)
+    assert drift_growth(lost["known"]) > 0.15 and np.isnan(lost["unknown"][:5]).all() and (lost["unknown"][5:] == 0).all()
+
+    def invents(pose, first, chunks):  # keeps every look it was given, paints the weapon grey
+        out = rgb[: 1 + 4 * chunks].clone()
+        out[24:, :, 6:8, 0:2] = 0.0
+        return out
+
+    new = appearance_drift([video], BANDS, 4, invents)
+    assert (new["known"] == 0).all() and np.allclose(new["unknown"][5:], 0.2) and drift_growth(new["colour"]) > 0
 
 
 def test_a_model_trained_with_references_takes_them_from_the_corpus_and_a_relay_reads_them(follow_corpus, tmp_path):

@@ -83,6 +83,10 @@ class ObservationConfig:
     reference_bands: tuple[tuple[int, int], ...] = ()
     reference_size: int = 0
     reference_paint: bool = False  # the references also laid over their bodies in every frame (references.paint)
+    # conditioning augmentation of the given frame against a relay's drift: trained on first frames noised by
+    # N(0, σ²) with σ uniform in [0, handoff_noise] (RGB units), σ told to the network; a relay gives each hand-off
+    # frame noised at handoff_level() (0: none, the network has no input for it)
+    handoff_noise: float = 0.0
 
     def __post_init__(self) -> None:
         if self.format != FORMAT:
@@ -99,6 +103,12 @@ class ObservationConfig:
             )
         if self.width % self.heads:
             raise ValueError(f"observation config: width {self.width} does not split into {self.heads} heads")
+        if (
+            isinstance(self.handoff_noise, bool)
+            or not isinstance(self.handoff_noise, int | float)
+            or not 0 <= self.handoff_noise <= 2
+        ):
+            raise ValueError(f"observation config: handoff_noise {self.handoff_noise} is not within [0, 2]")
         if not isinstance(self.reference_paint, bool):
             raise ValueError(f"observation config: reference_paint {self.reference_paint!r} is not true or false")
         if self.reference_bands:
@@ -127,6 +137,10 @@ class ObservationConfig:
         """Per pixel: noisy RGB, the pose frame (pose control only), the given frame (the first frame on frame 0,
         zeros after) and its mask, and (``reference_paint``) the references laid over their bodies and their mask."""
         return RGB + (POSE if self.control == "pose" else 0) + RGB + 1 + (RGB + 1 if self.reference_paint else 0)
+
+    def handoff_level(self) -> float:
+        """The noise σ a relay adds to each hand-off frame (the middle of the trained range; 0 without)."""
+        return self.handoff_noise / 2
 
     @property
     def references(self) -> int:
@@ -210,6 +224,8 @@ class VideoDiT(nn.Module):
         if c.references:  # each entity's reference (RGB and its mask) as tokens of its own, a learnt slot embedding each
             self.ref_embed = nn.Linear((RGB + 1) * p * p, c.width)
             self.ref_slot = nn.Embedding(c.references, c.width)
+        # the given frame's noise level (handoff_noise), added to the time embedding; zero at first
+        self.given_level = nn.Linear(c.width, c.width) if c.handoff_noise else None
         with torch.no_grad():
             for m in self.modules():
                 if isinstance(m, nn.Linear):
@@ -221,6 +237,8 @@ class VideoDiT(nn.Module):
                 b.modulation.weight.zero_()
             self.final_mod.weight.zero_()
             self.head.weight.zero_()
+            if self.given_level is not None:
+                self.given_level.weight.zero_()
         hp, wp = c.height // p, c.width_px // p
         t, r, q = torch.meshgrid(torch.arange(c.frames), torch.arange(hp), torch.arange(wp), indexing="ij")
         third = (c.width // 3) // 2 * 2
@@ -251,10 +269,13 @@ class VideoDiT(nn.Module):
         x = x.reshape(B, c.frames, hp, wp, -1, p, p).permute(0, 1, 4, 2, 5, 3, 6)
         return x.reshape(B, c.frames, -1, c.height, c.width_px)
 
-    def forward(self, x_s: Tensor, control: Tensor, first: Tensor, s: Tensor, refs: Tensor | None = None) -> Tensor:
+    def forward(
+        self, x_s: Tensor, control: Tensor, first: Tensor, s: Tensor, refs: Tensor | None = None, level: Tensor | None = None
+    ) -> Tensor:
         """x_s (B, T, 3, H, W); control: pose (B, T, 3, H, W), or action tokens (B, T, N) for the baseline;
         first (B, 3, H, W); s (B,); refs (B, E, 4, r, r), the entity references of a model with reference slots
-        (None: none seen) → velocity (B, T, 3, H, W)."""
+        (None: none seen); level (B,): the noise σ on ``first`` of a model with ``handoff_noise`` (None: clean)
+        → velocity (B, T, 3, H, W)."""
         c = self.config
         B, T = x_s.shape[:2]
         given = torch.zeros(B, T, RGB + 1, *x_s.shape[3:], dtype=x_s.dtype, device=x_s.device)  # Wan's masked video + mask
@@ -279,6 +300,9 @@ class VideoDiT(nn.Module):
             per = per + self.ref_pos + self.ref_slot.weight[:, None]
             tokens = torch.cat([tokens, per.reshape(B, -1, c.width)], dim=1)
         cond = self.time(sincos(s * 1000.0, c.width).to(x_s.dtype))  # (B, width)
+        if self.given_level is not None:  # a given frame without a level is clean: level 0, as trained
+            level = torch.zeros(B, device=x_s.device) if level is None else level
+            cond = cond + self.given_level(sincos(level * 1000.0, c.width).to(x_s.dtype))
         for block in self.blocks:
             tokens = block(tokens, cond)
         tokens = tokens[:, :n]  # the references' tokens are read, never painted
@@ -315,25 +339,33 @@ def flow_loss(
     generator: torch.Generator,
     first: Tensor | None = None,
     refs: Tensor | None = None,
+    level: Tensor | None = None,
 ) -> Tensor:
     """Rectified-flow loss of a batch of clips (B, T, 3, H, W) under their control, frames 1..T−1 (module doc);
-    ``first`` (B, 3, H, W): the given first frames, if not the clips' own frame 0; ``refs``: entity references."""
+    ``first`` (B, 3, H, W): the given first frames, if not the clips' own frame 0; ``refs``: entity references;
+    ``level`` (B,): the noise σ on the given first frames (``handoff_noise``)."""
     B = rgb.shape[0]
     if first is not None:
         rgb = torch.cat([first[:, None], rgb[:, 1:]], dim=1)
     s = torch.rand(B, generator=generator).to(rgb.device)
     eps = torch.randn(rgb.shape, generator=generator).to(rgb.device)
     x_s = (1 - s)[:, None, None, None, None] * rgb + s[:, None, None, None, None] * eps
-    v = model(x_s, control, rgb[:, 0], s, refs)
+    v = model(x_s, control, rgb[:, 0], s, refs, level)
     return F.mse_loss(v[:, 1:], (eps - rgb)[:, 1:])
 
 
 @torch.no_grad()
 def sample_chunk(
-    model: VideoDiT, control: Tensor, first: Tensor, steps: int, generator: torch.Generator, refs: Tensor | None = None
+    model: VideoDiT,
+    control: Tensor,
+    first: Tensor,
+    steps: int,
+    generator: torch.Generator,
+    refs: Tensor | None = None,
+    level: Tensor | None = None,
 ) -> Tensor:
     """One chunk (B, T, 3, H, W) in [−1, 1] from its control (B, T, ...) and first frames (B, 3, H, W) by Euler
-    steps (``refs``: entity references, for a model with reference slots)."""
+    steps (``refs``: entity references, for a model with reference slots; ``level``: the noise σ on ``first``)."""
     B, T = control.shape[:2]
     x = torch.randn(B, T, RGB, *first.shape[2:], generator=generator).to(first.device)  # CPU noise: the same video on any device
     eps0 = x[:, 0].clone()
@@ -341,7 +373,7 @@ def sample_chunk(
     for k in range(steps):
         s, s_next = float(grid[k]), float(grid[k + 1])
         x[:, 0] = (1 - s) * first + s * eps0  # the given frame, noised to this level
-        v = model(x, control, first, torch.full((B,), s, device=first.device), refs)
+        v = model(x, control, first, torch.full((B,), s, device=first.device), refs, level)
         x = x + (s_next - s) * v
     x[:, 0] = first
     return x.clamp(-1.0, 1.0)
@@ -349,15 +381,26 @@ def sample_chunk(
 
 class Relay:
     """A relayed generation fed one chunk's control at a time (``paint``): each chunk starts from the last frame of the
-    one before (the given first frame for the first), and a model with reference slots is given, at every chunk, each
+    one before (the given first frame for the first; noised at ``handoff_level`` for a model trained with
+    ``handoff_noise``), and a model with reference slots is given, at every chunk, each
     entity's crop from the frames so far (``observation.references``: the first that showed it, retaken as it shows
-    larger; ``references=False``: none).
+    larger, but a look the given frame showed never from a painted frame; ``references=False``: none).
     ``generate`` runs it over a whole control; ``marionette play`` over live pose frames as they come."""
 
     def __init__(
-        self, model: VideoDiT, first: Tensor, first_control: Tensor, steps: int = 20, seed: int = 0, references: bool = True
+        self,
+        model: VideoDiT,
+        first: Tensor,
+        first_control: Tensor,
+        steps: int = 20,
+        seed: int = 0,
+        references: bool = True,
+        handoff: float | None = None,
     ) -> None:
         self.model, self.steps = model.eval(), int(steps)
+        self.handoff = model.config.handoff_level() if handoff is None else float(handoff)
+        if not 0 <= self.handoff <= 2 or (self.handoff and not model.config.handoff_noise):
+            raise ValueError(f"hand-off noise {self.handoff}: a σ within [0, 2], for a model trained with handoff_noise")
         self.cur = first  # (3, H, W): the frame the next chunk starts from
         self.generator = torch.Generator().manual_seed(int(seed))
         self.painted = 1  # frames so far, the first included
@@ -372,9 +415,14 @@ class Relay:
     def paint(self, control: Tensor) -> Tensor:
         """The chunk of ``control`` (T, ...) whose frame 0 is the current frame: its T − 1 new frames (T − 1, 3, H, W)."""
         refs = self.seen.tensor()[None].to(self.cur.device) if self.seen is not None else None
-        clip = sample_chunk(self.model, control[None], self.cur[None], self.steps, self.generator, refs)[0]
+        first, level = self.cur[None], None
+        sigma = self.handoff
+        if sigma and self.painted > 1:  # a frame the model painted: given noised, as the model was trained to take it
+            noise = torch.randn(first.shape, generator=self.generator).to(first.device)
+            first, level = first + sigma * noise, torch.full((1,), sigma, device=first.device)
+        clip = sample_chunk(self.model, control[None], first, self.steps, self.generator, refs, level)[0]
         if self.seen is not None:
-            self.seen.see(clip[1:], control[1:], offset=self.painted)
+            self.seen.see(clip[1:], control[1:], offset=self.painted, painted=True)
         self.cur = clip[-1]
         self.painted += len(clip) - 1
         return clip[1:]
@@ -388,16 +436,17 @@ def generate(
     steps: int = 20,
     seed: int = 0,
     references: bool = True,
+    handoff: float | None = None,
 ) -> Tensor:
     """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a control (a pose video, or the baseline's action
     schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds; ``Relay``:
-    the references)."""
+    the references and the hand-off noise, ``handoff``: its σ instead of the model's ``handoff_level``)."""
     c = model.config
     check_inputs(c, control, first)
     step = c.frames - 1
     n = (len(control) - 1) // step if chunks is None else int(chunks)
     if n < 1 or 1 + n * step > len(control):
         raise ValueError(f"{n} chunks need {1 + n * step} control frames; the control has {len(control)}")
-    relay = Relay(model, first, control[0], steps, seed, references)
+    relay = Relay(model, first, control[0], steps, seed, references, handoff)
     out = [first[None]] + [relay.paint(control[k * step : k * step + c.frames]) for k in range(n)]
     return torch.cat(out, dim=0)

@@ -64,14 +64,16 @@ def entity_drift(
     seed: int = 0,
     references: bool = True,
     forced: bool = False,
+    handoff: float | None = None,
 ) -> dict[str, np.ndarray | float]:
     """``appearance_drift`` of the model's relays (``references``: whether a model with reference slots is given
-    them; ``forced``: each chunk from its recorded first frame, ``forced_chunks``)."""
+    them; ``forced``: each chunk from its recorded first frame, ``forced_chunks``; ``handoff``: the relay's hand-off
+    noise, default the model's)."""
 
     def paint(pose: Tensor, recorded: Tensor, chunks: int) -> Tensor:
         if forced:
             return forced_chunks(model, pose, recorded, chunks, steps=steps, seed=seed, references=references)
-        return generate(model, pose, recorded[0], chunks=chunks, steps=steps, seed=seed, references=references)
+        return generate(model, pose, recorded[0], chunks=chunks, steps=steps, seed=seed, references=references, handoff=handoff)
 
     return appearance_drift(videos, bands, model.config.frames - 1, paint)
 
@@ -106,14 +108,17 @@ def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], ste
     Returns
 
     - ``colour``, ``pixel``: (K,) their means over relay chunk k's pairs (nan where none shows an entity);
+    - ``known``, ``unknown``: (K,) the colour error's mean over the pairs of the entities the first frame shows (whose
+      look the relay was given: its drift) and over the others' (a look the relay never saw, invented or taken from
+      a frame it painted);
     - ``in_view``, ``after_gap``: the mean colour error where the entity has stayed in view since it was first
       shown, and where it left the view and came back (what a relay without references must paint from nothing);
       ``pairs``: how many of each."""
 
     K = min((len(v.rgb) - 1) // step for v in videos)
     n = 1 + K * step
-    sums = {"colour": np.zeros(K), "pixel": np.zeros(K)}
-    count = np.zeros(K)
+    sums = {"colour": np.zeros(K), "pixel": np.zeros(K), "known": np.zeros(K), "unknown": np.zeros(K)}
+    count = {name: np.zeros(K) for name in sums}
     history = {"in_view": [], "after_gap": []}
     for v in videos:
         pose, rgb = v.pose[:n], v.rgb[:n]
@@ -124,12 +129,19 @@ def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], ste
         pixels = masks.sum((-2, -1)).clamp(min=1)  # (n − 1, E, 1)
         mean_gen, mean_rec = (masks * video[:, None]).sum((-2, -1)) / pixels, (masks * rgb[1:, None]).sum((-2, -1)) / pixels
         colour = (mean_gen - mean_rec).abs().mean(-1)  # (n − 1, E)
-        per = {"colour": colour, "pixel": (masks * (video - rgb[1:]).abs()[:, None]).sum((-2, -1)).mean(-1) / pixels[..., 0]}
+        pixel = (masks * (video - rgb[1:]).abs()[:, None]).sum((-2, -1)).mean(-1) / pixels[..., 0]
+        known = shown_at[0].float()  # (E,): the entities whose look the relay was given in its first frame
+        per = {
+            "colour": (colour, shown),
+            "pixel": (pixel, shown),
+            "known": (colour, shown * known),
+            "unknown": (colour, shown * (1 - known)),
+        }
         for k in range(K):
             at = slice(k * step, (k + 1) * step)
-            count[k] += float(shown[at].sum())
-            for name, e in per.items():
-                sums[name][k] += float((e[at] * shown[at]).sum())
+            for name, (e, w) in per.items():
+                sums[name][k] += float((e[at] * w[at]).sum())
+                count[name][k] += float(w[at].sum())
         seen = shown_at.numpy()
         for e in range(seen.shape[1]):
             was_seen, gone = bool(seen[0, e]), False  # shown before this frame; out of view since then
@@ -139,7 +151,9 @@ def appearance_drift(videos: list[Clip], bands: tuple[tuple[int, int], ...], ste
                     was_seen = True
                 else:
                     gone = gone or was_seen
-    out: dict[str, np.ndarray | float] = {name: np.where(count > 0, t / np.maximum(count, 1), np.nan) for name, t in sums.items()}
+    out: dict[str, np.ndarray | float] = {
+        name: np.where(count[name] > 0, t / np.maximum(count[name], 1), np.nan) for name, t in sums.items()
+    }
     for name, errs in history.items():
         out[name] = float(np.mean(errs)) if errs else float("nan")
     out["pairs"] = {name: len(errs) for name, errs in history.items()}

@@ -23,7 +23,10 @@ chunk beside its first frame.
   ``RETAKE`` (2) × the pixels of the one it was last taken from, and so on: the best view so far, up a ladder of at
   most log₂ of the frame's pixels steps, never a look that changes frame to frame. In training, frames of the clip's
   own chunk up to the clip's start (never the frames the clip must paint); in a relay, the given first frame, then
-  the generated frames as they are painted (an entity first seen in them, or seen larger than before).
+  the generated frames as they are painted — an entity first seen in them, or seen larger than before, but never
+  one whose crop is of the given frame: a painted view of a look the relay was given holds only that look and the
+  model's errors (retaken from painted views, the error of the bodies the first frame showed grew by a third more;
+  docs/tradeoffs.md).
 """
 
 from __future__ import annotations
@@ -95,6 +98,7 @@ class EntityReferences:
         self.bands, self.size = tuple(bands), int(size)
         self.taken: list[list[tuple[int, Tensor]]] = [[] for _ in self.bands]  # every (frame, crop), in order
         self.pixels: list[int] = [0] * len(self.bands)  # the entity's mask pixels in the frame of its latest crop
+        self.recorded: list[bool] = [False] * len(self.bands)  # whether its latest crop is of a recorded frame
 
     @property
     def crops(self) -> list[Tensor | None]:
@@ -106,15 +110,19 @@ class EntityReferences:
         """Where each entity's latest crop was taken (None: not seen)."""
         return [t[-1][0] if t else None for t in self.taken]
 
-    def see(self, rgb: Tensor, pose: Tensor, offset: int = 0) -> None:
+    def see(self, rgb: Tensor, pose: Tensor, offset: int = 0, painted: bool = False) -> None:
         """Read these frames (T, 3, H, W), the video's frames ``offset`` … ``offset`` + T − 1, in order: an entity not
         seen yet is taken from the first that shows it, one seen is retaken from the first that shows it with at
-        least ``RETAKE`` × its pixels (and so on, up the ladder)."""
+        least ``RETAKE`` × its pixels (and so on, up the ladder) — except from ``painted`` frames (a relay's own) one
+        whose crop is of a recorded frame: a painted view of it, however large, is a copy of that look with the
+        model's errors in it (module doc, "Which frame")."""
         if not len(rgb):
             return
         masks = band_masks(pose, self.bands)  # (T, E, H, W)
         area = masks.flatten(2).sum(-1)  # (T, E)
         for e in range(len(self.bands)):
+            if painted and self.recorded[e]:
+                continue
             t = 0
             while True:
                 need = max(1, math.ceil(RETAKE * self.pixels[e]))  # 1 for an entity not seen yet
@@ -123,7 +131,7 @@ class EntityReferences:
                     break
                 t += int(hits[0])
                 self.taken[e].append((offset + t, crop(rgb[t], masks[t, e], self.size)))
-                self.pixels[e] = int(area[t, e])
+                self.pixels[e], self.recorded[e] = int(area[t, e]), not painted
                 t += 1
 
     def tensor(self, upto: int | None = None) -> Tensor:

@@ -92,6 +92,13 @@ class ObservationTrainConfig:
         min=0.0,
         max=2.0,
     )
+    handoff_noise: float = knob(
+        0.0,
+        "each clip's given first frame noised by N(0, σ²), σ uniform in [0, this] (RGB in [-1, 1]) and told to the "
+        "network; a relay gives its hand-off frames noised at half this (conditioning augmentation against drift)",
+        min=0.0,
+        max=2.0,
+    )
     jitter_root_m: float = knob(
         0.0, "training targets rendered from state whose roots are shifted this far (m; bridge.jitter)", min=0.0
     )
@@ -156,6 +163,7 @@ def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationC
         reference_bands=bands,
         reference_size=REF_PATCHES * patch if bands else 0,
         reference_paint=bool(bands) and config.reference_paint,
+        handoff_noise=config.handoff_noise,
     )
 
 
@@ -197,11 +205,13 @@ def _batch(
     refs_of: ChunkReferences | None = None,
     drift: float = 0.0,
     bands: tuple[tuple[int, int], ...] = (),
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    noise: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """Step ``step``'s clips, their controls, their given first frames (with probability ``swap`` a random frame
     of another chunk, reference swap, else the clip's own frame 0, whose pixels of each entity of ``bands`` are
     shifted by a colour drawn from N(0, ``drift``²) per channel) and, with ``refs_of``, their entity references
-    (each from the clip's own chunk up to the clip's start, as ``references.EntityReferences`` takes it)."""
+    (each from the clip's own chunk up to the clip's start, as ``references.EntityReferences`` takes it); with
+    ``noise``, every given first frame noised by N(0, σ²) with σ ~ U[0, ``noise``] per clip, and those σ (else None)."""
     rng = np.random.default_rng([seed, step] if rank == 0 else [seed, step, rank])
     picks = rng.integers(0, len(chunks), size)
     starts = [int(rng.integers(0, chunks[i].rgb.shape[0] - frames + 1)) for i in picks]
@@ -219,7 +229,11 @@ def _batch(
         shift = torch.from_numpy(rng.normal(0.0, drift, (size, len(bands), 3))).float()  # (B, E, 3)
         first[own] = (first + torch.einsum("behw,bec->bchw", masks, shift))[own].clamp(-1.0, 1.0)
     refs = torch.stack([refs_of(int(i)).tensor(upto=s) for i, s in zip(picks, starts)]) if refs_of is not None else None
-    return rgb, ctrl, first, refs
+    level = None
+    if noise:  # drawn last, so that the clips, swaps and drifts of a run without it stay the same
+        level = torch.from_numpy(rng.uniform(0.0, noise, size)).float()
+        first = first + level[:, None, None, None] * torch.from_numpy(rng.standard_normal(first.shape)).float()
+    return rgb, ctrl, first, refs, level
 
 
 @torch.no_grad()
@@ -309,7 +323,7 @@ def train(
         return save_checkpoint(out_dir, at, model, opt, sched, meta)
 
     def loss_at(step: int) -> dict[str, torch.Tensor]:
-        rgb, ctrl, first, refs = _batch(
+        rgb, ctrl, first, refs, level = _batch(
             chunks,
             mc.frames,
             config.batch_size,
@@ -321,9 +335,10 @@ def train(
             refs_of,
             config.first_frame_drift,
             drift_bands,
+            config.handoff_noise,
         )
         noise = torch.Generator().manual_seed(_noise_seed(config.seed, step, rank))
-        return {"loss": flow_loss(net, rgb, ctrl, noise, first, refs)}
+        return {"loss": flow_loss(net, rgb, ctrl, noise, first, refs, level)}
 
     end = config.steps if stop_at is None else min(stop_at, config.steps)
     training.run_steps(

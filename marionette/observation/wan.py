@@ -577,7 +577,7 @@ class WanFunControl:
                     ref = self.reference_tokens(reference_sheet(seen.tensor(), *first.shape[1:]))
             clip = self.sample_chunk(ctrl, cur, steps, g, ref)
             if seen is not None:
-                seen.see(clip[1:], ctrl[1:], offset=k * step + 1)
+                seen.see(clip[1:], ctrl[1:], offset=k * step + 1, painted=True)
             out.append(clip[1:])
             cur = clip[-1]
         return torch.cat(out, dim=0)
