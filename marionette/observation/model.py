@@ -416,10 +416,9 @@ class Relay:
         """The chunk of ``control`` (T, ...) whose frame 0 is the current frame: its T − 1 new frames (T − 1, 3, H, W)."""
         refs = self.seen.tensor()[None].to(self.cur.device) if self.seen is not None else None
         first, level = self.cur[None], None
-        sigma = self.handoff
-        if sigma and self.painted > 1:  # a frame the model painted: given noised, as the model was trained to take it
+        if self.handoff and self.painted > 1:  # a frame the model painted: given noised, as the model was trained to take it
             noise = torch.randn(first.shape, generator=self.generator).to(first.device)
-            first, level = first + sigma * noise, torch.full((1,), sigma, device=first.device)
+            first, level = first + self.handoff * noise, torch.full((1,), self.handoff, device=first.device)
         clip = sample_chunk(self.model, control[None], first, self.steps, self.generator, refs, level)[0]
         if self.seen is not None:
             self.seen.see(clip[1:], control[1:], offset=self.painted, painted=True)
