@@ -85,7 +85,7 @@ class ObservationConfig:
     reference_paint: bool = False  # the references also laid over their bodies in every frame (references.paint)
     # conditioning augmentation of the given frame against a relay's drift: trained on first frames noised by
     # N(0, σ²) with σ uniform in [0, handoff_noise] (RGB units), σ told to the network; a relay gives each hand-off
-    # frame noised at handoff_level() (0: none, the network has no input for it)
+    # frame noised at handoff_level (0: none, the network has no input for it)
     handoff_noise: float = 0.0
 
     def __post_init__(self) -> None:
@@ -138,6 +138,7 @@ class ObservationConfig:
         zeros after) and its mask, and (``reference_paint``) the references laid over their bodies and their mask."""
         return RGB + (POSE if self.control == "pose" else 0) + RGB + 1 + (RGB + 1 if self.reference_paint else 0)
 
+    @property
     def handoff_level(self) -> float:
         """The noise σ a relay adds to each hand-off frame (the middle of the trained range; 0 without)."""
         return self.handoff_noise / 2
@@ -398,7 +399,7 @@ class Relay:
         handoff: float | None = None,
     ) -> None:
         self.model, self.steps = model.eval(), int(steps)
-        self.handoff = model.config.handoff_level() if handoff is None else float(handoff)
+        self.handoff = model.config.handoff_level if handoff is None else float(handoff)
         if not 0 <= self.handoff <= 2 or (self.handoff and not model.config.handoff_noise):
             raise ValueError(f"hand-off noise {self.handoff}: a σ within [0, 2], for a model trained with handoff_noise")
         self.cur = first  # (3, H, W): the frame the next chunk starts from
