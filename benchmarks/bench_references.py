@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_references.py [--recordings 12] [--seconds 40] [--steps 3000] [--out DIR]
         [--reduce 2 --patch 2] [--arms default,drift,references,tokens,handoff,references-handoff] [--given-only]
-        [--handoff SIGMA] [--seed 0]
+        [--handoff SIGMA] [--seeds 0,1,2] [--guidance 1,2]
 
 A synthetic tree where appearance must be read from the video — each recording's monster and player in colours
 of their own (``synth --skins``) and a player who looks around, so that the bodies leave the view and come back
@@ -23,7 +23,11 @@ growth; and the same colour error with every chunk started from its recorded fra
 references from the recorded frames) — its growth is what the later frames ask anyway (bodies turned from their first
 look, back into view), and the growth of relayed − forced is the relay's own drift; and the colour error of the
 bodies the relay's first frame showed (whose look it was given: their drift, relayed and forced) apart from the
-others' (a look the relay must invent). ``--out`` keeps the corpus and the runs (a second run with the same --out reuses them).
+others' (a look the relay must invent). ``--guidance 1,2``: the reference arms' relays also at those reference
+guidance weights (``Relay``). ``--seeds 0,1,2``: every arm trained from each seed, and two more tables: each arm's
+mean ± standard deviation over the seeds, and each arm less the first arm seed by seed (the growth of one seed's run
+moves by about 0.02 between seeds, more than the arms' margins: docs/tradeoffs.md). ``--out`` keeps the corpus, the
+runs and their relays' measures (a second run with the same --out reuses them).
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 from marionette.corpus import Corpus
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
 from marionette.observation.data import ClipSource
+from marionette.observation.model import MAX_GUIDANCE
 from marionette.observation.quality import drift_growth, entity_drift, relay_videos
 from marionette.observation.references import layout_bands
 from marionette.observation.train import ObservationTrainConfig, load_model, train
@@ -88,8 +93,14 @@ def main() -> None:
     ap.add_argument("--reduce", type=int, default=2, help="the 36 × 64 chunks divided by this for the model")
     ap.add_argument("--patch", type=int, default=2, help="the model's patch side in pixels")
     ap.add_argument("--arms", default=",".join(ARMS), help=f"which arms, of {', '.join(ARMS)}")
-    ap.add_argument("--seed", type=int, default=0, help="the arms' training seed (weights, clips, noise)")
+    ap.add_argument(
+        "--seeds", default="0", help="the arms' training seeds, comma-separated (weights, clips, noise); more than one "
+        "adds each arm's mean ± spread over them and each arm less the first, seed by seed"
+    )  # fmt: skip
     ap.add_argument("--handoff", type=float, default=None, help="hand-off noise arms: the relay's σ (default: the model's)")
+    ap.add_argument(
+        "--guidance", default="1", help="reference arms: the relays' reference guidance weights, comma-separated (1: none)"
+    )
     ap.add_argument("--given-only", action="store_true", help="reference arms: skip the relays with references withheld")
     a = ap.parse_args()
     if a.handoff is not None and not 0 <= a.handoff <= 2:
@@ -99,9 +110,19 @@ def main() -> None:
         ap.error(f"--arms {a.arms!r}: a comma-separated choice of {', '.join(ARMS)}")
     if 36 % a.reduce or 64 % a.reduce or (36 // a.reduce) % a.patch or (64 // a.reduce) % a.patch:
         ap.error(f"--reduce {a.reduce} --patch {a.patch}: 36 × 64 must reduce to whole patches")
-    if a.seed < 0:
-        ap.error(f"--seed {a.seed}: a seed is ≥ 0")
-    recipe = replace(RECIPE, reduce=a.reduce, patch=a.patch, seed=a.seed)
+    try:
+        seeds = [int(x) for x in a.seeds.split(",")]
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0 or len(set(seeds)) < len(seeds):
+        ap.error(f"--seeds {a.seeds!r}: distinct whole numbers ≥ 0, comma-separated")
+    try:
+        guidance = [float(x) for x in a.guidance.split(",")]
+    except ValueError:
+        guidance = []
+    if not guidance or not all(0 <= w <= MAX_GUIDANCE for w in guidance) or len(set(guidance)) < len(guidance):
+        ap.error(f"--guidance {a.guidance!r}: distinct weights within [0, {MAX_GUIDANCE:g}], comma-separated")
+    recipe = replace(RECIPE, reduce=a.reduce, patch=a.patch)
     size = (36 // a.reduce, 64 // a.reduce)
     root = a.out or Path(tempfile.mkdtemp(prefix="bench-references-"))
     t0 = time.perf_counter()
@@ -111,67 +132,126 @@ def main() -> None:
     bands = layout_bands(c.layouts.values())
     videos = relay_videos(ClipSource(c, "test", RECIPE.frames, size), 1 + 4 * a.chunks, 2 * a.chunks)
     torch.set_num_threads(1)
-    rows = []
-    for key in arms:
-        name, knobs = ARMS[key]
-        shape = ("" if (a.reduce, a.patch) == (2, 2) else f"-r{a.reduce}p{a.patch}") + (f"-seed{a.seed}" if a.seed else "")
-        run = root / f"run-{a.steps}{shape}-{name.replace(' ', '-').replace('+', 'and')}"
-        if not (run / "summary.json").exists():
-            t0 = time.perf_counter()
-            summary = train(corpus, run, replace(recipe, steps=a.steps, **knobs), log=lambda *_: None)
-            print(
-                f"{name}: trained in {time.perf_counter() - t0:.0f} s, held-out loss {summary['evals'][-1]['held_out_loss']:.4f}"
-            )
-        model = load_model(run)
-        for given in (True, False) if model.config.references and not a.given_only else (True,):
-            d = entity_drift(
-                model, videos, bands, steps=8, references=given, handoff=a.handoff if model.config.handoff_noise else None
-            )
-            forced = entity_drift(model, videos, bands, steps=8, references=given, forced=True)
-            f = forced["colour"]
-            q = max(1, a.chunks // 4)
-            colour, pixel = d["colour"], d["pixel"]
-            rows.append(
-                [
-                    name + ("" if given else ", references withheld"),
-                    f"{np.nanmean(colour[:q]):.4f}",
-                    f"{np.nanmean(colour[-q:]):.4f}",
-                    f"{drift_growth(colour):+.4f}",
-                    f"{np.nanmean(f[:q]):.4f} → {np.nanmean(f[-q:]):.4f}",
-                    f"{drift_growth(f):+.4f}",
-                    f"{drift_growth(colour - f):+.4f}",
-                    f"{d['in_view']:.4f}",
-                    f"{d['after_gap']:.4f}",
-                    f"{drift_growth(pixel):+.4f}",
-                    f"{np.nanmean(d['known'][:q]):.4f} → {np.nanmean(d['known'][-q:]):.4f}",
-                    f"{drift_growth(d['known']):+.4f}",
-                    f"{drift_growth(forced['known']):+.4f}",
-                    f"{np.nanmean(d['unknown'][:q]):.4f} → {np.nanmean(d['unknown'][-q:]):.4f}",
-                ]
-            )
-            print(rows[-1], flush=True)
+    rows, runs = [], {}  # runs: (row name, seed) -> relay measures
+    for seed in seeds:
+        for key in arms:
+            name, knobs = ARMS[key]
+            shape = ("" if (a.reduce, a.patch) == (2, 2) else f"-r{a.reduce}p{a.patch}") + (f"-seed{seed}" if seed else "")
+            run = root / f"run-{a.steps}{shape}-{name.replace(' ', '-').replace('+', 'and')}"
+            if not (run / "summary.json").exists():
+                t0 = time.perf_counter()
+                cfg = replace(recipe, seed=seed, steps=a.steps, **knobs)
+                summary = train(corpus, run, cfg, log=lambda *_: None)
+                held_out = summary["evals"][-1]["held_out_loss"]
+                print(f"{name}, seed {seed}: trained in {time.perf_counter() - t0:.0f} s, held-out loss {held_out:.4f}")
+            model = load_model(run)
+            givens = (True, False) if model.config.references and not a.given_only else (True,)
+            for given, w in [(g, w) for g in givens for w in (guidance if model.config.references and g else [1.0])]:
+                handoff = a.handoff if model.config.handoff_noise else None
+                m = measure(run, model, videos, bands, a.chunks, given, handoff, w)
+                label = name + ("" if given else ", references withheld") + (f", guidance {w:g}" if w != 1 else "")
+                runs[label, seed] = m
+                rows.append(row(label + (f", seed {seed}" if len(seeds) > 1 else ""), m, a.chunks))
+                print(rows[-1], flush=True)
     print(preamble("Persistent entity references: per-entity appearance error over relays (measured)"))
     print(
         f"{len(videos)} held-out videos of {1 + 4 * a.chunks} frames ({a.chunks} chunks of 5) at {size[0]} × {size[1]}, "
-        f"patch {a.patch}, {a.recordings} × {a.seconds:.0f} s recordings, {a.steps} steps per arm; pairs {d['pairs']}"
+        f"patch {a.patch}, {a.recordings} × {a.seconds:.0f} s recordings, {a.steps} steps per arm, training seeds "
+        f"{', '.join(map(str, seeds))}; pairs {m['pairs']}"
     )
-    head = [
-        "arm",
-        "colour, first ¼",
-        "colour, last ¼",
-        "growth",
-        "forced: first ¼ → last ¼",
-        "forced growth",
-        "the relay's growth",
-        "stayed in view",
-        "after leaving the view",
-        "pixel growth",
-        "shown in the first frame: first ¼ → last ¼",
-        "its growth",
-        "its forced growth",
-        "not shown in the first frame: first ¼ → last ¼",
+    print(table(HEAD, rows))
+    if len(seeds) > 1:
+        print(over_seeds(runs, seeds, a.chunks))
+
+
+HEAD = [
+    "arm",
+    "colour, first ¼",
+    "colour, last ¼",
+    "growth",
+    "forced: first ¼ → last ¼",
+    "forced growth",
+    "the relay's growth",
+    "stayed in view",
+    "after leaving the view",
+    "pixel growth",
+    "shown in the first frame: first ¼ → last ¼",
+    "its growth",
+    "its forced growth",
+    "not shown in the first frame: first ¼ → last ¼",
+]
+
+
+def measure(run: Path, model, videos, bands, chunks: int, given: bool, handoff: float | None, guidance: float) -> dict:
+    """``entity_drift`` relayed and forced, kept in the run's directory (keyed by chunks, references, hand-off σ) so
+    that a later call — another seed's, or the summary over seeds — reads it instead of relaying again."""
+    w = "" if guidance == 1 else f"-guidance{guidance:g}"
+    cache = run / f"relay-{chunks}c-{'references' if given else 'withheld'}-handoff{handoff}{w}.npz"
+    if cache.exists():
+        with np.load(cache, allow_pickle=False) as z:
+            m = {k: z[k] for k in z.files}
+        m["pairs"] = {"in_view": int(m.pop("pairs_in_view")), "after_gap": int(m.pop("pairs_after_gap"))}
+        return m
+    d = entity_drift(model, videos, bands, steps=8, references=given, handoff=handoff, guidance=guidance)
+    forced = entity_drift(model, videos, bands, steps=8, references=given, forced=True, guidance=guidance)
+    m = {k: np.asarray(d[k]) for k in ("colour", "pixel", "known", "unknown", "in_view", "after_gap")}
+    m |= {"forced_colour": np.asarray(forced["colour"]), "forced_known": np.asarray(forced["known"])}
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, pairs_in_view=d["pairs"]["in_view"], pairs_after_gap=d["pairs"]["after_gap"], **m)
+    tmp.replace(cache)
+    return m | {"pairs": d["pairs"]}
+
+
+def row(label: str, m: dict, chunks: int) -> list[str]:
+    q = max(1, chunks // 4)
+    colour, f, known = m["colour"], m["forced_colour"], m["known"]
+    return [
+        label,
+        f"{np.nanmean(colour[:q]):.4f}",
+        f"{np.nanmean(colour[-q:]):.4f}",
+        f"{drift_growth(colour):+.4f}",
+        f"{np.nanmean(f[:q]):.4f} → {np.nanmean(f[-q:]):.4f}",
+        f"{drift_growth(f):+.4f}",
+        f"{drift_growth(colour - f):+.4f}",
+        f"{float(m['in_view']):.4f}",
+        f"{float(m['after_gap']):.4f}",
+        f"{drift_growth(m['pixel']):+.4f}",
+        f"{np.nanmean(known[:q]):.4f} → {np.nanmean(known[-q:]):.4f}",
+        f"{drift_growth(known):+.4f}",
+        f"{drift_growth(m['forced_known']):+.4f}",
+        f"{np.nanmean(m['unknown'][:q]):.4f} → {np.nanmean(m['unknown'][-q:]):.4f}",
     ]
-    print(table(head, rows))
+
+
+def over_seeds(runs: dict, seeds: list[int], chunks: int) -> str:
+    """Two tables over the training seeds: each arm's mean ± standard deviation, and each arm less the first arm
+    seed by seed (a paired difference: both trained from the same seed), with the mean difference's standard error
+    and in how many seeds the arm's value is the lower."""
+    q = max(1, chunks // 4)
+    measures = {
+        "growth": lambda m: drift_growth(m["colour"]),
+        "known growth": lambda m: drift_growth(m["known"]),
+        "relay's growth": lambda m: drift_growth(m["colour"] - m["forced_colour"]),
+        "colour, last ¼": lambda m: float(np.nanmean(m["colour"][-q:])),
+        "known, last ¼": lambda m: float(np.nanmean(m["known"][-q:])),
+    }
+    labels = list(dict.fromkeys(label for label, _ in runs))
+    values = {(label, k): np.array([f(runs[label, s]) for s in seeds]) for label in labels for k, f in measures.items()}
+    spread = [
+        [label] + [f"{values[label, k].mean():+.4f} ± {values[label, k].std(ddof=1):.4f}" for k in measures] for label in labels
+    ]
+    n, base, paired = len(seeds), labels[0], []
+    for label in labels[1:]:
+        cells = []
+        for k in measures:
+            diff = values[label, k] - values[base, k]
+            cells.append(f"{diff.mean():+.4f} ± {diff.std(ddof=1) / np.sqrt(n):.4f} ({int((diff < 0).sum())}/{n} lower)")
+        paired.append([f"{label} − {base}"] + cells)
+    out = f"Over {n} training seeds: mean ± standard deviation\n\n" + table(["arm", *measures], spread)
+    if paired:
+        out += "\n\nSeed by seed, less the first arm: mean ± standard error (seeds where it is lower)\n\n"
+        out += table(["arms", *measures], paired)
+    return out
 
 
 if __name__ == "__main__":
