@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_references.py [--recordings 12] [--seconds 40] [--steps 3000] [--out DIR]
         [--reduce 2 --patch 2] [--arms default,drift,references,tokens,handoff,references-handoff] [--given-only]
-        [--handoff SIGMA] [--seeds 0,1,2] [--guidance 1,2]
+        [--handoff SIGMA] [--seeds 0,1,2]
 
 A synthetic tree where appearance must be read from the video — each recording's monster and player in colours
 of their own (``synth --skins``) and a player who looks around, so that the bodies leave the view and come back
@@ -23,8 +23,7 @@ growth; and the same colour error with every chunk started from its recorded fra
 references from the recorded frames) — its growth is what the later frames ask anyway (bodies turned from their first
 look, back into view), and the growth of relayed − forced is the relay's own drift; and the colour error of the
 bodies the relay's first frame showed (whose look it was given: their drift, relayed and forced) apart from the
-others' (a look the relay must invent). ``--guidance 1,2``: the reference arms' relays also at those reference
-guidance weights (``Relay``). ``--seeds 0,1,2``: every arm trained from each seed, and two more tables: each arm's
+others' (a look the relay must invent). ``--seeds 0,1,2``: every arm trained from each seed, and two more tables: each arm's
 mean ± standard deviation over the seeds, and each arm less the first arm seed by seed (the growth of one seed's run
 moves by about 0.02 between seeds, more than the arms' margins: docs/tradeoffs.md). ``--out`` keeps the corpus, the
 runs and their relays' measures (a second run with the same --out reuses them).
@@ -45,7 +44,6 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 from marionette.corpus import Corpus
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
 from marionette.observation.data import ClipSource
-from marionette.observation.model import MAX_GUIDANCE
 from marionette.observation.quality import drift_growth, entity_drift, relay_videos
 from marionette.observation.references import layout_bands
 from marionette.observation.train import ObservationTrainConfig, load_model, train
@@ -98,9 +96,6 @@ def main() -> None:
         "adds each arm's mean ± spread over them and each arm less the first, seed by seed"
     )  # fmt: skip
     ap.add_argument("--handoff", type=float, default=None, help="hand-off noise arms: the relay's σ (default: the model's)")
-    ap.add_argument(
-        "--guidance", default="1", help="reference arms: the relays' reference guidance weights, comma-separated (1: none)"
-    )
     ap.add_argument("--given-only", action="store_true", help="reference arms: skip the relays with references withheld")
     a = ap.parse_args()
     if a.handoff is not None and not 0 <= a.handoff <= 2:
@@ -116,12 +111,6 @@ def main() -> None:
         seeds = []
     if not seeds or min(seeds) < 0 or len(set(seeds)) < len(seeds):
         ap.error(f"--seeds {a.seeds!r}: distinct whole numbers ≥ 0, comma-separated")
-    try:
-        guidance = [float(x) for x in a.guidance.split(",")]
-    except ValueError:
-        guidance = []
-    if not guidance or not all(0 <= w <= MAX_GUIDANCE for w in guidance) or len(set(guidance)) < len(guidance):
-        ap.error(f"--guidance {a.guidance!r}: distinct weights within [0, {MAX_GUIDANCE:g}], comma-separated")
     recipe = replace(RECIPE, reduce=a.reduce, patch=a.patch)
     size = (36 // a.reduce, 64 // a.reduce)
     root = a.out or Path(tempfile.mkdtemp(prefix="bench-references-"))
@@ -145,11 +134,10 @@ def main() -> None:
                 held_out = summary["evals"][-1]["held_out_loss"]
                 print(f"{name}, seed {seed}: trained in {time.perf_counter() - t0:.0f} s, held-out loss {held_out:.4f}")
             model = load_model(run)
-            givens = (True, False) if model.config.references and not a.given_only else (True,)
-            for given, w in [(g, w) for g in givens for w in (guidance if model.config.references and g else [1.0])]:
+            for given in (True, False) if model.config.references and not a.given_only else (True,):
                 handoff = a.handoff if model.config.handoff_noise else None
-                m = measure(run, model, videos, bands, a.chunks, given, handoff, w)
-                label = name + ("" if given else ", references withheld") + (f", guidance {w:g}" if w != 1 else "")
+                m = measure(run, model, videos, bands, a.chunks, given, handoff)
+                label = name + ("" if given else ", references withheld")
                 runs[label, seed] = m
                 rows.append(row(label + (f", seed {seed}" if len(seeds) > 1 else ""), m, a.chunks))
                 print(rows[-1], flush=True)
@@ -182,18 +170,17 @@ HEAD = [
 ]
 
 
-def measure(run: Path, model, videos, bands, chunks: int, given: bool, handoff: float | None, guidance: float) -> dict:
+def measure(run: Path, model, videos, bands, chunks: int, given: bool, handoff: float | None) -> dict:
     """``entity_drift`` relayed and forced, kept in the run's directory (keyed by chunks, references, hand-off σ) so
     that a later call — another seed's, or the summary over seeds — reads it instead of relaying again."""
-    w = "" if guidance == 1 else f"-guidance{guidance:g}"
-    cache = run / f"relay-{chunks}c-{'references' if given else 'withheld'}-handoff{handoff}{w}.npz"
+    cache = run / f"relay-{chunks}c-{'references' if given else 'withheld'}-handoff{handoff}.npz"
     if cache.exists():
         with np.load(cache, allow_pickle=False) as z:
             m = {k: z[k] for k in z.files}
         m["pairs"] = {"in_view": int(m.pop("pairs_in_view")), "after_gap": int(m.pop("pairs_after_gap"))}
         return m
-    d = entity_drift(model, videos, bands, steps=8, references=given, handoff=handoff, guidance=guidance)
-    forced = entity_drift(model, videos, bands, steps=8, references=given, forced=True, guidance=guidance)
+    d = entity_drift(model, videos, bands, steps=8, references=given, handoff=handoff)
+    forced = entity_drift(model, videos, bands, steps=8, references=given, forced=True)
     m = {k: np.asarray(d[k]) for k in ("colour", "pixel", "known", "unknown", "in_view", "after_gap")}
     m |= {"forced_colour": np.asarray(forced["colour"]), "forced_known": np.asarray(forced["known"])}
     tmp = cache.with_suffix(".tmp.npz")
@@ -238,7 +225,9 @@ def over_seeds(runs: dict, seeds: list[int], chunks: int) -> str:
     labels = list(dict.fromkeys(label for label, _ in runs))
     values = {(label, k): np.array([f(runs[label, s]) for s in seeds]) for label in labels for k, f in measures.items()}
     spread = [
-        [label] + [f"{values[label, k].mean():+.4f} ± {values[label, k].std(ddof=1):.4f}" for k in measures] for label in labels
+        [label]
+        + [f"{values[label, k].mean():{'+' if 'growth' in k else ''}.4f} ± {values[label, k].std(ddof=1):.4f}" for k in measures]
+        for label in labels
     ]
     n, base, paired = len(seeds), labels[0], []
     for label in labels[1:]:

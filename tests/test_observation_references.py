@@ -236,48 +236,6 @@ def test_a_forced_relay_is_the_relay_when_the_recording_is_what_the_relay_painte
     assert torch.equal(forced[:5], relayed[:5]) and not torch.allclose(forced[5:], relayed[5:])
 
 
-def test_reference_guidance_extrapolates_from_the_velocity_without_references_and_is_checked():
-    """Guidance w: each step's velocity v₀ + w·(v_refs − v₀), v₀ the model's with no references (as a relay gives an
-    entity not yet seen); w = 1 is the plain sample, w = 0 ignores the references, and a relay checks w."""
-    from marionette.observation.model import Relay, sample_chunk
-    from marionette.observation.quality import forced_chunks
-
-    torch.manual_seed(0)
-    model = VideoDiT(config(reference_bands=BANDS, reference_size=8, reference_paint=True), seed=1).eval()
-    for p in (model.head.weight, model.final_mod.weight, *(b.modulation.weight for b in model.blocks)):
-        torch.nn.init.normal_(p, 0.0, 0.1)
-    ids = torch.zeros(5, 8, 16, dtype=torch.long)
-    ids[:, 2:5, 3:6] = 120
-    pose, first, refs = pose_with(ids)[None], torch.rand(1, 3, 8, 16) * 2 - 1, torch.rand(1, 3, 4, 8, 8) * 2 - 1
-
-    def chunk(w, r=refs):
-        return sample_chunk(model, pose, first, 1, torch.Generator().manual_seed(5), r, guidance=w)
-
-    with torch.no_grad():
-        noise = torch.randn(1, 5, 3, 8, 16, generator=torch.Generator().manual_seed(5))
-        # one Euler step from σ 1 (frame 0 too is noise there) to σ 0: x = ε − v, then frame 0 the given frame
-        s1 = torch.ones(1)
-        v_refs, v_none = model(noise, pose, first, s1, refs), model(noise, pose, first, s1)
-        x = (noise - (v_none + 2.5 * (v_refs - v_none))).clamp(-1, 1)
-        x[:, 0] = first
-        assert torch.allclose(chunk(2.5), x, atol=1e-5)
-        assert torch.equal(chunk(1.0), sample_chunk(model, pose, first, 1, torch.Generator().manual_seed(5), refs))
-        assert torch.allclose(chunk(0.0), chunk(1.0, None), atol=1e-6)  # w = 0: as if no entity were seen
-        assert torch.equal(chunk(3.0, None), chunk(1.0, None))  # no references: nothing to guide toward
-        assert not torch.allclose(chunk(2.5), chunk(1.0))
-        video = generate(model, pose_with(ids.repeat(3, 1, 1)[:13]), first[0], steps=2, guidance=2.0)
-        assert torch.isfinite(video).all() and video.abs().max() <= 1
-        forced = forced_chunks(model, pose_with(ids.repeat(3, 1, 1)[:13]), video, 3, steps=2, guidance=2.0)
-        assert torch.equal(forced, video)  # the relay's own video as the recording: forced is the relay, guided alike
-    for bad in (-0.5, 9.0):
-        with pytest.raises(ValueError, match="reference guidance"):
-            Relay(model, first[0], pose[0, 0], guidance=bad)
-    with pytest.raises(ValueError, match="reference guidance"):
-        Relay(model, first[0], pose[0, 0], references=False, guidance=2.0)
-    with pytest.raises(ValueError, match="reference guidance"):
-        Relay(VideoDiT(config(), seed=1), first[0], pose[0, 0], guidance=2.0)
-
-
 def test_training_batches_carry_each_clips_references_and_drift_only_the_bodies_of_its_first_frame():
     from marionette.observation.data import Clip
     from marionette.observation.train import ChunkReferences, _batch

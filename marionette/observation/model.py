@@ -59,7 +59,6 @@ from marionette.observation.references import paint
 RGB, POSE = 3, 3
 CONTROLS = ("pose", "actions")
 FORMAT = 2
-MAX_GUIDANCE = 8.0  # reference guidance weights beyond this only amplify the network's errors
 
 
 @dataclass(frozen=True)
@@ -365,12 +364,9 @@ def sample_chunk(
     generator: torch.Generator,
     refs: Tensor | None = None,
     level: Tensor | None = None,
-    guidance: float = 1.0,
 ) -> Tensor:
     """One chunk (B, T, 3, H, W) in [−1, 1] from its control (B, T, ...) and first frames (B, 3, H, W) by Euler
-    steps (``refs``: entity references, for a model with reference slots; ``level``: the noise σ on ``first``;
-    ``guidance`` w ≠ 1 with ``refs``: reference guidance, each step's velocity v₀ + w·(v_refs − v₀) where v₀ is the
-    model's without references, as a relay gives a body not yet seen, so w > 1 pulls harder toward the references)."""
+    steps (``refs``: entity references, for a model with reference slots; ``level``: the noise σ on ``first``)."""
     B, T = control.shape[:2]
     x = torch.randn(B, T, RGB, *first.shape[2:], generator=generator).to(first.device)  # CPU noise: the same video on any device
     eps0 = x[:, 0].clone()
@@ -378,11 +374,7 @@ def sample_chunk(
     for k in range(steps):
         s, s_next = float(grid[k]), float(grid[k + 1])
         x[:, 0] = (1 - s) * first + s * eps0  # the given frame, noised to this level
-        level_s = torch.full((B,), s, device=first.device)
-        v = model(x, control, first, level_s, refs, level)
-        if refs is not None and guidance != 1.0:
-            v_plain = model(x, control, first, level_s, None, level)
-            v = v_plain + guidance * (v - v_plain)
+        v = model(x, control, first, torch.full((B,), s, device=first.device), refs, level)
         x = x + (s_next - s) * v
     x[:, 0] = first
     return x.clamp(-1.0, 1.0)
@@ -393,8 +385,7 @@ class Relay:
     one before (the given first frame for the first; noised at ``handoff_level`` for a model trained with
     ``handoff_noise``), and a model with reference slots is given, at every chunk, each
     entity's crop from the frames so far (``observation.references``: the first that showed it, retaken as it shows
-    larger, but a look the given frame showed never from a painted frame; ``references=False``: none), with
-    reference ``guidance`` w (``sample_chunk``; 1: none, twice the network evaluations otherwise).
+    larger, but a look the given frame showed never from a painted frame; ``references=False``: none).
     ``generate`` runs it over a whole control; ``marionette play`` over live pose frames as they come."""
 
     def __init__(
@@ -406,15 +397,8 @@ class Relay:
         seed: int = 0,
         references: bool = True,
         handoff: float | None = None,
-        guidance: float = 1.0,
     ) -> None:
         self.model, self.steps = model.eval(), int(steps)
-        self.guidance = float(guidance)
-        if not 0 <= self.guidance <= MAX_GUIDANCE or (self.guidance != 1 and not (model.config.references and references)):
-            raise ValueError(
-                f"reference guidance {guidance}: a weight within [0, {MAX_GUIDANCE}], other than 1 only for a model "
-                "with reference slots given its references"
-            )
         self.handoff = model.config.handoff_level if handoff is None else float(handoff)
         if not 0 <= self.handoff <= 2 or (self.handoff and not model.config.handoff_noise):
             raise ValueError(f"hand-off noise {self.handoff}: a σ within [0, 2], for a model trained with handoff_noise")
@@ -436,7 +420,7 @@ class Relay:
         if self.handoff and self.painted > 1:  # a frame the model painted: given noised, as the model was trained to take it
             noise = torch.randn(first.shape, generator=self.generator).to(first.device)
             first, level = first + self.handoff * noise, torch.full((1,), self.handoff, device=first.device)
-        clip = sample_chunk(self.model, control[None], first, self.steps, self.generator, refs, level, self.guidance)[0]
+        clip = sample_chunk(self.model, control[None], first, self.steps, self.generator, refs, level)[0]
         if self.seen is not None:
             self.seen.see(clip[1:], control[1:], offset=self.painted, painted=True)
         self.cur = clip[-1]
@@ -453,18 +437,16 @@ def generate(
     seed: int = 0,
     references: bool = True,
     handoff: float | None = None,
-    guidance: float = 1.0,
 ) -> Tensor:
     """RGB video (1 + N·(T − 1), 3, H, W) in [−1, 1] from a control (a pose video, or the baseline's action
     schedule, ≥ that many frames) and a first frame, relayed over N chunks (default: as many as it holds; ``Relay``:
-    the references, the hand-off noise, ``handoff``: its σ instead of the model's ``handoff_level``, and the
-    reference ``guidance``)."""
+    the references and the hand-off noise, ``handoff``: its σ instead of the model's ``handoff_level``)."""
     c = model.config
     check_inputs(c, control, first)
     step = c.frames - 1
     n = (len(control) - 1) // step if chunks is None else int(chunks)
     if n < 1 or 1 + n * step > len(control):
         raise ValueError(f"{n} chunks need {1 + n * step} control frames; the control has {len(control)}")
-    relay = Relay(model, first, control[0], steps, seed, references, handoff, guidance)
+    relay = Relay(model, first, control[0], steps, seed, references, handoff)
     out = [first[None]] + [relay.paint(control[k * step : k * step + c.frames]) for k in range(n)]
     return torch.cat(out, dim=0)

@@ -65,34 +65,25 @@ def entity_drift(
     references: bool = True,
     forced: bool = False,
     handoff: float | None = None,
-    guidance: float = 1.0,
 ) -> dict[str, np.ndarray | float]:
     """``appearance_drift`` of the model's relays (``references``: whether a model with reference slots is given
     them; ``forced``: each chunk from its recorded first frame, ``forced_chunks``; ``handoff``: the relay's hand-off
-    noise, default the model's; ``guidance``: the relay's reference guidance, ``Relay``)."""
+    noise, default the model's)."""
 
     def paint(pose: Tensor, recorded: Tensor, chunks: int) -> Tensor:
         if forced:
-            return forced_chunks(model, pose, recorded, chunks, steps, seed, references, guidance)
-        return generate(model, pose, recorded[0], chunks, steps, seed, references=references, handoff=handoff, guidance=guidance)
+            return forced_chunks(model, pose, recorded, chunks, steps=steps, seed=seed, references=references)
+        return generate(model, pose, recorded[0], chunks=chunks, steps=steps, seed=seed, references=references, handoff=handoff)
 
     return appearance_drift(videos, bands, model.config.frames - 1, paint)
 
 
 def forced_chunks(
-    model: VideoDiT,
-    pose: Tensor,
-    recorded: Tensor,
-    chunks: int,
-    steps: int = 16,
-    seed: int = 0,
-    references: bool = True,
-    guidance: float = 1.0,
+    model: VideoDiT, pose: Tensor, recorded: Tensor, chunks: int, steps: int = 16, seed: int = 0, references: bool = True
 ) -> Tensor:
     """A video made as a relay's (1 + N·(T − 1) frames, noise from one generator seeded by ``seed``) but with every chunk
     started from the recorded frame at its start, and a model with reference slots given each entity's crop from the
-    recorded frames up to that start (as a relay takes it, with its reference ``guidance``): the relay's error
-    without its hand-offs."""
+    recorded frames up to that start (as a relay takes it): the relay's error without its hand-offs."""
     c = model.config
     step = c.frames - 1
     g = torch.Generator().manual_seed(int(seed))
@@ -105,8 +96,7 @@ def forced_chunks(
             seen.see(recorded[upto : a + 1], pose[upto : a + 1], offset=upto)
             upto, refs = a + 1, seen.tensor()[None]
         with torch.no_grad():
-            clip = sample_chunk(model.eval(), pose[None, a : a + c.frames], recorded[None, a], steps, g, refs, None, guidance)
-            out.append(clip[0, 1:])
+            out.append(sample_chunk(model.eval(), pose[None, a : a + c.frames], recorded[None, a], steps, g, refs)[0, 1:])
     return torch.cat(out)
 
 
