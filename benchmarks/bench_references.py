@@ -44,7 +44,7 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 from marionette.corpus import Corpus
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
 from marionette.observation.data import ClipSource
-from marionette.observation.quality import drift_growth, entity_drift, relay_videos
+from marionette.observation.quality import drift_growth, entity_drift, quarters, relay_videos
 from marionette.observation.references import layout_bands
 from marionette.observation.train import ObservationTrainConfig, load_model, train
 
@@ -139,7 +139,7 @@ def main() -> None:
                 m = measure(run, model, videos, bands, a.chunks, given, handoff)
                 label = name + ("" if given else ", references withheld")
                 runs[label, seed] = m
-                rows.append(row(label + (f", seed {seed}" if len(seeds) > 1 else ""), m, a.chunks))
+                rows.append(row(label + (f", seed {seed}" if len(seeds) > 1 else ""), m))
                 print(rows[-1], flush=True)
     print(preamble("Persistent entity references: per-entity appearance error over relays (measured)"))
     print(
@@ -149,7 +149,7 @@ def main() -> None:
     )
     print(table(HEAD, rows))
     if len(seeds) > 1:
-        print(over_seeds(runs, seeds, a.chunks))
+        print(over_seeds(runs, seeds))
 
 
 HEAD = [
@@ -189,38 +189,38 @@ def measure(run: Path, model, videos, bands, chunks: int, given: bool, handoff: 
     return m | {"pairs": d["pairs"]}
 
 
-def row(label: str, m: dict, chunks: int) -> list[str]:
-    q = max(1, chunks // 4)
+def row(label: str, m: dict) -> list[str]:
+    def span(errors: np.ndarray) -> str:
+        return "{:.4f} → {:.4f}".format(*quarters(errors))
+
     colour, f, known = m["colour"], m["forced_colour"], m["known"]
     return [
         label,
-        f"{np.nanmean(colour[:q]):.4f}",
-        f"{np.nanmean(colour[-q:]):.4f}",
+        *(f"{x:.4f}" for x in quarters(colour)),
         f"{drift_growth(colour):+.4f}",
-        f"{np.nanmean(f[:q]):.4f} → {np.nanmean(f[-q:]):.4f}",
+        span(f),
         f"{drift_growth(f):+.4f}",
         f"{drift_growth(colour - f):+.4f}",
         f"{float(m['in_view']):.4f}",
         f"{float(m['after_gap']):.4f}",
         f"{drift_growth(m['pixel']):+.4f}",
-        f"{np.nanmean(known[:q]):.4f} → {np.nanmean(known[-q:]):.4f}",
+        span(known),
         f"{drift_growth(known):+.4f}",
         f"{drift_growth(m['forced_known']):+.4f}",
-        f"{np.nanmean(m['unknown'][:q]):.4f} → {np.nanmean(m['unknown'][-q:]):.4f}",
+        span(m["unknown"]),
     ]
 
 
-def over_seeds(runs: dict, seeds: list[int], chunks: int) -> str:
+def over_seeds(runs: dict, seeds: list[int]) -> str:
     """Two tables over the training seeds: each arm's mean ± standard deviation, and each arm less the first arm
     seed by seed (a paired difference: both trained from the same seed), with the mean difference's standard error
     and in how many seeds the arm's value is the lower."""
-    q = max(1, chunks // 4)
     measures = {
         "growth": lambda m: drift_growth(m["colour"]),
         "known growth": lambda m: drift_growth(m["known"]),
         "relay's growth": lambda m: drift_growth(m["colour"] - m["forced_colour"]),
-        "colour, last ¼": lambda m: float(np.nanmean(m["colour"][-q:])),
-        "known, last ¼": lambda m: float(np.nanmean(m["known"][-q:])),
+        "colour, last ¼": lambda m: quarters(m["colour"])[1],
+        "known, last ¼": lambda m: quarters(m["known"])[1],
     }
     labels = list(dict.fromkeys(label for label, _ in runs))
     values = {(label, k): np.array([f(runs[label, s]) for s in seeds]) for label in labels for k, f in measures.items()}

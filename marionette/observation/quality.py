@@ -187,10 +187,16 @@ def relay_videos(source, frames: int, every: int | None = None) -> list[Clip]:
     return out
 
 
+def quarters(errors: np.ndarray) -> tuple[float, float]:
+    """A per-chunk error's mean over the first quarter of a relay's chunks and over the last (at least a chunk each)."""
+    q = max(1, len(errors) // 4)
+    return float(np.nanmean(errors[:q])), float(np.nanmean(errors[-q:]))
+
+
 def drift_growth(errors: np.ndarray) -> float:
     """How much a per-chunk error grows over a relay: the mean of its last quarter of chunks less its first's."""
-    q = max(1, len(errors) // 4)
-    return float(np.nanmean(errors[-q:]) - np.nanmean(errors[:q]))
+    first, last = quarters(errors)
+    return last - first
 
 
 def copy_error(chunks: list[Clip], frames: int) -> float:
