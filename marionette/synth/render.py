@@ -194,36 +194,44 @@ class Renderer:
         return self._shade(pos, d, t, n, mat), t
 
     def _shade(self, pos, d, t, n, mat) -> np.ndarray:
-        H, W = t.shape
+        """Sky where nothing is hit; elsewhere each material's albedo, sun-lit and fogged. Shading runs over the hit
+        pixels only, with each material's albedo computed over its own pixels (the arithmetic per pixel is the same
+        as over the whole image)."""
         dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
         sky = np.clip(0.5 + 0.5 * dn[..., 1:2], 0, 1)
         img = (1 - sky) * np.array([0.85, 0.9, 1.0]) + sky * np.array([0.35, 0.55, 0.9])
         hitm = mat >= 0
         if hitm.any():
-            tt = np.where(hitm, t, 0.0)
-            p = pos + tt[..., None] * d
-            n = np.where(np.sum(n * d, -1, keepdims=True) > 0, -n, n)
+            m_hit, tt, dh, nh = mat[hitm], t[hitm], d[hitm], n[hitm]  # (N,), (N,), (N, 3), (N, 3)
+            p = pos + tt[..., None] * dh
+            nh = np.where(np.sum(nh * dh, -1, keepdims=True) > 0, -nh, nh)
             sun = np.array([0.4, 0.8, 0.3]) / np.linalg.norm([0.4, 0.8, 0.3])
-            lam = 0.35 + 0.65 * np.clip(np.sum(n * sun, -1), 0, 1)
-            check = ((np.floor(p[..., 0] / 2) + np.floor(p[..., 2] / 2)) % 2)[..., None]
-            fine = (0.5 + 0.5 * np.sin(p[..., 0] * 3.1) * np.sin(p[..., 2] * 2.7))[..., None]
-            grass = np.array([0.30, 0.55, 0.22]) * (0.85 + 0.15 * check) * (0.9 + 0.1 * fine)
-            rock = np.array([0.50, 0.47, 0.44]) * (0.85 + 0.15 * fine)
-            steep = (n[..., 1:2] < 0.88).astype(np.float64)
-            base = {
-                0: grass * (1 - steep) + rock * steep,
-                1: rock * (0.8 + 0.2 * (np.floor(p[..., 1:2] * 2) % 2)),
-                2: np.array([0.55, 0.38, 0.2]) * (0.8 + 0.2 * (np.floor(p[..., 0:1] * 3) % 2)),
-                3: np.array(self.colours.get("monster", (0.6, 0.15, 0.1))),
-                4: np.array(self.colours.get("hunter", (0.15, 0.3, 0.75))),
-                5: np.array([0.85, 0.85, 0.9]),
-            }
-            col = np.zeros((H, W, 3))
-            for m, c in base.items():
-                sel = mat == m
-                col[sel] = np.broadcast_to(c, (H, W, 3))[sel]
+            lam = 0.35 + 0.65 * np.clip(np.sum(nh * sun, -1), 0, 1)
+            col = np.zeros((len(tt), 3))
+            for m in np.unique(m_hit):
+                sel = m_hit == m
+                col[sel] = self._albedo(int(m), p[sel], nh[sel])
             fog = np.clip(tt / 250.0, 0, 1)[..., None] ** 2
             shaded = col * lam[..., None]
-            shaded = shaded * (1 - fog) + img * fog
-            img = np.where(hitm[..., None], shaded, img)
+            img[hitm] = shaded * (1 - fog) + img[hitm] * fog
         return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+    def _albedo(self, m: int, p: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """(N, 3) albedo of material ``m`` at world points ``p`` (N, 3) with normals ``n`` (N, 3)."""
+        if m in (0, 1):
+            fine = (0.5 + 0.5 * np.sin(p[..., 0] * 3.1) * np.sin(p[..., 2] * 2.7))[..., None]
+            rock = np.array([0.50, 0.47, 0.44]) * (0.85 + 0.15 * fine)
+            if m == 1:
+                return rock * (0.8 + 0.2 * (np.floor(p[..., 1:2] * 2) % 2))
+            check = ((np.floor(p[..., 0] / 2) + np.floor(p[..., 2] / 2)) % 2)[..., None]
+            grass = np.array([0.30, 0.55, 0.22]) * (0.85 + 0.15 * check) * (0.9 + 0.1 * fine)
+            steep = (n[..., 1:2] < 0.88).astype(np.float64)
+            return grass * (1 - steep) + rock * steep
+        if m == 2:
+            return np.array([0.55, 0.38, 0.2]) * (0.8 + 0.2 * (np.floor(p[..., 0:1] * 3) % 2))
+        fixed = {
+            3: self.colours.get("monster", (0.6, 0.15, 0.1)),
+            4: self.colours.get("hunter", (0.15, 0.3, 0.75)),
+            5: (0.85, 0.85, 0.9),
+        }
+        return np.broadcast_to(np.array(fixed[m]), (len(p), 3))
