@@ -1,11 +1,11 @@
 """The dynamics model: rollout speed at the paper's sizes, training speed, and what the window, the dtype and
 the relative feature buy in accuracy.
 
-    .venv/bin/python benchmarks/bench_dynamics.py [--part all|rollout|train|window|relative|heads|seeds]
+    .venv/bin/python benchmarks/bench_dynamics.py [--part all|rollout|train|window|relative|heads|seeds|long]
         [--corpus DIR] [--scanned-corpus DIR] [--steps N] [--horizon 448] [--seeds 0 1 2 3] [--set KNOB=VALUE ...]
 
 Inputs (made in a temp dir unless given): the *dynamics corpus* of the tests (ten 45 s synthetic
-recordings, seed 11, one recording held out; ``tests/conftest.py``), and a *scanned corpus* (two 20 s
+recordings, seed 11, one recording held out; ``tests/fixtures/corpora.py``), and a *scanned corpus* (two 20 s
 recordings with the stage's terrain scanned, so the collider has a surface). Torch uses every core.
 
 rollout. A paper-preset model (ActionGPT 4×256, PoseGPT 8×512, window 512; random weights: speed does
@@ -44,6 +44,10 @@ the ``--set`` knobs, trained at each of ``--seeds``: per seed the held-out next-
 swinging attack tokens forced for 10 frames from every held-out seed, tip > 5 m/s) and the probe's counts (48
 windows of 64 + 120, Force-GT < Force-Shuf and < the run-level shuffle), and their means: a control figure from one
 checkpoint moves by more between seeds than most options move it (docs/tradeoffs.md, "Seed to seed").
+
+long. The tests' tiny recipe at seed 0, rolled out ``--long-frames`` (10,000) frames from the first held-out segment,
+rules on (the suite's test rolls 3,000): whether every state is finite, frames/s, per entity the bone-length CV
+(median, mean and max over bones, beside the recorded train split's) and how far the root wanders.
 """
 
 from __future__ import annotations
@@ -482,6 +486,36 @@ def part_seeds(corpus: Path, steps: int, work: Path, seeds: list[int], sets: dic
     print(table(heads, rows))
 
 
+def part_long(corpus: Path, steps: int, work: Path, frames: int) -> None:
+    c = Corpus(corpus)
+    out = work / "long"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the tests train it
+    try:
+        cfg = TrainConfig(preset="tiny", steps=steps, batch_size=8, window=64, lr=2e-3, warmup=50, seed=0)
+        train(c, out, cfg, log=lambda *_: None)
+    finally:
+        torch.set_num_threads(threads)
+    seg = c.segment_ids("test")[0]
+    t0 = time.perf_counter()
+    t = rollout(out, c, seg, SEED, frames, rules="auto")
+    took = time.perf_counter() - t0
+    finite = bool(np.isfinite(fixed_rows(t["state"], c.layout.dim)).all())
+    w = world_of_rows(c.layout, t)
+    rows = []
+    for e in c.layout.articulated:
+        rec = np.concatenate([world_of_rows(c.layout, c.dynamics_segment(s))[e.name] for s in c.segment_ids("train")])
+        pred, recorded = bone_cv(w[e.name][SEED:], e.rig), bone_cv(rec, e.rig)
+        span = float(np.ptp(w[e.name][SEED:, 0], axis=0).max())
+        rows.append(
+            [e.name, f"{np.median(pred):.4f} ({np.median(recorded):.4f})", f"{pred.mean():.4f} ({recorded.mean():.4f})"]
+            + [f"{pred.max():.3f} ({recorded.max():.3f})", f"{span:,.0f}"]
+        )
+    print(f"\n### A long rollout: tiny ({steps} steps), {frames:,} frames, rules on\n")
+    print(f"finite: {finite}; {frames / took:.0f} frames/s ({took:.1f} s)\n")
+    print(table(["entity", "bone CV median (recorded)", "mean (recorded)", "max (recorded)", "root path extent (m)"], rows))
+
+
 def knob_value(text: str) -> tuple[str, object]:
     """``key=value`` of a TrainConfig knob, the value read as JSON (true, 0.1, null) or else as a string."""
     import json
@@ -495,15 +529,23 @@ def knob_value(text: str) -> tuple[str, object]:
         return key, raw
 
 
+def positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text}: must be a whole number ≥ 1")
+    return value
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative", "heads", "seeds"])
+    ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative", "heads", "seeds", "long"])
     ap.add_argument("--corpus", type=Path, default=None, help="the dynamics corpus (default: made in a temp dir)")
     ap.add_argument("--scanned-corpus", type=Path, default=None, help="a corpus with scanned terrain (default: made)")
     ap.add_argument("--steps", type=int, default=None, help="training steps of the tiny models (1500; seeds: 1000)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="seeds of the seeds part")
     ap.add_argument("--set", type=knob_value, action="append", default=[], metavar="KNOB=VALUE", help="seeds: a knob")
     ap.add_argument("--horizon", type=int, default=448, help="predicted frames of the paper-preset rollouts")
+    ap.add_argument("--long-frames", type=positive, default=10_000, help="predicted frames of the long part's rollout")
     a = ap.parse_args()
     sets = dict(a.set)
     try:
@@ -519,7 +561,7 @@ def main() -> None:
             scanned = a.scanned_corpus or make_corpus(work / "scanned", 2, 20.0, 3, scan=True)
             part_rollout(scanned, a.horizon, work)
         corpus = None
-        if a.part in ("all", "train", "window", "relative", "heads", "seeds"):
+        if a.part in ("all", "train", "window", "relative", "heads", "seeds", "long"):
             corpus = a.corpus or make_corpus(work / "dynamics", 10, 45.0, 11, scan=False)
         if a.part in ("all", "train"):
             part_train(corpus)
@@ -531,6 +573,8 @@ def main() -> None:
             part_heads(corpus, steps, work)
         if a.part in ("all", "seeds"):
             part_seeds(corpus, a.steps or 1000, work, a.seeds, sets)
+        if a.part in ("all", "long"):
+            part_long(corpus, a.steps or 1000, work, a.long_frames)
 
 
 if __name__ == "__main__":

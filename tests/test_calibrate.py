@@ -21,6 +21,8 @@ from terrain_scan.accumulate import scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.scan import ScanOptions
 
+pytestmark = pytest.mark.corpus  # generates its own recordings
+
 STEP_MARGIN_M = 0.6  # as test_terrain_accumulate: cells touching a step edge
 
 

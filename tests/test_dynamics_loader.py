@@ -1,28 +1,21 @@
-"""The dynamics loader's DataLoader path (issue 16, "Bounded memory"): worker processes hand back the
-in-process batches in the in-process order, 2 ranks × 2 workers train on every window of an epoch once,
-training reads the same batches with workers as without, and the loader's memory does not grow with the
-corpus while a loader holding the split in memory does."""
+"""The dynamics loader's DataLoader path: worker processes hand back the in-process batches in the in-process order
+over memory-mapped window arrays, 2 ranks × 2 workers train on every window of an epoch once, and training reads the
+same batches with workers as without. That its memory does not grow with the corpus is measured by
+``benchmarks/bench_memory.py`` (docs/tradeoffs.md)."""
 
 from __future__ import annotations
 
 import itertools
 import json
-import os
 import pickle
-import shutil
-import subprocess
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
-from conftest import DYNAMICS_OPTIONS
 
 from marionette.dynamics.checkpoint import latest_checkpoint
 from marionette.dynamics.data import TrainBatches, WindowData, WindowSampler, train_batches
 from marionette.dynamics.train import TrainConfig, main, train
-from marionette.ingest import build_corpus
 
 
 def ids(batches) -> list[tuple[str, int]]:
@@ -105,105 +98,3 @@ def test_training_with_loader_workers_is_bit_identical(dynamics_corpus, tmp_path
     assert meta["train_config"]["loader_workers"] == 2
     assert workers["losses"] == serial["losses"] and resumed["losses"] == serial["losses"]
     assert workers["eval"] == serial["eval"]
-
-
-# -- memory ------------------------------------------------------------------------------------------
-
-MEASURE = r"""
-import gc, json, os, sys
-import numpy as np
-import torch
-from marionette.dynamics.checkpoint import latest_checkpoint
-from marionette.dynamics.data import WindowData, WindowSampler, train_batches
-
-
-def memory(pid):
-    # RssAnon + RssShmem in MiB (anonymous memory and the shared-memory batches workers hand over); None once gone
-    try:
-        lines = open(f"/proc/{pid}/status").read().splitlines()
-    except (FileNotFoundError, ProcessLookupError):
-        return None
-    kb = {k: int(v.split()[0]) for k, _, v in (line.partition(":") for line in lines) if k in ("RssAnon", "RssShmem")}
-    return (kb["RssAnon"] + kb["RssShmem"]) / 1024
-
-
-def children():
-    me = os.getpid()
-    return [int(p) for t in os.listdir(f"/proc/{me}/task") for p in open(f"/proc/{me}/task/{t}/children").read().split()]
-
-
-corpus, in_memory, workers = sys.argv[1], sys.argv[2] == "memory", int(sys.argv[3])
-torch.set_num_threads(1)
-gc.collect()
-base = memory(os.getpid())
-data = WindowData(corpus, "train", terrain=True)
-names = ("root", "body", "action", "progress", "features", "known")
-if in_memory:  # the loader this replaced: the split's arrays in the process
-    for k in names:
-        setattr(data, k, [np.array(a) for a in getattr(data, k)])
-sampler = WindowSampler(data, 64, 4, seed=0)
-loader, peak, procs = train_batches(sampler, 0, workers), 0.0, set()
-for _ in range(sampler.batches(0)):
-    next(loader)
-    pids = [os.getpid(), *children()]
-    procs |= set(pids)
-    peak = max(peak, sum(m for m in map(memory, pids) if m is not None))
-loader.close()
-split = sum(a.nbytes for k in names for a in getattr(data, k)) / 2**20
-print(json.dumps({"base": base, "peak": peak, "processes": len(procs), "batches": sampler.batches(0), "split_mib": split}))
-"""
-
-
-def measure(corpus: Path, mode: str, workers: int) -> dict:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    out = subprocess.run(
-        [sys.executable, "-c", MEASURE, str(corpus), mode, str(workers)], capture_output=True, text=True, env=env
-    )
-    assert out.returncode == 0, out.stderr[-3000:]
-    m = json.loads(out.stdout.strip().splitlines()[-1])
-    assert m["processes"] == 1 + workers
-    m["loader"] = m["peak"] - m["processes"] * m["base"]  # what the loader adds to its processes' memory after import
-    return m
-
-
-def test_loader_memory_does_not_grow_with_the_corpus(dynamics_corpus, tmp_path):
-    """One epoch through 2 DataLoader workers (terrain features on, as training reads them; window 64, batch
-    4) on corpus A (2 recordings × 45 s, all train) and on 4A (8 of the same kind), each in a fresh process.
-
-    The figure: the peak, sampled at every batch, of the summed RssAnon + RssShmem (anonymous memory and the
-    shared-memory batches the workers hand over) of the parent and its workers, less each process's
-    memory after import (the parent's, which a forked worker starts from). Mapped window pages are not
-    counted: they are page cache, shared by every process of the machine and reclaimable (they grow with
-    what an epoch reads, not with what a process holds). A forked worker's RSS counts the pages it
-    shares copy-on-write with the parent, so the parent's part is counted once per process: the figure is
-    an upper bound. The total with the import baseline, ~3 × 180 MiB, is reported and held to 1.25× as
-    well, but it would pass with any loader at this size; the figure without it is the one that fails
-    for a loader that holds the split in memory (4 → 16 MiB here, counted in each of the 3 processes),
-    which is run as a control and must exceed 1.25×."""
-    recordings = dynamics_corpus.parent / "recordings" / "data_part1"  # the dynamics_corpus fixture's source
-    corpora = {}
-    for name, n in (("A", 2), ("4A", 8)):
-        part = tmp_path / name / "recordings" / "data_part1"
-        part.mkdir(parents=True)
-        shutil.copy(recordings / "skeleton_edges.json", part)
-        for k in range(n):
-            shutil.copytree(recordings / f"rec{k:04d}", part / f"rec{k:04d}", copy_function=os.link)
-        corpora[name] = tmp_path / name / "corpus"
-        build_corpus(
-            part.parent, corpora[name], replace(DYNAMICS_OPTIONS, split_fractions=(1.0, 0.0, 0.0)), workers=2, progress=False
-        )
-        WindowData(corpora[name], "train", terrain=True)  # the window arrays computed and stored, so the measure only opens them
-    m = {(c, mode): measure(corpora[c], mode, 2) for mode in ("mapped", "memory") for c in ("A", "4A")}
-    frames = [int(WindowData(corpora[c], "train").lengths.sum()) for c in ("A", "4A")]
-    assert frames[1] == pytest.approx(4 * frames[0], rel=0.02)
-    print(f"\ntrain frames (20 fps) {frames}; MiB summed over the parent and 2 workers:")
-    for (c, mode), r in m.items():
-        print(
-            f"  {c:>2} {mode}: split {r['split_mib']:.1f}, peak {r['peak']:.0f}, import {r['processes']} × {r['base']:.0f}, "
-            f"loader {r['loader']:.1f}, batches {r['batches']}"
-        )
-    ratio = {mode: m[("4A", mode)]["loader"] / m[("A", mode)]["loader"] for mode in ("mapped", "memory")}
-    total = m[("4A", "mapped")]["peak"] / m[("A", "mapped")]["peak"]
-    print(f"  4A / A: mapped loader {ratio['mapped']:.2f} (total {total:.3f}), in-memory loader {ratio['memory']:.2f}")
-    assert total <= 1.25 and ratio["mapped"] <= 1.25
-    assert ratio["memory"] > 1.25  # the check can fail: holding the split grows with the corpus

@@ -25,7 +25,7 @@ DEPLOYMENT = "build-corpus/local"
 SYNTH = {"recordings": 3, "seconds": 6.0, "seed": 11, "width": 160, "height": 96}
 SMALL_VIDEO = {"video_height": 64, "video_width": 112, "chunk_frames": 17}
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.quality  # a real Prefect server, worker and Dask cluster
 
 
 def free_port() -> int:
@@ -65,7 +65,7 @@ def start(cmd: list[str], env: dict, log: Path) -> subprocess.Popen:
 
 
 def stop(proc: subprocess.Popen) -> None:
-    for sig, wait in ((signal.SIGINT, 15), (signal.SIGTERM, 10), (signal.SIGKILL, 10)):  # a worker exits on SIGINT
+    for sig, wait in ((signal.SIGINT, 5), (signal.SIGTERM, 10), (signal.SIGKILL, 10)):  # a worker exits on SIGINT
         if proc.poll() is not None:
             break
         try:
@@ -163,17 +163,23 @@ def terrain_files(corpus: Path) -> dict[str, tuple[int, bytes]]:
     return {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in sorted((corpus / "terrain").rglob("*.trn2"))}
 
 
-@pytest.mark.timeout(600)
-def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_prefect, synth_small, tmp_path):
-    # the source holds the three recordings and a fourth without its rgb.mp4, which the build quarantines
-    source = tmp_path / "source"
+@pytest.fixture(scope="module")
+def dask_build(local_prefect, synth_small, tmp_path_factory) -> tuple[Path, Path, str]:
+    """(source, corpus, flow run id) of the build-corpus deployment run once over the small source and a fourth
+    recording without its rgb.mp4, which the build quarantines."""
+    root = tmp_path_factory.mktemp("dask-build")
+    source = root / "source"
     shutil.copytree(synth_small, source)
     bad = source / "data_part1" / "rec0003"
     shutil.copytree(source / "data_part1" / "rec0002", bad)
     (bad / "rgb.mp4").unlink()
-    corpus = tmp_path / "corpus"
-    run_id = run_deployment(local_prefect, source=source, corpus=corpus, **SMALL_VIDEO)
+    corpus = root / "corpus"
+    return source, corpus, run_deployment(local_prefect, source=source, corpus=corpus, **SMALL_VIDEO)
 
+
+@pytest.mark.timeout(600)
+def test_deployment_builds_on_two_dask_workers(dask_build):
+    source, corpus, run_id = dask_build
     info = json.loads((corpus / "meta" / "info.json").read_text())
     assert info["total_ingested"] == 3 and info["total_quarantined"] == 1
     report = json.loads((corpus / "meta" / "builds" / f"{run_id}.json").read_text())
@@ -198,10 +204,20 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     pose = report["terrain"]["_pose_targets"]
     assert pose["chunks"] > 0 and len(pose["rendered"]) == pose["chunks"]
     assert pose["workers"] and all(w.startswith("tcp://127.0.0.1:") for w in pose["workers"]), pose["workers"]  # on Dask
-    # the whole build, ingest, scan and render fanned out on Dask, equals a serial build in one process byte for byte
+    for tar_path in sorted((corpus / "video").glob("*.tar")):
+        with tarfile.open(tar_path) as tar, tarfile.open(corpus / "pose" / tar_path.name) as pose:
+            names, posed = tar.getnames(), pose.getnames()
+        assert [n.replace(".pose.mkv", "") for n in posed if n.endswith(".pose.mkv")] == [
+            n.replace(".rgb.mp4", "") for n in names if n.endswith(".rgb.mp4")
+        ]
+
+
+def test_the_dask_build_equals_a_serial_build_byte_for_byte(dask_build, tmp_path):
+    """The whole build, ingest, scan and render fanned out on Dask, equals a serial build in one process."""
     from marionette.ingest import IngestOptions, VideoSettings
     from marionette.pipeline import build
 
+    source, corpus, _ = dask_build
     serial = tmp_path / "serial"
     small = VideoSettings(
         height=SMALL_VIDEO["video_height"], width=SMALL_VIDEO["video_width"], chunk_frames=SMALL_VIDEO["chunk_frames"]
@@ -209,14 +225,11 @@ def test_deployment_builds_on_two_dask_workers_then_reruns_without_work(local_pr
     done = build(source, serial, IngestOptions(video=small), workers=1, progress=False)
     assert done["refresh"].pose["workers"] == [f"{socket.gethostname()}/pid-{os.getpid()}"]  # the one-process pass
     assert stage_bytes(serial) == stage_bytes(corpus) and shard_files_bytes(serial) == shard_files_bytes(corpus)
-    for tar_path in sorted((corpus / "video").glob("*.tar")):
-        with tarfile.open(tar_path) as tar, tarfile.open(corpus / "pose" / tar_path.name) as pose:
-            names, posed = tar.getnames(), pose.getnames()
-        assert [n.replace(".pose.mkv", "") for n in posed if n.endswith(".pose.mkv")] == [
-            n.replace(".rgb.mp4", "") for n in names if n.endswith(".rgb.mp4")
-        ]
-    shards = shard_files(corpus)
 
+
+def test_a_second_deployment_run_does_no_work(local_prefect, dask_build):
+    source, corpus, _ = dask_build
+    shards, chunks = shard_files(corpus), terrain_files(corpus)
     run_id2 = run_deployment(local_prefect, source=source, corpus=corpus, **SMALL_VIDEO)
     report2 = json.loads((corpus / "meta" / "builds" / f"{run_id2}.json").read_text())
     assert [s["status"] for s in report2["samples"]] == ["unchanged"] * 4, report2["samples"]

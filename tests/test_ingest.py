@@ -9,7 +9,7 @@ import tarfile
 import numpy as np
 import pyarrow.compute as pc
 import pytest
-from conftest import SYNTH, TEST_OPTIONS
+from fixtures.corpora import SYNTH, TEST_OPTIONS
 
 from marionette import geometry as geo
 from marionette.cli import inspect_text

@@ -19,7 +19,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from conftest import TEST_OPTIONS
+from fixtures.corpora import TEST_OPTIONS
 
 from marionette.ingest import build_corpus, discover
 from marionette.ingest.wildworld import SampleError, SkeletonArchive
@@ -72,7 +72,7 @@ _CHILD = """
 import json, sys
 from pathlib import Path
 sys.path.insert(0, {tests!r})
-from conftest import TEST_OPTIONS
+from fixtures.corpora import TEST_OPTIONS
 from marionette.ingest import discover, ingest_sample
 ref = discover(Path({src!r}))[0]
 r = ingest_sample(ref, Path({corpus!r}), TEST_OPTIONS)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TEST_OPTIONS
+from fixtures.corpora import TEST_OPTIONS
 
 from marionette.corpus import Corpus
 from marionette.corpus.lock import corpus_lock

@@ -23,7 +23,7 @@ from marionette.observation.model import ObservationConfig, VideoDiT, check_inpu
 from marionette.observation.train import ObservationTrainConfig, load_model, train
 
 # 9×16 clips: the relay test reads seams against steps inside a chunk, which a model painting 18×32 after this budget
-# flickers too much to show (the shared pose model of conftest: consecutive generated frames 0.14 apart)
+# flickers too much to show (the shared pose model of tests/fixtures/models.py: consecutive generated frames 0.14 apart)
 CONFIG = ObservationTrainConfig(preset="tiny", steps=300, batch_size=4, frames=5, reduce=4, patch=2, lr=1e-3, warmup=20)
 
 
@@ -126,7 +126,7 @@ def test_training_beats_its_initialisation_on_held_out_chunks(trained):
 def test_the_pixel_ar_baseline_trains_on_action_schedules(follow_corpus, baseline_run):
     """The baseline reads the first frame and the recorded action schedule (no pose video): it learns
     (held-out flow loss), generates from a schedule, and rejects tokens outside the vocabularies. The model is
-    the session's (conftest), which test_observation_follow scores against the pose model."""
+    the session's (tests/fixtures/models.py), which test_observation_follow scores against the pose model."""
     out, s = baseline_run
     first, last = s["evals"][0]["held_out_loss"], s["evals"][-1]["held_out_loss"]
     print(f"\nbaseline: held-out flow loss {first:.4f} → {last:.4f} after {s['steps']} steps")
@@ -146,21 +146,32 @@ def test_the_pixel_ar_baseline_trains_on_action_schedules(follow_corpus, baselin
         generate(model, ch.pose, ch.rgb[0])  # a pose video given to the baseline
 
 
-def test_generation_is_seeded_and_relays_chunks(obs_corpus, trained):
-    out, _ = trained
-    model = load_model(out)
+@pytest.fixture(scope="module")
+def relayed(obs_corpus, trained):
+    """(model, held-out chunks, a 3-chunk relay of the first one painted at seed 1)."""
+    model = load_model(trained[0])
     T = model.config.frames
     held = list(ClipSource(obs_corpus, "test", T, model.config.size).chunks())
     chunk = held[0]
-    pose, first = chunk.pose[: 1 + 3 * (T - 1)], chunk.rgb[0]
-    a = generate(model, pose, first, chunks=3, steps=8, seed=1)
+    return model, held, generate(model, chunk.pose[: 1 + 3 * (T - 1)], chunk.rgb[0], chunks=3, steps=8, seed=1)
+
+
+def test_generation_is_seeded(relayed):
+    model, held, a = relayed
+    T = model.config.frames
+    pose, first = held[0].pose[: 1 + 3 * (T - 1)], held[0].rgb[0]
     b = generate(model, pose, first, chunks=3, steps=8, seed=1)
     c = generate(model, pose, first, chunks=3, steps=8, seed=2)
     assert a.shape == (1 + 3 * (T - 1), 3, *model.config.size)
     assert torch.equal(a, b) and not torch.equal(a, c)
     assert torch.equal(a[0], first)  # the given frame
-    # relay: the first *generated* frame of chunks 2 and 3 against the frame that seeded them, beside the
-    # step between consecutive generated frames inside a chunk and the distance to other held-out chunks
+
+
+def test_generation_relays_chunks(relayed):
+    """The first *generated* frame of chunks 2 and 3 against the frame that seeded them, beside the step between
+    consecutive generated frames inside a chunk and the distance to other held-out chunks."""
+    model, held, a = relayed
+    T = model.config.frames
     seams = [float((a[1 + k * (T - 1)] - a[k * (T - 1)]).abs().mean()) for k in (1, 2)]
     within = [float((a[j + 1] - a[j]).abs().mean()) for j in range(1, len(a) - 1) if j % (T - 1)]
     other = [float((a[k * (T - 1)] - h.rgb[0]).abs().mean()) for k in (1, 2) for h in held[1:]]

@@ -316,7 +316,7 @@ def test_a_model_trained_with_references_takes_them_from_the_corpus_and_a_relay_
     bench_references.py's measurement (docs/tradeoffs.md, "Persistent entity references")."""
     from dataclasses import replace
 
-    from conftest import OBS_SIZE, obs_config
+    from fixtures.models import OBS_SIZE, obs_config
 
     from marionette.corpus import Corpus
     from marionette.observation.data import ClipSource

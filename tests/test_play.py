@@ -19,6 +19,8 @@ from marionette.corpus import Corpus, fixed_rows
 from marionette.dynamics.rollout import Rollout
 from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swingers, tip_speeds
 
+pytestmark = pytest.mark.exclusive  # frame rates and key latency are measured with the machine to itself
+
 SEED = 32  # seed frames
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [

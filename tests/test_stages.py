@@ -20,6 +20,8 @@ from terrain_scan import open_stage
 from terrain_scan.grouping import MIN_SHARED, agreement, place
 from terrain_scan.layers import Observations
 
+pytestmark = pytest.mark.corpus  # generates its own recordings
+
 PART = "data_part1"
 
 

@@ -20,6 +20,8 @@ from marionette.schema import Entity, SchemaError, build_layout, load_rig, load_
 from marionette.synth import generate, load_truth
 from marionette.synth.cast import _tree_order, make_cast
 
+pytestmark = pytest.mark.corpus  # generates its own recordings
+
 PART = "data_part1"
 CAST = {"species": 3, "players": 2, "weapons": 2, "stages": 2}
 

@@ -23,6 +23,8 @@ from marionette.synth.poses import hunter_controls, hunter_skeleton, monster_con
 from marionette.synth.render import decode_depth
 from marionette.synth.sim import BLEND_FRAMES, MIN_SEP
 
+pytestmark = pytest.mark.corpus  # generates its own recordings
+
 PART = "data_part1"
 GEN = {"recordings": 3, "seconds": 12.0, "seed": 2, "width": 160, "height": 90}
 FPS = 30

@@ -28,6 +28,8 @@ from terrain_scan.field import open_stage
 from terrain_scan.layers import Observations
 from terrain_scan.store import Stage
 
+pytestmark = pytest.mark.corpus  # generates its own recordings
+
 # the target over every observed (not hole-filled) cell of the stage the two recordings make,
 # step cells included; measured 0.029 m at default settings (docs/formats.md)
 RMSE_TARGET_M = 0.05

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TEST_OPTIONS
+from fixtures.corpora import TEST_OPTIONS
 from safetensors.torch import save_file
 
 from marionette.corpus import paths, video_shards
@@ -250,7 +250,7 @@ def test_terrain_scan_started_during_an_ingest_is_refused(synth_source, tmp_path
 
     corpus = tmp_path / "corpus"
     code = (
-        "import sys; from pathlib import Path; from marionette.ingest import build_corpus; from conftest import TEST_OPTIONS\n"
+        "import sys; from pathlib import Path; from marionette.ingest import build_corpus; from fixtures.corpora import TEST_OPTIONS\n"
         "build_corpus(Path(sys.argv[1]), Path(sys.argv[2]), TEST_OPTIONS, workers=1, progress=False)"
     )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent)}
