@@ -70,6 +70,7 @@ from marionette.dynamics.rollout import ModelStream, Rollout, force_windows, ope
 from marionette.dynamics.train import TrainConfig, batches_from, losses, make_optimizer, train
 from marionette.eval.control import held_out_seeds, recorded_swingers, swing_rates
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
+from marionette.options import int_at_least
 
 SEED = 32
 
@@ -502,9 +503,10 @@ def part_long(corpus: Path, steps: int, work: Path, frames: int) -> None:
     took = time.perf_counter() - t0
     finite = bool(np.isfinite(fixed_rows(t["state"], c.layout.dim)).all())
     w = world_of_rows(c.layout, t)
+    train_world = [world_of_rows(c.layout, c.dynamics_segment(s)) for s in c.segment_ids("train")]
     rows = []
     for e in c.layout.articulated:
-        rec = np.concatenate([world_of_rows(c.layout, c.dynamics_segment(s))[e.name] for s in c.segment_ids("train")])
+        rec = np.concatenate([world[e.name] for world in train_world])
         pred, recorded = bone_cv(w[e.name][SEED:], e.rig), bone_cv(rec, e.rig)
         span = float(np.ptp(w[e.name][SEED:, 0], axis=0).max())
         rows.append(
@@ -529,13 +531,6 @@ def knob_value(text: str) -> tuple[str, object]:
         return key, raw
 
 
-def positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text}: must be a whole number ≥ 1")
-    return value
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--part", default="all", choices=["all", "rollout", "train", "window", "relative", "heads", "seeds", "long"])
@@ -545,7 +540,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="seeds of the seeds part")
     ap.add_argument("--set", type=knob_value, action="append", default=[], metavar="KNOB=VALUE", help="seeds: a knob")
     ap.add_argument("--horizon", type=int, default=448, help="predicted frames of the paper-preset rollouts")
-    ap.add_argument("--long-frames", type=positive, default=10_000, help="predicted frames of the long part's rollout")
+    ap.add_argument("--long-frames", type=int_at_least(1), default=10_000, help="predicted frames of the long part's rollout")
     a = ap.parse_args()
     sets = dict(a.set)
     try:

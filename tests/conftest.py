@@ -15,4 +15,4 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     # one another (the models the suite trains are small enough that a second thread buys little).
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-pytest_plugins = ["pytester", "fixtures.shared", "fixtures.corpora", "fixtures.models", "fixtures.tiers", "fixtures.budget"]
+pytest_plugins = ["pytester", "fixtures.corpora", "fixtures.models", "fixtures.tiers", "fixtures.budget"]
