@@ -128,24 +128,25 @@ def test_codec_round_trip(rast, tmp_path):
 
 
 def test_overlapped_encoding_writes_the_serial_bytes_and_raises_either_sides_error(tmp_path):
-    """The encoder thread (``write_gbuffer(overlap=True)``, the default) writes the bytes of the serial loop; a bad
-    frame fails naming it, and an error while producing frames reaches the caller; neither leaves a file."""
+    """The encoder thread (``write_gbuffer(overlap=True)``, the default from 72 × 128 pixels up) writes the bytes of
+    the serial loop; a bad frame fails naming it, and an error while producing frames reaches the caller; neither
+    leaves a file."""
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 1024, (3, H, W), dtype=np.uint16) for _ in range(12)]
     meta = GBufferMeta(width=W, height=H, fps=30.0, h_min=0.0, h_max=10.0, z_near=0.3, z_far=100.0)
-    assert write_gbuffer(tmp_path / "a.mkv", iter(frames), meta) == 12
+    assert write_gbuffer(tmp_path / "a.mkv", iter(frames), meta, overlap=True) == 12
     assert write_gbuffer(tmp_path / "b.mkv", iter(frames), meta, overlap=False) == 12
     assert (tmp_path / "a.mkv").read_bytes() == (tmp_path / "b.mkv").read_bytes()
     bad = frames[:5] + [np.zeros((3, H + 1, W), np.uint16)] + frames[5:]
     with pytest.raises(ValueError, match="frame 5"):
-        write_gbuffer(tmp_path / "bad.mkv", iter(bad), meta)
+        write_gbuffer(tmp_path / "bad.mkv", iter(bad), meta, overlap=True)
 
     def broken():
         yield from frames[:3]
         raise RuntimeError("the renderer stopped")
 
     with pytest.raises(RuntimeError, match="renderer stopped"):
-        write_gbuffer(tmp_path / "broken.mkv", broken(), meta)
+        write_gbuffer(tmp_path / "broken.mkv", broken(), meta, overlap=True)
     assert not (tmp_path / "bad.mkv").exists() and not (tmp_path / "broken.mkv").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mkv", "b.mkv"]  # no temp file left
 

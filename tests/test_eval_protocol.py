@@ -321,13 +321,9 @@ def test_rollout_clips_match_the_recorded_pose_targets(posed, windows, free):
         assert clip.pose[0].numpy().max() <= 1 and np.abs(clip.pose[0, 1].numpy() * CODE_MAX - target[..., 1]).mean() < 5
 
 
-def test_report_scores_the_baseline_in_the_same_table(ckpt, posed, tmp_path):
-    from marionette.observation.train import ObservationTrainConfig, train
-
-    tiny = dict(preset="tiny", steps=3, batch_size=2, frames=5, reduce=1, patch=4, lr=1e-3, warmup=1)
-    obs, base = tmp_path / "observation", tmp_path / "baseline"
-    train(posed, obs, ObservationTrainConfig(**tiny), log=lambda *_: None)
-    train(posed, base, ObservationTrainConfig(**tiny, control="actions"), log=lambda *_: None)
+def test_report_scores_the_baseline_in_the_same_table(ckpt, posed, pose_run, baseline_run, tmp_path):
+    """The session's pose model and pixel-AR baseline (tests/fixtures/models.py) paint the state rollouts."""
+    obs, base = pose_run[0], baseline_run[0]
     out = tmp_path / "report"
     run = dict(protocol="quick", probe_windows=2, state_rollouts=3, state_seconds=4.0)
     s = evaluate(ckpt, posed, out, **run, observation=obs, baseline=base, log=lambda *_: None)

@@ -14,7 +14,6 @@ import pytest
 from marionette.corpus import Corpus
 from marionette.corpus.play_stats import play_stats
 from marionette.geometry import quat_to_matrix
-from marionette.ingest import IngestOptions, VideoSettings, build_corpus
 from marionette.schema import load_rig
 from marionette.synth import generate, load_truth, terrain, world_skeletons_at
 from marionette.synth.clips import CLIPS
@@ -28,10 +27,6 @@ pytestmark = pytest.mark.corpus  # generates its own recordings
 PART = "data_part1"
 GEN = {"recordings": 3, "seconds": 12.0, "seed": 2, "width": 160, "height": 90}
 FPS = 30
-# A few minutes of play, as a corpus, for the game's statistics: 4 × 40 s at a small size (the video is not what
-# these tests read).
-PLAY = {"recordings": 4, "seconds": 40.0, "seed": 1, "width": 96, "height": 54}
-PLAY_OPTIONS = IngestOptions(video=VideoSettings(height=36, width=64, chunk_frames=81, crf=28))
 
 
 @pytest.fixture(scope="module")
@@ -42,12 +37,10 @@ def synth(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def play(tmp_path_factory) -> tuple[Path, Path]:
-    """(recordings, corpus) of a few minutes of play (``PLAY``)."""
-    root = tmp_path_factory.mktemp("synth_play")
-    generate(root / "recordings", **PLAY, workers=2)
-    build_corpus(root / "recordings", root / "corpus", PLAY_OPTIONS, workers=2, progress=False)
-    return root / "recordings", root / "corpus"
+def play(dynamics_corpus) -> tuple[Path, Path]:
+    """(recordings, corpus) of minutes of play, for the game's statistics: the session's dynamics corpus (16 × 45 s,
+    tests/fixtures/corpora.py), which the trained models read too."""
+    return dynamics_corpus.parent / "recordings", dynamics_corpus
 
 
 def _rows(path: Path) -> tuple[list[str], list[dict]]:
@@ -401,7 +394,8 @@ def test_play_vocabulary_and_classes(play):
         entity = "hunter" if key.startswith("hunter") else "monster"
         by_id = {clip.composite: clip for clip in CLIPS[entity].values()}
         actions = v["actions"][1:]
-        # most of the clip table (measured: 56–61 % of the hunter's 88 clips, 65–77 % of the drake's 48 over seeds 1–3)
+        # most of the clip table (4 × 40 s of play used 56–61 % of the hunter's clips and 65–77 % of the drake's over
+        # seeds 1–3; the dynamics corpus's 12 minutes use 82 of 89 and 48 of 49)
         assert len(actions) >= (0.5 if entity == "hunter" else 0.6) * len(by_id), (key, len(actions), len(by_id))
         # a played instance the segment's end cuts short can hide a strike or a wrap; a few such tokens are allowed
         wrong = [

@@ -118,7 +118,13 @@ def _planar_frame(frame: np.ndarray, width: int, height: int, where: str) -> av.
     return vf
 
 
-def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta, overlap: bool = True) -> int:
+# Below this many pixels a frame, handing each frame to the encoder thread costs more than the overlap saves: at
+# 36 × 64 the two threads trade the GIL on every frame and the pass takes 2.5× the serial loop's time; from 72 × 128
+# up they are even or the overlap wins (docs/tradeoffs.md, "The bridge: the encoder on a thread of its own").
+OVERLAP_MIN_PIXELS = 72 * 128
+
+
+def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta, overlap: bool | None = None) -> int:
     """Encode frames losslessly to ``path`` (atomic); returns the frame count. A frame is rendered floats
     (H, W, 3), 10-bit codes (H, W, 3) uint16, or code planes (3, H, W) uint16 in G, B, R order
     (``Rasterizer.render_planes``, the fast path).
@@ -126,8 +132,11 @@ def write_gbuffer(path: Path, frames: Iterable[np.ndarray], meta: GBufferMeta, o
     With ``overlap`` the encoder runs on a thread of its own, fed through a short queue, while this thread
     produces the frames (the renderer's GL context stays on the thread that made it): FFV1 and the GL
     readback both release the GIL, so a render + encode pass takes about the slower of the two instead of
-    their sum. One encoder consumes the frames in order, so the bytes are those of the serial loop."""
+    their sum. One encoder consumes the frames in order, so the bytes are those of the serial loop. The default
+    (None) overlaps frames of at least ``OVERLAP_MIN_PIXELS`` pixels and encodes smaller ones on this thread."""
     path = Path(path)
+    if overlap is None:
+        overlap = meta.width * meta.height >= OVERLAP_MIN_PIXELS
     # bitexact: no random segment UID or encoder string, so a re-render is byte-identical
     with atomic_path(path) as tmp, av.open(str(tmp), "w", format="matroska", options={"fflags": "+bitexact"}) as c:
         c.metadata[TAG] = json.dumps(asdict(meta), sort_keys=True)
