@@ -61,7 +61,7 @@ from fractions import Fraction
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import preamble, single_thread_env, table, time_call  # noqa: E402
+from common import preamble, single_thread_env, size_hw, table, time_call  # noqa: E402
 
 single_thread_env()
 os.environ["LP_NUM_THREADS"] = "1"  # Mesa llvmpipe's rasterizer threads; read when the GL driver loads
@@ -563,17 +563,12 @@ def bench_codecs(clip: Clip, size: tuple[int, int], repeats: int, tmp: Path):
 # -- main -----------------------------------------------------------------------------------------------------
 
 
-def size(s: str) -> tuple[int, int]:
-    h, w = s.lower().split("x")
-    return int(h), int(w)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--frames", type=int, default=120)
-    ap.add_argument("--sizes", type=lambda s: [size(v) for v in s.split(",")], default=[(704, 1280), (352, 640), (176, 320)])
-    ap.add_argument("--codec-size", type=size, default=(352, 640))
+    ap.add_argument("--sizes", type=lambda s: [size_hw(v) for v in s.split(",")], default=[(704, 1280), (352, 640), (176, 320)])
+    ap.add_argument("--codec-size", type=size_hw, default=(352, 640))
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--part", choices=("all", "speed", "codecs"), default="all")
     ap.add_argument("--seed", type=int, default=0)

@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
+from common import preamble, size_hw, table  # noqa: I001  (benchmarks/ on sys.path)
 
 import marionette.bridge.gbuffer as gbuffer
 from marionette.bridge.targets import render_pose_targets
@@ -30,9 +30,10 @@ from marionette.synth import generate
 
 
 def size(text: str) -> tuple[int, int]:
-    h, w = (int(v) for v in text.lower().split("x"))
+    """``size_hw``, even and at least 8 on each side (the synthetic source is rendered at 1.5× it)."""
+    h, w = size_hw(text)
     if h < 8 or w < 8 or h % 2 or w % 2:
-        raise argparse.ArgumentTypeError(f"{text!r}: a size is HxW, both even and at least 8")
+        raise argparse.ArgumentTypeError(f"{text!r}: both sides even and at least 8")
     return h, w
 
 

@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import preamble, table  # noqa: E402
+from common import preamble, size_hw, table  # noqa: E402
 
 VIEW = "from marionette.corpus import Corpus\nc = Corpus({corpus!r})\nfor s in c.shard_ids():\n    c.dynamics_shard(s)\n"
 POSE = "from marionette.bridge.targets import render_pose_targets\nrender_pose_targets({corpus!r}, workers={workers})\n"
@@ -80,11 +80,6 @@ def run_stage(cmd: list[str], log: Path) -> tuple[float, float, float]:
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed (exit {os.waitstatus_to_exitcode(status)}); its output: {log}")
     return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
-
-
-def size_hw(s: str) -> tuple[int, int]:
-    h, _, w = s.partition("x")
-    return int(h), int(w)
 
 
 def main() -> None:

@@ -6,6 +6,7 @@ seeded synthetic input in a temp dir and prints markdown tables to paste into ``
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import statistics
@@ -67,6 +68,14 @@ def time_call(fn: Callable[[], object], repeats: int, warmup: int = 1) -> tuple[
         out = fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times), out
+
+
+def size_hw(text: str) -> tuple[int, int]:
+    """An image size given as HxW (e.g. 176x320) → (height, width); an argparse error for anything else."""
+    h, sep, w = text.lower().partition("x")
+    if not (sep and h.isdigit() and w.isdigit() and int(h) > 0 and int(w) > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: a size is HxW in pixels, e.g. 176x320")
+    return int(h), int(w)
 
 
 def table(header: list[str], rows: list[list[object]]) -> str:
