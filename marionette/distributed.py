@@ -37,17 +37,21 @@ def process_group_from_env() -> Iterator[None]:
     """Under torchrun (WORLD_SIZE > 1 in the environment), join the process group for the block and leave it
     after; otherwise do nothing. Where torch sees a GPU, each rank takes its LOCAL_RANK device and collectives on
     CUDA tensors go through NCCL, those on CPU tensors through gloo (a trainer may run on the CPU of a GPU machine);
-    elsewhere gloo alone."""
+    elsewhere gloo alone. A block that ends normally ends at a barrier; one that raises leaves at once."""
     started = False
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
         if torch.cuda.is_available():
             torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
         dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
         started = True
+    finished = False
     try:
         yield
+        finished = True
     finally:
         if started:
+            if finished:  # every rank leaves together: none tears its group down while another still uses it
+                dist.barrier()
             dist.destroy_process_group()
 
 

@@ -32,7 +32,7 @@ FPS = 30
 @pytest.fixture(scope="module")
 def synth(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("synth_game")
-    generate(root, **GEN)
+    generate(root, **GEN, workers=2)  # a recording per process, its rays cast on one thread
     return root
 
 
@@ -271,6 +271,7 @@ def test_terrain_shape():
 
 
 def test_determinism(synth, tmp_path):
+    """A recording is the same bytes generated alone (in this process, rays cast on every core) and in a pool."""
     generate(tmp_path, **{**GEN, "recordings": 1})
     for name in ("state.csv", "skeleton.npz", "depth.mkv", "rgb.mp4"):
         assert (tmp_path / PART / "rec0000" / name).read_bytes() == (synth / PART / "rec0000" / name).read_bytes()

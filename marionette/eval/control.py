@@ -9,7 +9,8 @@ benchmark share.
   of one token) bring the tip above ``fast_mps`` within ``frames`` frames of their start on ≥ 80 % of ≥ 3 plays, most
   played first: the tokens a model can be asked to swing with, without asking it to learn from one example.
 - **Swing rates** (``swing_rates``): per token forced over the first ``frames`` predicted frames (and None for the
-  free rollout), the share of held-out seeds whose tip passes ``fast_mps`` within them (rules off, temperature 0).
+  free rollout), the share of held-out seeds whose tip passes ``fast_mps`` within them (rules off, temperature 0),
+  the rollouts run as batches.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from marionette.corpus import Corpus, fixed_rows
 from marionette.corpus.vocab import ActionTokens
-from marionette.dynamics.rollout import rollout
+from marionette.eval.protocol import Window, run_windows
 
 FAST_TIP_MPS = 5.0  # the tests' train split: non-attack frames never move the weapon tip faster than 3.1 m/s
 
@@ -78,15 +79,14 @@ def swing_rates(
     seed_frames: int,
     frames: int = 10,
     fast_mps: float = FAST_TIP_MPS,
+    batch: int = 64,
 ) -> dict[int | None, float]:
     """Per token of ``attacks`` forced on ``entity`` for ``frames`` frames from each held-out seed (and None: not
-    forced), the share of seeds whose weapon tip passes ``fast_mps`` within those frames (rules off, temperature 0)."""
-    rates: dict[int | None, float] = {}
-    for token in [None, *attacks]:
-        fast = []
-        for seg, start in seeds:
-            force = [] if token is None else [(entity, 0, frames, int(token))]
-            table = rollout(ckpt, c, seg, seed_frames, frames, force=force, rules="none", start=start)
-            fast.append(bool(tip_speed(c, table, seed_frames).max() > fast_mps))
-        rates[token] = float(np.mean(fast))
-    return rates
+    forced), the share of seeds whose weapon tip passes ``fast_mps`` within those frames (rules off, temperature 0).
+    Every (token, seed) rollout runs in batches of ``batch`` streams (``protocol.run_windows``)."""
+    windows = [Window(seg, start, seed_frames, frames, c.segment_row(seg)["stage"]) for seg, start in seeds]
+    tokens: list[int | None] = [None, *attacks]
+    force = [[] if t is None else [(entity, 0, frames, int(t))] for t in tokens for _ in windows]
+    tables, _ = run_windows(ckpt, c, windows * len(tokens), rules="none", force=force, batch=batch)
+    fast = np.array([tip_speed(c, table, seed_frames).max() > fast_mps for table in tables]).reshape(len(tokens), -1)
+    return {t: float(np.mean(row)) for t, row in zip(tokens, fast)}

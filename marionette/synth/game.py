@@ -161,10 +161,12 @@ def write_recording(
     fps: int,
     depth_mapping: dict | None = None,
     cast: dict | None = None,
+    ray_threads: int = 0,
 ) -> Path:
     """Simulate, render and write one recording (its depth in ``depth_mapping``, a ``DepthDecoder`` JSON; default
     the game's ``DEPTH_ENCODING``; who plays and where from ``make_cast(seed, **cast)``, default the drake, player 0
-    and the greatsword on the first stage); returns its sample directory."""
+    and the greatsword on the first stage); ``ray_threads``: the renderer's (``Renderer``); returns its sample
+    directory."""
     sample_id = f"rec{index:04d}"
     d = Path(out_dir) / part / sample_id
     d.mkdir(parents=True, exist_ok=True)
@@ -210,7 +212,8 @@ def write_recording(
             )
         radii[e] = r.capsule_radius_m * scale * (role.player.scale if e == "hunter" else 1.0)
     radii["weapon"] = radii["weapon"][: len(edges["weapon"])]
-    renderer = Renderer(width, height, edges, radii, colours=role.skin.colours() if role.skin is not None else None)
+    colours = role.skin.colours() if role.skin is not None else None
+    renderer = Renderer(width, height, edges, radii, colours=colours, threads=ray_threads)
     encode = encode_depth
     if depth_mapping is not None:
         from terrain_scan.depth import DepthDecoder
@@ -416,8 +419,9 @@ def generate(
         spec["camera_pans"] = True
     write_edges(out_dir, part, make_cast(seed, **spec))
     mapping = hidden_depth_mapping(seed) if hidden_depth else None
-    args = [(out_dir, part, k, seed, seconds, width, height, fps, mapping, spec or None) for k in range(recordings)]
-    if workers <= 1 or recordings <= 1:
+    pooled = workers > 1 and recordings > 1  # one recording per process: each casts its rays on one thread
+    args = [(out_dir, part, k, seed, seconds, width, height, fps, mapping, spec or None, int(pooled)) for k in range(recordings)]
+    if not pooled:
         return [write_recording(*a) for a in args]
     from concurrent.futures import ProcessPoolExecutor
 

@@ -146,8 +146,11 @@ class Renderer:
         edges: dict[str, np.ndarray],
         radii: dict[str, np.ndarray],
         colours: dict[str, tuple[float, float, float]] | None = None,
+        threads: int = 0,
     ):
+        """``threads``: open3d's ray-casting threads (0: every core); the pixels are the same at any count."""
         self.width, self.height = width, height
+        self.threads = int(threads)
         self.colours = dict(colours or {})  # a recording's own albedo of a character (cast.Skin), else the game's
         self.K = intrinsics(width, height)
         self.edges, self.radii = edges, radii
@@ -167,7 +170,7 @@ class Renderer:
         """RGB (H, W, 3) uint8 and z-depth (H, W) float64 (inf where nothing is hit)."""
         d = self.rays(pos, R_cw)
         rays = np.concatenate([np.broadcast_to(pos, d.shape), d], -1).astype(np.float32)
-        hit = self.terrain.cast_rays(o3d.core.Tensor(rays))
+        hit = self.terrain.cast_rays(o3d.core.Tensor(rays), nthreads=self.threads)
         t = hit["t_hit"].numpy().astype(np.float64)
         n = hit["primitive_normals"].numpy().astype(np.float64)
         gid = hit["geometry_ids"].numpy()
@@ -183,7 +186,7 @@ class Renderer:
             V, T = _capsules(pts, self.edges[name], self.radii[name])
             char_ids[chars.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(T))] = self.MATERIALS.index(name)
         if char_ids:
-            ch = chars.cast_rays(o3d.core.Tensor(rays))
+            ch = chars.cast_rays(o3d.core.Tensor(rays), nthreads=self.threads)
             tc = ch["t_hit"].numpy().astype(np.float64)
             nearer = np.isfinite(tc) & (tc < t)
             t = np.where(nearer, tc, t)
