@@ -110,7 +110,7 @@ def test_forcing_the_recorded_stream_beats_a_shuffled_one(corpus, ckpt):
         stream = tokens.encode(corpus.layout, rows)[0][:, hi]
         shuffled = stream[np.random.default_rng(0).permutation(H)]
         for s in (stream, shuffled):  # Force-GT, then Force-Shuf, of each seed: one batch of rollouts
-            windows.append(Window(seg, start, SEED, H, corpus.segment_row(seg)["stage"]))
+            windows.append(Window.at(corpus, seg, start, SEED, H))
             force.append(force_windows("hunter", s))
             recorded.append(rows)
     tables, _ = run_windows(ckpt, corpus, windows, rules="none", force=force, batch=64)

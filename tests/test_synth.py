@@ -395,8 +395,8 @@ def test_play_vocabulary_and_classes(play):
         entity = "hunter" if key.startswith("hunter") else "monster"
         by_id = {clip.composite: clip for clip in CLIPS[entity].values()}
         actions = v["actions"][1:]
-        # most of the clip table (4 × 40 s of play used 56–61 % of the hunter's clips and 65–77 % of the drake's over
-        # seeds 1–3; the dynamics corpus's 12 minutes use 82 of 89 and 48 of 49)
+        # most of the clip table (the dynamics corpus's 12 minutes of play use 82 of the hunter's 89 clips and 48 of
+        # the drake's 49)
         assert len(actions) >= (0.5 if entity == "hunter" else 0.6) * len(by_id), (key, len(actions), len(by_id))
         # a played instance the segment's end cuts short can hide a strike or a wrap; a few such tokens are allowed
         wrong = [

@@ -84,7 +84,7 @@ def swing_rates(
     """Per token of ``attacks`` forced on ``entity`` for ``frames`` frames from each held-out seed (and None: not
     forced), the share of seeds whose weapon tip passes ``fast_mps`` within those frames (rules off, temperature 0).
     Every (token, seed) rollout runs in batches of ``batch`` streams (``protocol.run_windows``)."""
-    windows = [Window(seg, start, seed_frames, frames, c.segment_row(seg)["stage"]) for seg, start in seeds]
+    windows = [Window.at(c, seg, start, seed_frames, frames) for seg, start in seeds]
     tokens: list[int | None] = [None, *attacks]
     force = [[] if t is None else [(entity, 0, frames, int(t))] for t in tokens for _ in windows]
     tables, _ = run_windows(ckpt, c, windows * len(tokens), rules="none", force=force, batch=batch)

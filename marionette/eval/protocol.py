@@ -245,6 +245,11 @@ class Window:
     horizon: int
     stage: str
 
+    @classmethod
+    def at(cls, c: Corpus, segment: str, start: int, seed_frames: int, horizon: int) -> Window:
+        """The window of ``segment`` from dynamics frame ``start``, on the stage the corpus gives the segment."""
+        return cls(segment, int(start), seed_frames, horizon, str(c.segment_row(segment)["stage"]))
+
     @property
     def length(self) -> int:
         return self.seed_frames + self.horizon
@@ -308,7 +313,7 @@ def select_windows(
                 ok = pair_separation(c.layout, c.dynamics_segment(s, fps))[starts + seed_frames - 1] <= engaged
                 near[s] = starts[ok] if ok.any() else starts
             starts = near[s]
-        out.append(Window(s, int(starts[rng.integers(0, len(starts))]), seed_frames, horizon, str(c.segment_row(s)["stage"])))
+        out.append(Window.at(c, s, starts[rng.integers(0, len(starts))], seed_frames, horizon))
     return out
 
 
