@@ -20,7 +20,10 @@ from marionette.observation.train import ObservationTrainConfig, _batch, load_mo
 
 CONFIG = obs_config()
 SIZE = OBS_SIZE
-SEGMENTER = {"steps": 750, "batch": 32}  # held-out IoU 0.74, as at 1,500 steps of 64 frames, in a quarter of the time
+RELAY_STEPS = 8  # Euler steps a chunk: the relayed errors and their ratio move under 3 % from 16
+# The segmenter learns from every other train chunk (132 of 264): held-out IoU 0.70 (0.72 from all of them at 750
+# steps), in 30 s instead of 50 s alone, most of the difference in decoding.
+SEGMENTER = {"steps": 600, "batch": 32}
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +80,9 @@ def test_swap_pairs_of_held_out_chunks_show_apart_bodies(held):
 
 @pytest.fixture(scope="module")
 def segmenter(follow_corpus) -> Segmenter:
-    """The instrument of the swap test: a small segmenter trained on the train split's recorded frames."""
-    return Segmenter(list(ClipSource(follow_corpus, "train", CONFIG.frames, SIZE).chunks()), **SEGMENTER)
+    """The instrument of the swap test: a small segmenter trained on recorded frames of the train split."""
+    source = ClipSource(follow_corpus, "train", CONFIG.frames, SIZE)
+    return Segmenter([source.chunk(ref) for ref in source.index()[::2]], **SEGMENTER)
 
 
 def test_the_segmenter_reads_bodies_on_held_out_frames(segmenter, held):
@@ -103,26 +107,26 @@ def test_pose_follows_under_a_swapped_pose_video(segmenter, pose_model, held):
 @pytest.fixture(scope="module")
 def pose_relay_error(pose_model, held) -> float:
     """Mean |generated − recorded| (RGB in [−1, 1]) of the pose model over whole held-out chunks (81 frames), each
-    relayed over 20 five-frame chunks from its recorded first frame under its own control, 16 Euler steps."""
-    return relay_error(pose_model, held[:4])
+    relayed over 20 five-frame chunks from its recorded first frame under its own control, 8 Euler steps."""
+    return relay_error(pose_model, held[:4], steps=RELAY_STEPS)
 
 
 def test_pose_model_beats_the_baseline(pose_relay_error, baseline_model, held):
     """The pixel-AR baseline's relayed held-out error (the same chunks, relay and metric) is higher by over 5 %."""
     chunks = held[:4]
-    pose, base = pose_relay_error, relay_error(baseline_model, chunks)
+    pose, base = pose_relay_error, relay_error(baseline_model, chunks, steps=RELAY_STEPS)
     print(
         f"\nrelayed held-out error: pose model {pose:.4f}, pixel-AR baseline {base:.4f}, copying the first frame "
         f"{copy_error(chunks, CONFIG.frames):.4f}"
     )
-    # The close-range game brought the baseline nearer (bodies overlap and move more): the pose model scored 0.1846
-    # and 0.1909 against 0.2115 in two runs, so the margin asked for is 5 %, not 10 %.
+    # In the close-range game the baseline comes near (bodies overlap and move more): the pose model scores 0.2121
+    # against 0.2473, so the margin asked for is 5 %, not 10 %.
     assert pose < 0.95 * base
 
 
 def test_pose_model_beats_its_initialisation(pose_relay_error, pose_model, held):
     """The same relay from the pose model's initial weights errs over twice as much."""
-    init = relay_error(VideoDiT(pose_model.config, seed=CONFIG.seed), held[:4])
+    init = relay_error(VideoDiT(pose_model.config, seed=CONFIG.seed), held[:4], steps=RELAY_STEPS)
     print(f"\nrelayed held-out error: pose model {pose_relay_error:.4f}, initialisation {init:.4f}")
     assert pose_relay_error < 0.5 * init
 
