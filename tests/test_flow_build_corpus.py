@@ -238,15 +238,19 @@ def test_a_second_deployment_run_does_no_work(local_prefect, dask_build):
     assert json.loads((corpus / "meta" / "info.json").read_text())["total_ingested"] == 3
     assert len(report2["terrain"]["default"]["unchanged"]) == 3 and report2["terrain"]["default"]["chunks_written"] == []
     assert report2["terrain"]["_pose_targets"]["rendered"] == [] and report2["terrain"]["_pose_targets"]["shards_rewritten"] == []
-
-    # the rescan-stage deployment over the unchanged corpus reads nothing and rewrites no chunk
-    run_deployment(local_prefect, deployment="rescan-stage/incremental", corpus=corpus)
     assert terrain_files(corpus) == chunks
-
     artifacts = httpx.post(
         f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["build-corpus-report"]}}}
     )
     assert any(a["flow_run_id"] == run_id2 and "unchanged" in a["data"] for a in artifacts.json())
+
+
+def test_the_rescan_deployment_over_an_unchanged_corpus_rewrites_no_chunk(local_prefect, dask_build):
+    """The rescan-stage/incremental deployment over the built corpus reads nothing and rewrites no chunk."""
+    _, corpus, _ = dask_build
+    chunks = terrain_files(corpus)
+    run_deployment(local_prefect, deployment="rescan-stage/incremental", corpus=corpus)
+    assert terrain_files(corpus) == chunks
 
 
 @pytest.mark.timeout(600)
