@@ -44,14 +44,12 @@ def process_group_from_env() -> Iterator[None]:
             torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
         dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
         started = True
-    finished = False
     try:
         yield
-        finished = True
+        if started:  # every rank leaves together: none tears its group down while another still uses it
+            dist.barrier()
     finally:
         if started:
-            if finished:  # every rank leaves together: none tears its group down while another still uses it
-                dist.barrier()
             dist.destroy_process_group()
 
 
