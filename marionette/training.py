@@ -20,7 +20,8 @@ rank runs the same loop on its own batches; gradients are averaged by ``Distribu
 ``mean_over_ranks``; rank 0 (the global rank: node 0's first process) alone logs, shows the progress
 bar and writes checkpoints and the summary. On several machines (``--nnodes``, ``distributed.Nodes``)
 the training directory is one they share, and ``resume`` checks that every rank found the same
-checkpoint there.
+checkpoint there. A finished run asked again with the same config (``finished_summary``) returns the summary it
+wrote without relaunching anything.
 """
 
 from __future__ import annotations
@@ -435,6 +436,21 @@ def final_checkpoint(run: Run, checkpoint: Callable[[int], Path | None]) -> Path
     return checkpoint(run.step) if run.step > run.started else run.resumed_from
 
 
+def finished_summary(out_dir: Path | str, config: Any) -> dict | None:
+    """The summary of the run in ``out_dir`` if it has finished with exactly ``config`` (its latest checkpoint is at
+    ``config.steps``, saved with this config, and the summary names it), else None. Such a run asked again trains
+    nothing and writes this summary again."""
+    out = Path(out_dir)
+    ckpt = latest_checkpoint(out)
+    if ckpt is None or not (out / SUMMARY).is_file():
+        return None
+    meta = read_meta(ckpt)
+    if meta.get("step") != config.steps or meta.get("train_config") != config.to_json():
+        return None
+    summary = json.loads((out / SUMMARY).read_text())
+    return summary if isinstance(summary, dict) and summary.get("checkpoint") == str(ckpt) else None
+
+
 def finish(out_dir: Path | str, summary: dict) -> dict:
     """Write ``summary`` (its ``losses`` left out) to ``<out_dir>/summary.json`` on rank 0, wait for every
     rank, and return it."""
@@ -479,6 +495,9 @@ class Trainer:
         processes on this node under torchrun, returning the summary rank 0 wrote (losses left out; the ranks print
         their own log; on a node other than 0, the summary rank 0 wrote in the shared OUT)."""
         if (nproc > 1 or nodes.nnodes > 1) and "WORLD_SIZE" not in os.environ:
+            done = finished_summary(out_dir, config)
+            if done is not None:  # what the processes would write again: none is started
+                return done
             return train_under_torchrun(
                 self.module, corpus, out_dir, config.to_json(), nproc, SUMMARY, nodes=nodes, progress=progress
             )

@@ -39,9 +39,10 @@ def split_corpus(corpus, tmp_path_factory) -> Path:
     return out
 
 
-def test_training_learns_and_records(split_corpus, tmp_path):
+def test_training_learns_and_records(split_corpus, tmp_path, monkeypatch):
     """Loss halves over 200 steps; the checkpoint holds the run's losses and config; TensorBoard gets the
-    terms. (Beating the baselines is shown on the larger dynamics corpus: test_dynamics_control.)"""
+    terms; the finished run asked again does no work, and asked again under torchrun starts no process.
+    (Beating the baselines is shown on the larger dynamics corpus: test_dynamics_control.)"""
     cfg = TrainConfig(preset="tiny", steps=200, batch_size=4, window=32, lr=2e-3, warmup=20, seed=0)
     s = train(split_corpus, tmp_path / "run", cfg, log=lambda *_: None)
     first = sum(r["total"] for r in s["losses"][:10]) / 10
@@ -66,6 +67,15 @@ def test_training_learns_and_records(split_corpus, tmp_path):
     again = train(split_corpus, tmp_path / "run", cfg, log=lambda *_: None)  # finished: nothing to do
     assert again["steps"] == 200 and again["checkpoint"] == str(ckpt)
     assert (ckpt / "model.safetensors").stat().st_mtime_ns == written
+    from dataclasses import replace
+
+    from marionette import training
+    from marionette.dynamics.train import run
+
+    monkeypatch.setattr(training, "train_under_torchrun", lambda *a, **k: pytest.fail("a finished run started torchrun"))
+    assert run(split_corpus, tmp_path / "run", cfg, nproc=2) == json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert training.finished_summary(tmp_path / "run", replace(cfg, lr=1e-3)) is None  # another config: the ranks decide
+    assert training.finished_summary(tmp_path / "run", replace(cfg, steps=300)) is None
 
 
 def test_an_untrained_model_is_copy_last(split_corpus, tmp_path):

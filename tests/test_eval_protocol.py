@@ -325,7 +325,7 @@ def test_report_scores_the_baseline_in_the_same_table(ckpt, posed, pose_run, bas
     """The session's pose model and pixel-AR baseline (tests/fixtures/models.py) paint the state rollouts."""
     obs, base = pose_run[0], baseline_run[0]
     out = tmp_path / "report"
-    run = dict(protocol="quick", probe_windows=2, state_rollouts=3, state_seconds=4.0)
+    run = dict(protocol="quick", probe_windows=2, state_rollouts=3, state_seconds=4.0, rollout_seconds=2.0)
     s = evaluate(ckpt, posed, out, **run, observation=obs, baseline=base, log=lambda *_: None)
     rep = json.loads((out / "report.json").read_text())
     v, proto = rep["video"], rep["protocol"]

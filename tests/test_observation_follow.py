@@ -21,9 +21,10 @@ from marionette.observation.train import ObservationTrainConfig, _batch, load_mo
 CONFIG = obs_config()
 SIZE = OBS_SIZE
 RELAY_STEPS = 8  # Euler steps a chunk: the relayed errors and their ratio move under 3 % from 16
-# The segmenter learns from every other train chunk (132 of 264): held-out IoU 0.70 (0.72 from all of them at 750
-# steps), in 30 s instead of 50 s alone, most of the difference in decoding.
-SEGMENTER = {"steps": 600, "batch": 32}
+# The segmenter learns from every fourth train chunk (66 of 264) for 350 steps: held-out IoU 0.68 (0.72 from all of
+# them at 750 steps), in 17 CPU-seconds instead of 50, decoding the chunks a quarter of it.
+SEGMENTER = {"steps": 350, "batch": 32}
+SEGMENTER_CHUNKS = 4  # every 4th train chunk
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +83,7 @@ def test_swap_pairs_of_held_out_chunks_show_apart_bodies(held):
 def segmenter(follow_corpus) -> Segmenter:
     """The instrument of the swap test: a small segmenter trained on recorded frames of the train split."""
     source = ClipSource(follow_corpus, "train", CONFIG.frames, SIZE)
-    return Segmenter([source.chunk(ref) for ref in source.index()[::2]], **SEGMENTER)
+    return Segmenter([source.chunk(ref) for ref in source.index()[::SEGMENTER_CHUNKS]], **SEGMENTER)
 
 
 def test_the_segmenter_reads_bodies_on_held_out_frames(segmenter, held):
@@ -119,8 +120,8 @@ def test_pose_model_beats_the_baseline(pose_relay_error, baseline_model, held):
         f"\nrelayed held-out error: pose model {pose:.4f}, pixel-AR baseline {base:.4f}, copying the first frame "
         f"{copy_error(chunks, CONFIG.frames):.4f}"
     )
-    # In the close-range game the baseline comes near (bodies overlap and move more): the pose model scores 0.2121
-    # against 0.2473, so the margin asked for is 5 %, not 10 %.
+    # In the close-range game the baseline comes near (bodies overlap and move more): the pose model scores 0.2215
+    # against 0.2524, so the margin asked for is 5 %, not 10 %.
     assert pose < 0.95 * base
 
 

@@ -219,10 +219,12 @@ def write_recording(
         from terrain_scan.depth import DepthDecoder
 
         encode = DepthDecoder.from_json(depth_mapping).encode
+    meshes = {e: renderer.meshes(e, sk[e]) for e in ("hunter", "weapon", "monster")}  # every frame's at once
+    shown = {e: np.isfinite(sk[e]).all(axis=(1, 2)) for e in meshes}
+    shown["monster"] &= present
     rgb, depth = [], []
     for i in range(N):
-        bodies = {"hunter": sk["hunter"][i], "weapon": sk["weapon"][i], "monster": sk["monster"][i] if present[i] else None}
-        img, z = renderer.render(cam_pos[i], cam_rot[i], bodies)
+        img, z = renderer.render(cam_pos[i], cam_rot[i], {e: (V[i], T) for e, (V, T) in meshes.items() if shown[e][i]})
         rgb.append(img)
         depth.append(encode(z))
     # Rendered in the first stage's frame; what the recording states in world coordinates moves into its stage.

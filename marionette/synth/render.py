@@ -106,32 +106,35 @@ def camera_pans(seed: int, index: int, n_frames: int, fps: float) -> np.ndarray:
 
 
 def _capsules(points: np.ndarray, edges: np.ndarray, radius: np.ndarray, sides: int = 5) -> tuple[np.ndarray, np.ndarray]:
-    """Prisms along bones plus octahedra at joints: vertices (V, 3) float32, triangles (T, 3) uint32."""
-    a, b = points[edges[:, 0]], points[edges[:, 1]]  # (E, 3)
+    """Prisms along bones plus octahedra at joints: vertices (..., V, 3) float32 of ``points`` (..., J, 3), one mesh
+    per leading index (every frame of a recording at once: the arithmetic per vertex is the same as one frame's), and
+    the triangles (T, 3) uint32 they share."""
+    a, b = points[..., edges[:, 0], :], points[..., edges[:, 1], :]  # (..., E, 3)
     r = radius[:, None, None]
     axis = b - a
     axis = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
-    helper = np.where(np.abs(axis[:, 1:2]) < 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]))
+    helper = np.where(np.abs(axis[..., 1:2]) < 0.9, np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0]))
     u = np.cross(axis, helper)
     u /= np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-9)
     v = np.cross(axis, u)
     th = 2 * np.pi * np.arange(sides) / sides
-    ring = np.cos(th)[None, :, None] * u[:, None] + np.sin(th)[None, :, None] * v[:, None]  # (E, S, 3)
-    V = np.concatenate([a[:, None] + r * ring, b[:, None] + r * ring], axis=1)  # (E, 2S, 3)
+    ring = np.cos(th)[:, None] * u[..., None, :] + np.sin(th)[:, None] * v[..., None, :]  # (..., E, S, 3)
+    V = np.concatenate([a[..., None, :] + r * ring, b[..., None, :] + r * ring], axis=-2)  # (..., E, 2S, 3)
     j = np.arange(sides)
     k = (j + 1) % sides
     quad = np.concatenate([np.stack([j, k, j + sides], -1), np.stack([k, k + sides, j + sides], -1)])  # (2S, 3)
-    T = quad[None] + (2 * sides * np.arange(len(edges)))[:, None, None]
-    V, T = V.reshape(-1, 3), T.reshape(-1, 3)
+    T = (quad[None] + (2 * sides * np.arange(len(edges)))[:, None, None]).reshape(-1, 3)
+    V = V.reshape(*V.shape[:-3], -1, 3)
     # Joint blobs.
     octa = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64)
     of = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
-    jr = np.zeros(len(points))
+    J = points.shape[-2]
+    jr = np.zeros(J)
     np.maximum.at(jr, edges[:, 0], radius)
     np.maximum.at(jr, edges[:, 1], radius)
-    BV = (points[:, None] + 1.3 * jr[:, None, None] * octa[None]).reshape(-1, 3)
-    BT = (of[None] + 6 * np.arange(len(points))[:, None, None]).reshape(-1, 3) + len(V)
-    return np.concatenate([V, BV]).astype(np.float32), np.concatenate([T, BT]).astype(np.uint32)
+    BV = (points[..., None, :] + 1.3 * jr[:, None, None] * octa).reshape(*points.shape[:-2], -1, 3)
+    BT = (of[None] + 6 * np.arange(J)[:, None, None]).reshape(-1, 3) + V.shape[-2]
+    return np.concatenate([V, BV], axis=-2).astype(np.float32), np.concatenate([T, BT]).astype(np.uint32)
 
 
 class Renderer:
@@ -166,8 +169,16 @@ class Renderer:
         """(H, W, 3) world ray directions whose parameter is the z-depth."""
         return self.dirs_cam @ R_cw.T
 
-    def render(self, pos: np.ndarray, R_cw: np.ndarray, bodies: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """RGB (H, W, 3) uint8 and z-depth (H, W) float64 (inf where nothing is hit)."""
+    def meshes(self, name: str, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Body ``name``'s capsule mesh at joints ``points`` (J, 3), or at every frame's of (N, J, 3): vertices
+        (..., V, 3) float32 and the triangles (T, 3) uint32."""
+        return _capsules(points, self.edges[name], self.radii[name])
+
+    def render(
+        self, pos: np.ndarray, R_cw: np.ndarray, bodies: dict[str, tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """RGB (H, W, 3) uint8 and z-depth (H, W) float64 (inf where nothing is hit) of the terrain and ``bodies``:
+        name → this frame's mesh (``meshes``), a body not shown left out."""
         d = self.rays(pos, R_cw)
         rays = np.concatenate([np.broadcast_to(pos, d.shape), d], -1).astype(np.float32)
         hit = self.terrain.cast_rays(o3d.core.Tensor(rays), nthreads=self.threads)
@@ -180,10 +191,7 @@ class Renderer:
         mat[~np.isfinite(t)] = -1
         chars = o3d.t.geometry.RaycastingScene()
         char_ids = {}
-        for name, pts in bodies.items():
-            if pts is None or not np.isfinite(pts).all():
-                continue
-            V, T = _capsules(pts, self.edges[name], self.radii[name])
+        for name, (V, T) in bodies.items():
             char_ids[chars.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(T))] = self.MATERIALS.index(name)
         if char_ids:
             ch = chars.cast_rays(o3d.core.Tensor(rays), nthreads=self.threads)
