@@ -11,7 +11,6 @@ import socket
 
 import pytest
 import torch
-from diffusers import AutoencoderKLWan, WanTransformer3DModel
 from safetensors.torch import load_file, save_file
 from torch import nn
 
@@ -55,6 +54,14 @@ VAE = dict(
 TEXT_LEN = 16
 
 
+def tiny_modules() -> tuple[nn.Module, nn.Module]:
+    """A tiny transformer and VAE of the real classes (``TRANSFORMER``, ``VAE``), in eval mode; diffusers is imported
+    here, when a test builds them, not when the suite is collected."""
+    from diffusers import AutoencoderKLWan, WanTransformer3DModel
+
+    return WanTransformer3DModel(**TRANSFORMER).eval(), AutoencoderKLWan(**VAE).eval()
+
+
 @pytest.fixture
 def offline(monkeypatch):
     """Any attempt to open a connection fails the test."""
@@ -71,8 +78,7 @@ def offline(monkeypatch):
 def release(tmp_path_factory):
     """A tiny checkpoint in the release's layout: (directory, source transformer, VAE, ref_conv)."""
     torch.manual_seed(0)
-    transformer = WanTransformer3DModel(**TRANSFORMER).eval()
-    vae = AutoencoderKLWan(**VAE).eval()
+    transformer, vae = tiny_modules()
     ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)
     root = tmp_path_factory.mktemp("wan") / "Wan2.2-Fun-5B-Control"
     save_original(root, transformer, text_len=TEXT_LEN, ref_conv=ref_conv)

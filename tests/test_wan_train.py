@@ -15,9 +15,8 @@ import av
 import numpy as np
 import pytest
 import torch
-from diffusers import AutoencoderKLWan, WanTransformer3DModel
 from safetensors.torch import load_file
-from test_wan import TEXT_LEN, TRANSFORMER, VAE
+from test_wan import TEXT_LEN, tiny_modules
 from torch import nn
 
 from marionette.bridge.gbuffer import GBufferMeta, write_gbuffer
@@ -37,8 +36,9 @@ def backbone(tmp_path_factory):
     """A tiny Wan2.2-Fun-Control checkpoint in the release's layout."""
     torch.manual_seed(0)
     root = tmp_path_factory.mktemp("wan-backbone") / "Wan2.2-Fun-5B-Control"
-    save_original(root, WanTransformer3DModel(**TRANSFORMER).eval(), text_len=TEXT_LEN)
-    AutoencoderKLWan(**VAE).eval().save_pretrained(root / "vae", safe_serialization=True)
+    transformer, vae = tiny_modules()
+    save_original(root, transformer, text_len=TEXT_LEN)
+    vae.save_pretrained(root / "vae", safe_serialization=True)
     return root
 
 
@@ -86,6 +86,9 @@ def test_lora_trains_only_its_adapters_and_merges_into_the_model(follow_corpus, 
     print(f"\nLoRA rank 4: held-out flow loss {first:.4f} → {last:.4f}, {s['trainable_parameters']:,} trainable parameters")
     assert last < 0.9 * first
     meta = json.loads((tmp_path / (tmp_path / "latest").read_text().strip() / "meta.json").read_text())
+    from diffusers import WanTransformer3DModel
+    from test_wan import TRANSFORMER
+
     total = sum(p.numel() for p in WanTransformer3DModel(**TRANSFORMER).parameters())
     assert meta["names"] and all(".lora_A." in n or ".lora_B." in n for n in meta["names"])
     assert s["trainable_parameters"] < 0.25 * total  # the checkpoint holds the adapters, not the backbone
@@ -255,8 +258,9 @@ def test_training_with_references_trains_the_reference_path_and_generate_relays_
     torch.manual_seed(0)
     root = tmp_path / "Wan2.2-Fun-5B-Control"
     ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)
-    save_original(root, WanTransformer3DModel(**TRANSFORMER).eval(), text_len=TEXT_LEN, ref_conv=ref_conv)
-    AutoencoderKLWan(**VAE).eval().save_pretrained(root / "vae", safe_serialization=True)
+    transformer, vae = tiny_modules()
+    save_original(root, transformer, text_len=TEXT_LEN, ref_conv=ref_conv)
+    vae.save_pretrained(root / "vae", safe_serialization=True)
     config = WanTrainConfig(backbone=str(root), references=True, **BASE)
     s = train(follow_corpus, tmp_path / "run", config, log=lambda *_: None)
     first, last = _losses(s)
@@ -290,6 +294,7 @@ def test_training_with_references_trains_the_reference_path_and_generate_relays_
 def backbone_dir(tmp_path):
     """A tiny backbone without a reference path."""
     root = tmp_path / "plain"
-    save_original(root, WanTransformer3DModel(**TRANSFORMER).eval(), text_len=TEXT_LEN)
-    AutoencoderKLWan(**VAE).eval().save_pretrained(root / "vae", safe_serialization=True)
+    transformer, vae = tiny_modules()
+    save_original(root, transformer, text_len=TEXT_LEN)
+    vae.save_pretrained(root / "vae", safe_serialization=True)
     return root

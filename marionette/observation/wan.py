@@ -40,16 +40,18 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
-from diffusers import AutoencoderKLWan, WanTransformer3DModel
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
 from marionette.corpus.paths import inside
 from marionette.io import atomic_path, read_json, read_tensors, write_json
 from marionette.observation.references import EntityReferences, reference_sheet
+
+if TYPE_CHECKING:  # diffusers loads a second or more of modules: imported where a model is built
+    from diffusers import AutoencoderKLWan, WanTransformer3DModel
 
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 PICKLES = (".pth", ".pt", ".bin", ".ckpt", ".pkl")
@@ -268,6 +270,8 @@ def load_transformer(directory: Path) -> Backbone:
         raise FileNotFoundError(f"{directory}: no config.json (a transformer checkpoint directory)")
     config = read_json(path)
     weights, file = read_safetensors(directory)
+    from diffusers import WanTransformer3DModel
+
     if "num_attention_heads" in config:  # diffusers format: its own class reads its own config
         with torch.device("meta"):
             transformer = WanTransformer3DModel.from_config(config)
@@ -321,6 +325,8 @@ def load_vae(directory: Path) -> AutoencoderKLWan:
     if not path.is_file():
         raise FileNotFoundError(f"{directory}: no config.json (a diffusers AutoencoderKLWan directory)")
     weights, file = read_safetensors(directory)
+    from diffusers import AutoencoderKLWan
+
     with torch.device("meta"):
         vae = AutoencoderKLWan.from_config(read_json(path))
     _assign(vae, weights, file)
