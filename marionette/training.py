@@ -52,7 +52,7 @@ from marionette.distributed import (
     train_under_torchrun,
 )
 from marionette.dynamics.checkpoint import is_dtensor, latest_checkpoint, load_checkpoint, read_meta
-from marionette.io import write_json
+from marionette.io import read_json, write_json
 from marionette.options import Parser
 
 SUMMARY = "summary.json"  # the last run's summary (losses left out), written by rank 0 into the training directory
@@ -447,7 +447,7 @@ def finished_summary(out_dir: Path | str, config: Any) -> dict | None:
     meta = read_meta(ckpt)
     if meta.get("step") != config.steps or meta.get("train_config") != config.to_json():
         return None
-    summary = json.loads((out / SUMMARY).read_text())
+    summary = read_json(out / SUMMARY)
     return summary if isinstance(summary, dict) and summary.get("checkpoint") == str(ckpt) else None
 
 

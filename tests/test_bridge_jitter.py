@@ -162,16 +162,13 @@ def test_jittered_training_targets_are_a_product_of_their_own(corpus, tmp_path):
     with pytest.raises(ValueError, match="jitter_joint_deg"):
         ObservationTrainConfig(jitter_joint_deg=60.0)
     # the Wan trainer reads the same product: its train windows (the first chunk's) are those of the jittered targets
-    from test_wan import TEXT_LEN, tiny_modules
+    from test_wan import tiny_modules, write_backbone
 
-    from marionette.observation.wan import save_original
     from marionette.observation.wan_train import WanTrainConfig
     from marionette.observation.wan_train import train as train_wan
 
     backbone = tmp_path / "wan"
-    transformer, vae = tiny_modules()
-    save_original(backbone, transformer, text_len=TEXT_LEN)
-    vae.save_pretrained(backbone / "vae", safe_serialization=True)
+    write_backbone(backbone, *tiny_modules())
     wan = dict(backbone=str(backbone), steps=1, frames=9, reduce=2, max_chunks=1, jitter_root_m=0.5, jitter_joint_deg=5.0)
     said.clear()
     run = train_wan(work, tmp_path / "wan-jit", WanTrainConfig(**wan), log=said.append)

@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pyarrow as pa
@@ -18,10 +19,11 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from marionette import training
 from marionette.corpus import Corpus
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint
 from marionette.dynamics.model import DynamicsConfig, DynamicsModel
-from marionette.dynamics.train import TrainConfig, train
+from marionette.dynamics.train import TrainConfig, run, train
 
 HELD_OUT = "data_part1/rec0001"  # the recording moved to "test"
 
@@ -67,11 +69,6 @@ def test_training_learns_and_records(split_corpus, tmp_path, monkeypatch):
     again = train(split_corpus, tmp_path / "run", cfg, log=lambda *_: None)  # finished: nothing to do
     assert again["steps"] == 200 and again["checkpoint"] == str(ckpt)
     assert (ckpt / "model.safetensors").stat().st_mtime_ns == written
-    from dataclasses import replace
-
-    from marionette import training
-    from marionette.dynamics.train import run
-
     monkeypatch.setattr(training, "train_under_torchrun", lambda *a, **k: pytest.fail("a finished run started torchrun"))
     assert run(split_corpus, tmp_path / "run", cfg, nproc=2) == json.loads((tmp_path / "run" / "summary.json").read_text())
     assert training.finished_summary(tmp_path / "run", replace(cfg, lr=1e-3)) is None  # another config: the ranks decide

@@ -62,6 +62,12 @@ def tiny_modules() -> tuple[nn.Module, nn.Module]:
     return WanTransformer3DModel(**TRANSFORMER).eval(), AutoencoderKLWan(**VAE).eval()
 
 
+def write_backbone(root, transformer: nn.Module, vae: nn.Module, ref_conv: nn.Module | None = None) -> None:
+    """``transformer`` (and ``ref_conv``) in the release's layout under ``root``, ``vae`` at ``root / "vae"``."""
+    save_original(root, transformer, text_len=TEXT_LEN, ref_conv=ref_conv)
+    vae.save_pretrained(root / "vae", safe_serialization=True)
+
+
 @pytest.fixture
 def offline(monkeypatch):
     """Any attempt to open a connection fails the test."""
@@ -81,8 +87,7 @@ def release(tmp_path_factory):
     transformer, vae = tiny_modules()
     ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)
     root = tmp_path_factory.mktemp("wan") / "Wan2.2-Fun-5B-Control"
-    save_original(root, transformer, text_len=TEXT_LEN, ref_conv=ref_conv)
-    vae.save_pretrained(root / "vae", safe_serialization=True)
+    write_backbone(root, transformer, vae, ref_conv)
     return root, transformer, vae, ref_conv
 
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
-from test_wan import TEXT_LEN, tiny_modules
+from test_wan import TEXT_LEN, tiny_modules, write_backbone
 from torch import nn
 
 from marionette.bridge.gbuffer import GBufferMeta, write_gbuffer
@@ -36,9 +36,7 @@ def backbone(tmp_path_factory):
     """A tiny Wan2.2-Fun-Control checkpoint in the release's layout."""
     torch.manual_seed(0)
     root = tmp_path_factory.mktemp("wan-backbone") / "Wan2.2-Fun-5B-Control"
-    transformer, vae = tiny_modules()
-    save_original(root, transformer, text_len=TEXT_LEN)
-    vae.save_pretrained(root / "vae", safe_serialization=True)
+    write_backbone(root, *tiny_modules())
     return root
 
 
@@ -258,9 +256,7 @@ def test_training_with_references_trains_the_reference_path_and_generate_relays_
     torch.manual_seed(0)
     root = tmp_path / "Wan2.2-Fun-5B-Control"
     ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)
-    transformer, vae = tiny_modules()
-    save_original(root, transformer, text_len=TEXT_LEN, ref_conv=ref_conv)
-    vae.save_pretrained(root / "vae", safe_serialization=True)
+    write_backbone(root, *tiny_modules(), ref_conv)
     config = WanTrainConfig(backbone=str(root), references=True, **BASE)
     s = train(follow_corpus, tmp_path / "run", config, log=lambda *_: None)
     first, last = _losses(s)
@@ -294,7 +290,5 @@ def test_training_with_references_trains_the_reference_path_and_generate_relays_
 def backbone_dir(tmp_path):
     """A tiny backbone without a reference path."""
     root = tmp_path / "plain"
-    transformer, vae = tiny_modules()
-    save_original(root, transformer, text_len=TEXT_LEN)
-    vae.save_pretrained(root / "vae", safe_serialization=True)
+    write_backbone(root, *tiny_modules())
     return root
