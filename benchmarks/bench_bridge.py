@@ -1,7 +1,7 @@
 """The bridge: G-buffer render + lossless encode speed against a skeleton-only reference, and the G-buffer's precision by codec.
 
     .venv/bin/python benchmarks/bench_bridge.py [--seconds 10] [--frames 120] [--sizes 704x1280,352x640,176x320]
-        [--codec-size 352x640] [--repeats 3] [--part all|speed|codecs]
+        [--codec-size 352x640] [--repeats 3] [--part all|speed|codecs|faces]
 
 Input: one seeded synthetic recording (``marionette.synth.generate``, 320×180, ``--seconds`` long) made
 in a temp dir, ingested (``build_corpus``) and scanned (``scan_stages``), not timed. The clip is the
@@ -46,6 +46,11 @@ over the pixels whose id came back exactly (a wrong id is already counted, and w
 with the other class's formula) and the depth error (max, p99, metres) over the pixels covered in
 both. The lossless rows are asserted: codes back bit-exact, ids
 100 %, errors within ``GBufferMeta.height_bound`` / ``depth_bound``.
+
+Faces, per size (``--sizes`` and the test corpora's 36×64): ``render_planes`` of every frame with the bone
+capsules' back faces culled (the renderer's choice where every capsule lies beyond the near plane,
+``render.capsules_beyond``) and with both faces drawn (that test answering no), ms per frame (median of
+``--repeats``), the frames culled, and the pixels whose codes differ between the two.
 """
 
 from __future__ import annotations
@@ -560,6 +565,48 @@ def bench_codecs(clip: Clip, size: tuple[int, int], repeats: int, tmp: Path):
     return rows, meta
 
 
+# -- front faces alone against both ------------------------------------------------------------------------------
+
+
+FACES_HEADER = ["size (H×W)", "both faces ms/frame", "front faces ms/frame", "speed-up", "frames culled", "pixels that differ"]
+
+
+def bench_faces(clip: Clip, sizes: list[tuple[int, int]], repeats: int) -> list[list[str]]:
+    """``render_planes`` with back faces culled (the default) against both faces drawn, per size."""
+    from marionette.bridge import render
+
+    beyond, rows, n = render.capsules_beyond, [], len(clip)
+    for H, W in sizes:
+        cams = clip.cameras(H, W)
+        culled = sum(
+            beyond(np.asarray(a) - cams.pos[i], np.asarray(b) - cams.pos[i], r, cams.rot[i][:, 2], clip.settings.z_near)
+            for i, (a, b, r, _) in enumerate(clip.bones)
+            if len(a) and cams.valid[i]
+        )
+        with Rasterizer(W, H) as rast:
+            rast.set_terrain(clip.terrain.vertices, clip.terrain.faces)
+            t_front, _ = time_call(lambda r=rast, c=cams: drain(render_frames(r, clip, c)), repeats)
+            front = list(render_frames(rast, clip, cams))
+            render.capsules_beyond = lambda *a: False
+            try:
+                t_both, _ = time_call(lambda r=rast, c=cams: drain(render_frames(r, clip, c)), repeats)
+                both = list(render_frames(rast, clip, cams))
+            finally:
+                render.capsules_beyond = beyond
+        differ = sum(int((f != b).any(0).sum()) for f, b in zip(front, both))
+        rows.append(
+            [
+                f"{H}×{W}",
+                f"{1e3 * t_both / n:.2f}",
+                f"{1e3 * t_front / n:.2f}",
+                f"{t_both / t_front:.2f}×",
+                f"{culled} of {n}",
+                f"{differ:,} of {n * H * W:,}",
+            ]
+        )
+    return rows
+
+
 # -- main -----------------------------------------------------------------------------------------------------
 
 
@@ -570,7 +617,7 @@ def main() -> None:
     ap.add_argument("--sizes", type=lambda s: [size_hw(v) for v in s.split(",")], default=[(704, 1280), (352, 640), (176, 320)])
     ap.add_argument("--codec-size", type=size_hw, default=(352, 640))
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--part", choices=("all", "speed", "codecs"), default="all")
+    ap.add_argument("--part", choices=("all", "speed", "codecs", "faces"), default="all")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_bridge_") as tmp:
@@ -585,6 +632,7 @@ def main() -> None:
             speed_rows, step_rows = bench_speed(clip, args.sizes, args.repeats, tmp)
         if args.part in ("all", "codecs"):
             codec_rows, meta = bench_codecs(clip, args.codec_size, args.repeats, tmp)
+        face_rows = bench_faces(clip, [*args.sizes, (36, 64)], args.repeats) if args.part in ("all", "faces") else []
 
         n_bones = np.mean([len(b[0]) for b in clip.bones])
         print(preamble("Bridge: G-buffer render + lossless encode against a skeleton-only reference; precision by codec"))
@@ -610,6 +658,9 @@ def main() -> None:
                 "decoded as covered (a lossy codec's ringing makes black non-zero); heights where the id came back exactly.\n"
             )
             print(table(CODEC_HEADER, codec_rows))
+        if face_rows:
+            print(f"\n### Bone capsules: front faces alone against both (median of {args.repeats}; one thread)\n")
+            print(table(FACES_HEADER, face_rows))
 
 
 if __name__ == "__main__":

@@ -101,6 +101,47 @@ def test_occlusion_and_near_terrain_culling(rast):
     assert (ids_of(near) == 200).sum() > 50
 
 
+def test_front_faces_alone_draw_what_both_faces_draw(rast, monkeypatch):
+    """Capsules beyond the near plane are drawn with back faces culled: the same picture but for pixels on a silhouette
+    edge; a capsule at the near plane (or around the camera) is drawn with both faces, its inside seen."""
+    import marionette.bridge.render as render
+
+    rng = np.random.default_rng(3)
+    cam = camera([0.0, 2.0, 9.0], [0.0, 1.0, 0.0])
+    rast.set_terrain(*grid(-30, 30, -30, 30, 0.0))
+    scenes = []
+    for _ in range(12):
+        a = rng.normal(size=(30, 3)) * [1.5, 0.6, 1.5] + [0.0, 1.2, 0.0]
+        scenes.append(
+            (a, a + rng.normal(size=(30, 3)) * 0.4, rng.uniform(0.03, 0.3, 30), rng.integers(100, 250, 30).astype(float))
+        )
+    culled = []
+    beyond = render.capsules_beyond
+    monkeypatch.setattr(render, "capsules_beyond", lambda *a: culled.append(beyond(*a)) or culled[-1])
+    front = [ids_of(rast.render(cam, 0, bones, **RANGE)) for bones in scenes]
+    monkeypatch.setattr(render, "capsules_beyond", lambda *a: False)
+    both = [ids_of(rast.render(cam, 0, bones, **RANGE)) for bones in scenes]
+    assert culled == [True] * len(scenes)
+    drawn = sum(int((b >= 100).sum()) for b in both)
+    differ = [np.argwhere(f != b) for f, b in zip(front, both)]
+    assert drawn > 10_000 and sum(map(len, differ)) <= drawn * 1e-3
+    for img, pixels in zip(both, differ):  # each on an edge: a neighbour holds another id
+        for y, x in pixels:
+            patch = img[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2]
+            assert (patch != img[y, x]).any(), (y, x)
+    # through the near plane (0.3 m): culling would open the capsule; both faces are drawn
+    through = (
+        np.array([[0.0, 2.0, 8.9], [0.0, 2.0, 8.5]]),
+        np.array([[0.0, 2.0, 7.0], [0.4, 2.0, 8.5]]),
+        np.array([0.5, 0.2]),
+        np.array([200.0, 210.0]),
+    )
+    assert not beyond(through[0] - cam.pos[0], through[1] - cam.pos[0], through[2], cam.rot[0][:, 2], RANGE["z_near"])
+    monkeypatch.setattr(render, "capsules_beyond", beyond)
+    inside = ids_of(rast.render(cam, 0, through, **RANGE))
+    assert (inside == 200).mean() > 0.3  # the camera is inside the first capsule: its inside fills half the view and more
+
+
 def test_codec_round_trip(rast, tmp_path):
     layout = load_scene("duel")
     skel = standing_pair(layout, origin=(-950.0, 30.0, 850.0))

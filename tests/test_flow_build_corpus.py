@@ -228,9 +228,10 @@ def test_the_dask_build_equals_a_serial_build_byte_for_byte(dask_build, tmp_path
 
 
 def test_a_second_deployment_run_does_no_work(local_prefect, dask_build):
+    """The same build again, on one Dask worker (the cluster's size is not the corpus's): every sample unchanged."""
     source, corpus, _ = dask_build
     shards, chunks = shard_files(corpus), terrain_files(corpus)
-    run_id2 = run_deployment(local_prefect, source=source, corpus=corpus, **SMALL_VIDEO)
+    run_id2 = run_deployment(local_prefect, source=source, corpus=corpus, n_workers=1, **SMALL_VIDEO)
     report2 = json.loads((corpus / "meta" / "builds" / f"{run_id2}.json").read_text())
     assert [s["status"] for s in report2["samples"]] == ["unchanged"] * 4, report2["samples"]
     assert report2["counts"] == {"unchanged": 4}
@@ -249,7 +250,7 @@ def test_the_rescan_deployment_over_an_unchanged_corpus_rewrites_no_chunk(local_
     """The rescan-stage/incremental deployment over the built corpus reads nothing and rewrites no chunk."""
     _, corpus, _ = dask_build
     chunks = terrain_files(corpus)
-    run_deployment(local_prefect, deployment="rescan-stage/incremental", corpus=corpus)
+    run_deployment(local_prefect, deployment="rescan-stage/incremental", corpus=corpus, n_workers=1)
     assert terrain_files(corpus) == chunks
 
 
@@ -296,6 +297,7 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
         "reduce": 4,
         "patch": 2,
         "checkpoint_every": 2,
+        "n_workers": 1,
     }
     run_id = run_deployment(local_prefect, deployment="train-observation/weekly", **params)
     from marionette.dynamics.checkpoint import latest_checkpoint

@@ -14,6 +14,12 @@ around, ``CAPSULE_RINGS`` per hemisphere) is placed per bone by the vertex shade
 end points and radius. The projection matches ``camera.Cameras.project`` exactly: pixel centres at
 +½, v down; NDC x = 2u/W − 1, y = 1 − 2v/H. Terrain fragments nearer than ``cull_m`` (3 m) are
 discarded; bones never are.
+
+A capsule is a closed convex mesh wound outwards, so behind the near plane's reach only its front faces can be
+seen: where every capsule of a frame lies beyond the near plane (``capsules_beyond``) the bones are drawn with back
+faces culled, which llvmpipe rasterizes in about a third of the time. The picture is the same but for a pixel
+whose centre lies exactly on a silhouette edge, which the rasterizer's fill rule may give to the back face.
+A frame with a capsule at the near plane or behind the camera (the camera inside a body) draws both faces.
 """
 
 from __future__ import annotations
@@ -130,6 +136,14 @@ def unit_capsule(sides: int = CAPSULE_SIDES, rings: int = CAPSULE_RINGS) -> tupl
     return V.astype(np.float32), T.astype(np.int32)
 
 
+def capsules_beyond(a_rel: np.ndarray, b_rel: np.ndarray, r: np.ndarray, back: np.ndarray, z_near: float) -> bool:
+    """Whether every capsule (ends ``a_rel``, ``b_rel`` (B, 3) relative to the camera, radii ``r``) lies wholly
+    beyond the near plane: its view depth (along −``back``, the camera's +Z in the world) at least ``z_near`` plus a
+    margin of 1 % and 1 mm. A capsule's depth is least at one of its ends, less its radius."""
+    depth = np.minimum(-(np.asarray(a_rel) @ back), -(np.asarray(b_rel) @ back)) - np.asarray(r, np.float64)
+    return bool(np.all(depth > z_near * 1.01 + 1e-3))
+
+
 class Rasterizer:
     """A headless GL context rendering G-buffer frames of one size (``width`` × ``height``)."""
 
@@ -230,9 +244,15 @@ class Rasterizer:
             self._terrain_vao.render()
         a, b, r, ids = bones
         if len(a):
-            n = self._instances(np.asarray(a) - pos, np.asarray(b) - pos, r, ids)
+            a_rel, b_rel = np.asarray(a) - pos, np.asarray(b) - pos
+            n = self._instances(a_rel, b_rel, r, ids)
             self._bone_prog["u_h_off"].value = float(pos[1] - h_min)
+            front_only = capsules_beyond(a_rel, b_rel, r, R[:, 2], z_near)
+            if front_only:
+                self.ctx.enable(moderngl.CULL_FACE)
             self._bone_vao.render(instances=n)
+            if front_only:
+                self.ctx.disable(moderngl.CULL_FACE)
         return np.frombuffer(self.fbo.read(components=4, dtype="f2"), np.uint16).reshape(self.height, self.width, 4)
 
     def render(

@@ -35,7 +35,7 @@ from .jitter import Jitter
 from .kinematics import bone_segments, world_skeletons
 from .render import TERRAIN_CULL_M, Rasterizer
 
-BRIDGE_VERSION = "1"
+BRIDGE_VERSION = "2"  # what the renderer draws: a change of it re-renders every target
 PLAYER_EDGES_KEY = "npc"  # WildWorld's skeleton key of the player character (the hunter rig)
 
 
