@@ -38,6 +38,7 @@ from pathlib import Path
 import av
 import numpy as np
 import open3d as o3d
+from av.video.reformatter import VideoReformatter
 
 from marionette.geometry import quat_to_matrix
 from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, read_sample
@@ -241,11 +242,12 @@ def depth_frames(path: Path) -> Iterator[np.ndarray]:
         s = c.streams.video[0]
         s.thread_count = 1
         frames = c.decode(s)
+        gray = VideoReformatter()  # one swscale context for the stream (a frame's own ``to_ndarray`` makes one per frame)
         i = 0
         while True:
             try:
                 frame = next(frames)
-                a = frame.to_ndarray(format="gray") if frame.format.name != "gray" else frame.to_ndarray()
+                a = gray.reformat(frame, format="gray").to_ndarray()  # a gray frame is returned as it is
             except StopIteration:
                 return
             except (av.error.FFmpegError, ValueError) as exc:

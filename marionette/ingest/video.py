@@ -16,6 +16,7 @@ from pathlib import Path
 
 import av
 import numpy as np
+from av.video.reformatter import VideoReformatter
 
 from marionette.corpus import video_shards
 from marionette.ingest.wildworld import SampleError
@@ -151,14 +152,15 @@ def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, n
     src = io.BytesIO(path_or_bytes) if isinstance(path_or_bytes, bytes | bytearray) else str(path_or_bytes)
     out_d: dict[int, np.ndarray] = {}
     out_l: list[np.ndarray] = []
+    rgb = VideoReformatter()  # one swscale context for the stream (a frame's own ``to_ndarray`` makes one per frame)
     with av.open(src) as c:
         s = c.streams.video[0]
         s.codec_context.thread_count = 1
         for i, fr in enumerate(c.decode(s)):
             if indices is None:
-                out_l.append(fr.to_ndarray(format="rgb24"))
+                out_l.append(rgb.reformat(fr, format="rgb24").to_ndarray())
             elif i in indices:
-                out_d[i] = fr.to_ndarray(format="rgb24")
+                out_d[i] = rgb.reformat(fr, format="rgb24").to_ndarray()
                 if len(out_d) == len(indices):
                     break
     return out_l if indices is None else out_d
@@ -208,6 +210,7 @@ def write_video_shard(
                 x0, y0, cw, ch = cr.x0, cr.y0, cr.w, cr.h
                 pending = {(p[0], p[1]): p for p in plan}
                 last = max(wanted)
+                to_rgb, to_size = VideoReformatter(), VideoReformatter()  # one swscale context each for the stream
                 frames = c.decode(s)
                 i = -1
                 while True:
@@ -223,12 +226,11 @@ def write_video_shard(
                             break
                         continue
                     try:
-                        img = fr.to_ndarray(format="rgb24")[y0 : y0 + ch, x0 : x0 + cw]
-                        small = (
-                            av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
-                            .reformat(width=settings.width, height=settings.height, interpolation="AREA")
-                            .to_ndarray(format="rgb24")
-                        )
+                        img = to_rgb.reformat(fr, format="rgb24").to_ndarray()[y0 : y0 + ch, x0 : x0 + cw]
+                        crop = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+                        small = to_size.reformat(
+                            crop, width=settings.width, height=settings.height, interpolation="AREA"
+                        ).to_ndarray()
                     except (av.error.FFmpegError, ValueError) as exc:
                         raise SampleError(f"{rgb_path}: cannot convert frame {i}: {type(exc).__name__}: {exc}") from None
                     for key in wanted[i]:
