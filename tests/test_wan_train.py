@@ -1,4 +1,4 @@
-"""Fine-tuning Wan2.2-Fun-Control (issue 18) on a tiny model built from the real classes (test_wan's): the latent
+"""Fine-tuning Wan2.2-Fun-Control on a tiny model built from the real classes (test_wan's): the latent
 cache is written once and read after, full fine-tuning and LoRA both lower the held-out flow loss, a resumed run
 continues the same loss sequence, and the finished run's model loads with ``WanFunControl.from_pretrained`` and
 generates; in two processes under DDP and under FSDP, which trains as DDP does, resumes exactly and checkpoints
@@ -197,11 +197,12 @@ def test_lora_trains_under_fsdp_as_under_ddp(ddp_lora, follow_corpus, backbone, 
     assert all(torch.allclose(exported[k], ddp_exported[k], rtol=1e-5, atol=1e-7) for k in exported)
 
 
-def test_the_command_trains_under_fsdp_resumes_exactly_and_one_process_loads_the_result(follow_corpus, backbone, tmp_path):
-    """``--fsdp`` in two processes, every weight and the reference path training (bf16, gradient checkpointing): a
-    run resumed under FSDP from its step-2 checkpoint ends in the same losses and bit-identical weights and AdamW
-    state; the checkpoint's tensors are whole (one process loads them into the unsharded model), the exported model
-    holds them, and ``generate`` paints with it."""
+@pytest.fixture(scope="module")
+def fsdp_runs(follow_corpus, backbone, tmp_path_factory):
+    """``--fsdp`` in two processes, every weight and the reference path training (bf16, gradient checkpointing): the
+    backbone it started from with its reference projection, the whole 3-step run (a checkpoint every step) and a run
+    resumed under FSDP from the whole run's step-2 checkpoint."""
+    tmp_path = tmp_path_factory.mktemp("wan-fsdp")
     root = tmp_path / "Wan2.2-Fun-5B-Control"
     torch.manual_seed(0)
     ref_conv = nn.Conv2d(48, 24, kernel_size=2, stride=2)
@@ -215,6 +216,13 @@ def test_the_command_trains_under_fsdp_resumes_exactly_and_one_process_loads_the
     shutil.copytree(whole / "step-00000002", cut / "step-00000002")  # as if the run had stopped after step 2
     (cut / "latest").write_text("step-00000002\n")
     assert cli([*wan_argv(corpus, root, cut, *flags), "--nproc", "2"]) == 0
+    return root, ref_conv, whole, cut
+
+
+def test_the_command_trains_under_fsdp_and_resumes_exactly(fsdp_runs):
+    """A run resumed under FSDP from its step-2 checkpoint ends in the same losses and bit-identical weights and AdamW
+    state; every rank evaluated the held-out loss, which fell."""
+    _, _, whole, cut = fsdp_runs
     weights, optimizer, meta = read_checkpoint(whole / "step-00000003")
     resumed_weights, resumed_optimizer, resumed_meta = read_checkpoint(cut / "step-00000003")
     print(f"\nfull fine-tuning under FSDP: losses {losses(meta)}, resumed at step 2 {losses(resumed_meta)}")
@@ -226,6 +234,13 @@ def test_the_command_trains_under_fsdp_resumes_exactly_and_one_process_loads_the
     assert resumed_weights.keys() == weights.keys() and all(torch.equal(resumed_weights[k], weights[k]) for k in weights)
     assert resumed_optimizer.keys() == optimizer.keys()
     assert all(torch.equal(resumed_optimizer[k], optimizer[k]) for k in optimizer)
+
+
+def test_one_process_loads_the_fsdp_checkpoint_and_its_model_generates(fsdp_runs):
+    """The FSDP checkpoint's tensors are whole: one process loads them into the unsharded model, the exported model
+    holds them, and ``generate`` paints with it."""
+    root, ref_conv, whole, _ = fsdp_runs
+    weights, optimizer, meta = read_checkpoint(whole / "step-00000003")
     # whole tensors: one process loads the checkpoint into the unsharded model, and the exported model holds them
     config = WanTrainConfig.from_json(meta["train_config"])
     module = trainable_transformer(WanFunControl.from_pretrained(root, frames=9), config, torch.device("cpu"))
