@@ -248,12 +248,9 @@ class Rasterizer:
             a_rel, b_rel = np.asarray(a) - pos, np.asarray(b) - pos
             n = self._instances(a_rel, b_rel, r, ids)
             self._bone_prog["u_h_off"].value = float(pos[1] - h_min)
-            front_only = capsules_beyond(a_rel, b_rel, r, R[:, 2], z_near)
-            if front_only:
-                self.ctx.enable(moderngl.CULL_FACE)
+            if capsules_beyond(a_rel, b_rel, r, R[:, 2], z_near):
+                self.ctx.enable(moderngl.CULL_FACE)  # front faces alone (module doc); every frame starts with it off
             self._bone_vao.render(instances=n)
-            if front_only:
-                self.ctx.disable(moderngl.CULL_FACE)
         return np.frombuffer(self.fbo.read(components=4, dtype="f2"), np.uint16).reshape(self.height, self.width, 4)
 
     def render(
