@@ -125,15 +125,33 @@ def local_prefect(tmp_path_factory):
             stop(p)
 
 
-def run_deployment(prefect: dict, timeout: float = 240, deployment: str = DEPLOYMENT, **params) -> str:
-    """``prefect deployment run`` with ``-p`` parameters; waits for a terminal state; returns the run id."""
-    args = ["deployment", "run", deployment]
-    for k, v in params.items():
-        args += ["-p", f"{k}={v}"]
-    out = cli(prefect["env"], *args)
-    m = re.search(r"UUID:\s*([0-9a-f-]{36})", out)
-    assert m, out
-    run_id = m.group(1)
+def cli_value(v) -> object:
+    """A parameter as ``prefect deployment run -p key=value`` reads it: its text as JSON where it parses, else the text."""
+    try:
+        return json.loads(str(v))
+    except ValueError:
+        return str(v)
+
+
+def run_deployment(prefect: dict, timeout: float = 240, deployment: str = DEPLOYMENT, command: bool = False, **params) -> str:
+    """A run of ``deployment`` with ``params``, made by ``prefect deployment run`` with ``-p`` parameters (``command``), else
+    by the server's API as that command makes it (the parameters read as the command reads them, the run scheduled
+    now); waits for a terminal state; returns the run id. Either way the worker runs it."""
+    if command:
+        args = ["deployment", "run", deployment]
+        for k, v in params.items():
+            args += ["-p", f"{k}={v}"]
+        out = cli(prefect["env"], *args)
+        m = re.search(r"UUID:\s*([0-9a-f-]{36})", out)
+        assert m, out
+        run_id = m.group(1)
+    else:
+        dep = httpx.get(f"{prefect['api']}/deployments/name/{deployment}", timeout=10)
+        assert dep.status_code == 200, f"{deployment}: {dep.text}"
+        body = {"parameters": {k: cli_value(v) for k, v in params.items()}}
+        made = httpx.post(f"{prefect['api']}/deployments/{dep.json()['id']}/create_flow_run", json=body, timeout=10)
+        assert made.status_code == 201, f"{deployment}: {made.text}"
+        run_id = made.json()["id"]
     deadline = time.monotonic() + timeout
     while True:
         state = httpx.get(f"{prefect['api']}/flow_runs/{run_id}", timeout=10).json()["state"]
@@ -165,8 +183,8 @@ def terrain_files(corpus: Path) -> dict[str, tuple[int, bytes]]:
 
 @pytest.fixture(scope="module")
 def dask_build(local_prefect, synth_small, tmp_path_factory) -> tuple[Path, Path, str]:
-    """(source, corpus, flow run id) of the build-corpus deployment run once over the small source and a fourth
-    recording without its rgb.mp4, which the build quarantines."""
+    """(source, corpus, flow run id) of the build-corpus deployment run once, by the command a user types, over the
+    small source and a fourth recording without its rgb.mp4, which the build quarantines."""
     root = tmp_path_factory.mktemp("dask-build")
     source = root / "source"
     shutil.copytree(synth_small, source)
@@ -174,7 +192,7 @@ def dask_build(local_prefect, synth_small, tmp_path_factory) -> tuple[Path, Path
     shutil.copytree(source / "data_part1" / "rec0002", bad)
     (bad / "rgb.mp4").unlink()
     corpus = root / "corpus"
-    return source, corpus, run_deployment(local_prefect, source=source, corpus=corpus, **SMALL_VIDEO)
+    return source, corpus, run_deployment(local_prefect, command=True, source=source, corpus=corpus, **SMALL_VIDEO)
 
 
 @pytest.mark.timeout(600)

@@ -179,8 +179,18 @@ class Renderer:
     ) -> tuple[np.ndarray, np.ndarray]:
         """RGB (H, W, 3) uint8 and z-depth (H, W) float64 (inf where nothing is hit) of the terrain and ``bodies``:
         name → this frame's mesh (``meshes``), a body not shown left out."""
-        d = self.rays(pos, R_cw)
-        rays = np.concatenate([np.broadcast_to(pos, d.shape), d], -1).astype(np.float32)
+        rgb, z = self.render_frames(pos[None], R_cw[None], [bodies])
+        return rgb[0], z[0]
+
+    def render_frames(
+        self, pos: np.ndarray, R_cw: np.ndarray, bodies: list[dict[str, tuple[np.ndarray, np.ndarray]]]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``render`` of K frames at once (cameras ``pos`` (K, 3), ``R_cw`` (K, 3, 3), ``bodies[k]`` frame k's): RGB
+        (K, H, W, 3) and z-depth (K, H, W), each frame's the bytes ``render`` gives it alone. The terrain's rays are
+        cast and the pixels shaded for every frame in one call (the arithmetic per ray and per pixel is the same);
+        the characters, posed anew each frame, are a scene per frame."""
+        d = np.stack([self.rays(p, R) for p, R in zip(pos, R_cw, strict=True)])  # (K, H, W, 3)
+        rays = np.concatenate([np.broadcast_to(pos[:, None, None, :], d.shape), d], -1).astype(np.float32)
         hit = self.terrain.cast_rays(o3d.core.Tensor(rays), nthreads=self.threads)
         t = hit["t_hit"].numpy().astype(np.float64)
         n = hit["primitive_normals"].numpy().astype(np.float64)
@@ -189,32 +199,34 @@ class Renderer:
         for g, m in self.terrain_ids.items():
             mat[gid == g] = m
         mat[~np.isfinite(t)] = -1
-        chars = o3d.t.geometry.RaycastingScene()
-        char_ids = {}
-        for name, (V, T) in bodies.items():
-            char_ids[chars.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(T))] = self.MATERIALS.index(name)
-        if char_ids:
-            ch = chars.cast_rays(o3d.core.Tensor(rays), nthreads=self.threads)
+        for k, shown in enumerate(bodies):
+            chars = o3d.t.geometry.RaycastingScene()
+            char_ids = {}
+            for name, (V, T) in shown.items():
+                char_ids[chars.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(T))] = self.MATERIALS.index(name)
+            if not char_ids:
+                continue
+            ch = chars.cast_rays(o3d.core.Tensor(rays[k]), nthreads=self.threads)
             tc = ch["t_hit"].numpy().astype(np.float64)
-            nearer = np.isfinite(tc) & (tc < t)
-            t = np.where(nearer, tc, t)
-            n = np.where(nearer[..., None], ch["primitive_normals"].numpy(), n)
+            nearer = np.isfinite(tc) & (tc < t[k])
+            t[k] = np.where(nearer, tc, t[k])
+            n[k] = np.where(nearer[..., None], ch["primitive_normals"].numpy(), n[k])
             cg = ch["geometry_ids"].numpy()
             for g, m in char_ids.items():
-                mat[nearer & (cg == g)] = m
+                mat[k][nearer & (cg == g)] = m
         return self._shade(pos, d, t, n, mat), t
 
     def _shade(self, pos, d, t, n, mat) -> np.ndarray:
-        """Sky where nothing is hit; elsewhere each material's albedo, sun-lit and fogged. Shading runs over the hit
-        pixels only, with each material's albedo computed over its own pixels (the arithmetic per pixel is the same
-        as over the whole image)."""
+        """Sky where nothing is hit; elsewhere each material's albedo, sun-lit and fogged. ``pos``: each pixel's camera
+        (K, 3) of the frames ``d`` (K, H, W, 3) looks along. Shading runs over the hit pixels only, with each material's albedo computed over
+        its own pixels (the arithmetic per pixel is the same as over the whole image)."""
         dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
         sky = np.clip(0.5 + 0.5 * dn[..., 1:2], 0, 1)
         img = (1 - sky) * np.array([0.85, 0.9, 1.0]) + sky * np.array([0.35, 0.55, 0.9])
         hitm = mat >= 0
         if hitm.any():
             m_hit, tt, dh, nh = mat[hitm], t[hitm], d[hitm], n[hitm]  # (N,), (N,), (N, 3), (N, 3)
-            p = pos + tt[..., None] * dh
+            p = pos[np.nonzero(hitm)[0]] + tt[..., None] * dh
             nh = np.where(np.sum(nh * dh, -1, keepdims=True) > 0, -nh, nh)
             sun = np.array([0.4, 0.8, 0.3]) / np.linalg.norm([0.4, 0.8, 0.3])
             lam = 0.35 + 0.65 * np.clip(np.sum(nh * sun, -1), 0, 1)
