@@ -133,6 +133,19 @@ def cli_value(v) -> object:
         return str(v)
 
 
+RETRY_CODES = (408, 429, 502, 503)  # what Prefect's own client retries: a busy server (its SQLite locked) says 503
+
+
+def rest(method: str, url: str, **kwargs) -> httpx.Response:
+    """A call to the server's REST API, retried as Prefect's client retries it (those codes, backing off to 8 s)."""
+    for attempt in range(8):
+        r = httpx.request(method, url, timeout=10, **kwargs)
+        if r.status_code not in RETRY_CODES:
+            return r
+        time.sleep(min(8.0, 0.25 * 2**attempt))
+    return r
+
+
 def run_deployment(prefect: dict, timeout: float = 240, deployment: str = DEPLOYMENT, command: bool = False, **params) -> str:
     """A run of ``deployment`` with ``params``, made by ``prefect deployment run`` with ``-p`` parameters (``command``), else
     by the server's API as that command makes it (the parameters read as the command reads them, the run scheduled
@@ -146,15 +159,15 @@ def run_deployment(prefect: dict, timeout: float = 240, deployment: str = DEPLOY
         assert m, out
         run_id = m.group(1)
     else:
-        dep = httpx.get(f"{prefect['api']}/deployments/name/{deployment}", timeout=10)
+        dep = rest("GET", f"{prefect['api']}/deployments/name/{deployment}")
         assert dep.status_code == 200, f"{deployment}: {dep.text}"
         body = {"parameters": {k: cli_value(v) for k, v in params.items()}}
-        made = httpx.post(f"{prefect['api']}/deployments/{dep.json()['id']}/create_flow_run", json=body, timeout=10)
+        made = rest("POST", f"{prefect['api']}/deployments/{dep.json()['id']}/create_flow_run", json=body)
         assert made.status_code == 201, f"{deployment}: {made.text}"
         run_id = made.json()["id"]
     deadline = time.monotonic() + timeout
     while True:
-        state = httpx.get(f"{prefect['api']}/flow_runs/{run_id}", timeout=10).json()["state"]
+        state = rest("GET", f"{prefect['api']}/flow_runs/{run_id}").json()["state"]
         if state["type"] in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED"):
             break
         assert time.monotonic() < deadline, f"flow run {run_id} still {state['type']}:\n{tail(prefect['logs']['worker'])}"
@@ -258,8 +271,8 @@ def test_a_second_deployment_run_does_no_work(local_prefect, dask_build):
     assert len(report2["terrain"]["default"]["unchanged"]) == 3 and report2["terrain"]["default"]["chunks_written"] == []
     assert report2["terrain"]["_pose_targets"]["rendered"] == [] and report2["terrain"]["_pose_targets"]["shards_rewritten"] == []
     assert terrain_files(corpus) == chunks
-    artifacts = httpx.post(
-        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["build-corpus-report"]}}}
+    artifacts = rest(
+        "POST", f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["build-corpus-report"]}}}
     )
     assert any(a["flow_run_id"] == run_id2 and "unchanged" in a["data"] for a in artifacts.json())
 
@@ -276,7 +289,7 @@ def test_the_rescan_deployment_over_an_unchanged_corpus_rewrites_no_chunk(local_
 def test_train_dynamics_deployment_trains_under_ddp_resumes_and_reports(local_prefect, corpus, tmp_path):
     """The train-dynamics/weekly deployment (schedule declared, off) run by the worker with nproc=2, each rank's
     batches stacked by a DataLoader worker process."""
-    dep = httpx.get(f"{local_prefect['api']}/deployments/name/train-dynamics/weekly", timeout=10).json()
+    dep = rest("GET", f"{local_prefect['api']}/deployments/name/train-dynamics/weekly").json()
     assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 3 * * 0", False)]
     out = tmp_path / "dynamics"
     params = {"corpus": corpus, "out": out, "steps": 4, "batch_size": 4, "window": 16, "checkpoint_every": 2, "nproc": 2}
@@ -288,8 +301,8 @@ def test_train_dynamics_deployment_trains_under_ddp_resumes_and_reports(local_pr
     assert ckpt is not None and ckpt.name == "step-00000004"
     assert json.loads((ckpt / "meta.json").read_text())["train_config"]["loader_workers"] == 1
     assert (out / "tensorboard").is_dir() and any((out / "tensorboard").iterdir())
-    artifacts = httpx.post(
-        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-dynamics-report"]}}}
+    artifacts = rest(
+        "POST", f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-dynamics-report"]}}}
     ).json()
     assert any(a["flow_run_id"] == run_id and "step-00000004" in a["data"] for a in artifacts)
     # a rerun of a finished run trains nothing and leaves the checkpoint as it was
@@ -301,7 +314,7 @@ def test_train_dynamics_deployment_trains_under_ddp_resumes_and_reports(local_pr
 @pytest.mark.timeout(600)
 def test_train_observation_deployment_renders_targets_trains_and_reports(local_prefect, corpus, tmp_path):
     """The train-observation/weekly deployment (schedule declared, off) on a corpus without pose targets."""
-    dep = httpx.get(f"{local_prefect['api']}/deployments/name/train-observation/weekly", timeout=10).json()
+    dep = rest("GET", f"{local_prefect['api']}/deployments/name/train-observation/weekly").json()
     assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 4 * * 0", False)]
     copy = tmp_path / "corpus"
     shutil.copytree(corpus, copy)
@@ -324,8 +337,8 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
     assert ckpt is not None and ckpt.name == "step-00000004"
     with tarfile.open(sorted((copy / "pose").glob("*.tar"))[0]) as tar:
         assert any(n.endswith(".pose.mkv") for n in tar.getnames())  # the flow rendered the targets first
-    artifacts = httpx.post(
-        f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-observation-report"]}}}
+    artifacts = rest(
+        "POST", f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-observation-report"]}}}
     ).json()
     assert any(a["flow_run_id"] == run_id and "step-00000004" in a["data"] for a in artifacts)
 
@@ -335,7 +348,7 @@ def test_evaluate_deployment_writes_the_report_and_publishes_it(local_prefect, c
     """The evaluate/weekly deployment (schedule declared, off) on a small checkpoint: report files and artifacts."""
     from marionette.dynamics.train import TrainConfig, train
 
-    dep = httpx.get(f"{local_prefect['api']}/deployments/name/evaluate/weekly", timeout=10).json()
+    dep = rest("GET", f"{local_prefect['api']}/deployments/name/evaluate/weekly").json()
     assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 6 * * 1", False)]
     runs = tmp_path / "dynamics"
     train(corpus, runs, TrainConfig(preset="tiny", steps=4, batch_size=4, window=16), log=lambda *_: None)
@@ -355,7 +368,8 @@ def test_evaluate_deployment_writes_the_report_and_publishes_it(local_prefect, c
     # the session corpus's 10 s recordings hold no 16 s rollout: Tables 1 and 3 say so, Table 2's plots are drawn
     assert "Not run" in (out / "report.md").read_text() and {"class_ratios", "compliance", "drift"} <= set(report["plots"])
     assert all((out / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for f in report["plots"].values())
-    artifacts = httpx.post(
+    artifacts = rest(
+        "POST",
         f"{local_prefect['api']}/artifacts/filter",
         json={"artifacts": {"key": {"any_": ["evaluation-report", "evaluation-headline"]}}},
     ).json()
