@@ -19,6 +19,10 @@ from marionette.corpus import Corpus, fixed_rows
 from marionette.dynamics.rollout import Rollout
 from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swingers, tip_speeds
 
+# frame rates and key latency are measured with the machine to itself: the whole module holds it alone, as one
+# stretch (tests/fixtures/tiers.py)
+pytestmark = pytest.mark.exclusive
+
 SEED = 32  # seed frames
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -86,9 +90,7 @@ def attack(corpus, tiny_dynamics):
 def live(corpus, tiny_dynamics, attack, pose_run, baseline_run, tmp_path_factory):
     """A live session of the tiny checkpoint served on 127.0.0.1 (a free port), the attack bound to key J. It starts
     once the session's background observation trainings are done (``pose_run``, ``baseline_run``): frame rates and
-    key latency are measured on a machine doing nothing else, as a player's is. The three tests that measure them are
-    ``exclusive`` and come first, one stretch of the machine held alone (``fixtures/tiers.py``); the module's other
-    tests share it."""
+    key latency are measured on a machine doing nothing else, as a player's is."""
     from marionette.play.server import Server
     from marionette.play.session import LiveSession
 
@@ -132,7 +134,6 @@ def metas(pg, since: int = 0) -> list[dict]:
     return pg.evaluate(f"window.marionette.metas.slice({since})")
 
 
-@pytest.mark.exclusive  # a rate: measured with the machine to itself
 def test_frames_arrive_at_15_fps_and_the_page_is_not_blank(page, tmp_path):
     from PIL import Image
 
@@ -164,7 +165,6 @@ def test_frames_arrive_at_15_fps_and_the_page_is_not_blank(page, tmp_path):
     assert len(whole) > 10_000
 
 
-@pytest.mark.exclusive  # a rate: measured with the machine to itself
 def test_a_bound_key_forces_its_token_within_two_frames(page, attack):
     tok = attack[0]
     wait_for(lambda: metas(page, -1)[0]["entities"]["hunter"]["token"] != tok, what="the hunter to play another token")
@@ -181,7 +181,6 @@ def test_a_bound_key_forces_its_token_within_two_frames(page, attack):
     assert shown["frame"] - pressed["frame"] <= 2
 
 
-@pytest.mark.exclusive  # a rate: measured with the machine to itself
 def test_an_attack_key_swings_the_weapon_within_ten_frames(page, live, attack):
     tok, seg, start = attack
     base = live[1]

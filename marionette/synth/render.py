@@ -217,9 +217,9 @@ class Renderer:
         return self._shade(pos, d, t, n, mat), t
 
     def _shade(self, pos, d, t, n, mat) -> np.ndarray:
-        """Sky where nothing is hit; elsewhere each material's albedo, sun-lit and fogged. ``pos``: each pixel's camera
-        (K, 3) of the frames ``d`` (K, H, W, 3) looks along. Shading runs over the hit pixels only, with each material's albedo computed over
-        its own pixels (the arithmetic per pixel is the same as over the whole image)."""
+        """Sky where nothing is hit; elsewhere each material's albedo, sun-lit and fogged, of K frames: ``pos`` (K, 3)
+        their cameras, ``d`` (K, H, W, 3) their rays. Shading runs over the hit pixels only, with each material's albedo
+        computed over its own pixels (the arithmetic per pixel is the same as over one whole image)."""
         dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
         sky = np.clip(0.5 + 0.5 * dn[..., 1:2], 0, 1)
         img = (1 - sky) * np.array([0.85, 0.9, 1.0]) + sky * np.array([0.35, 0.55, 0.9])
