@@ -19,9 +19,7 @@ from marionette.corpus import Corpus, fixed_rows
 from marionette.dynamics.rollout import Rollout
 from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swingers, tip_speeds
 
-# frame rates and key latency are measured with the machine to itself: the whole module holds it alone, as one
-# stretch (tests/fixtures/tiers.py)
-pytestmark = pytest.mark.exclusive
+pytestmark = pytest.mark.exclusive  # frame rates and key latency are measured with the machine to itself
 
 SEED = 32  # seed frames
 CHROMIUM = "/usr/bin/chromium"

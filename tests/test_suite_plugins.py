@@ -1,6 +1,6 @@
 """The suite's own machinery (tests/fixtures/): the per-test budget fails a run and names the test, a fixture's
-setup is shared among its readers, tiers follow markers and fixtures, consecutive exclusive tests hold the machine as
-one stretch, and a shared build is made once and remade after a crash."""
+setup is shared among its readers, tiers follow markers and fixtures, and a shared build is made once and remade
+after a crash."""
 
 from __future__ import annotations
 
@@ -128,81 +128,6 @@ def test_in_a_corpus_module():
     assert selected("quality") == {"test_reads_a_model", "test_marked"}
     order = [line.split("::")[1] for line in pytester.runpytest_subprocess("--co", "-q").stdout.lines if "::" in line]
     assert order == ["test_in_a_corpus_module", "test_arrays", "test_reads_a_corpus", "test_reads_a_model", "test_marked"]
-
-
-HELD_ALONE = """
-import fcntl
-import os
-from pathlib import Path
-
-
-def held_alone():
-    \"\"\"Whether some process holds the machine alone (a shared hold cannot be taken now).\"\"\"
-    with open(Path(os.environ["MARIONETTE_SHARED"]) / "machine.lock", "a") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
-        fcntl.flock(f, fcntl.LOCK_UN)
-        return False
-"""
-
-
-def test_consecutive_exclusive_tests_hold_the_machine_as_one_stretch(pytester, monkeypatch, tmp_path):
-    """Two exclusive tests in a row hold the machine alone from the first's start to the second's end, let go between
-    them by no one; a shared test after them finds it free; a last exclusive test holds it again and lets it go."""
-    monkeypatch.setenv("PYTHONPATH", str(TESTS))
-    monkeypatch.setenv("BETWEEN", str(tmp_path / "between.json"))
-    pytester.makepyfile(held=HELD_ALONE)
-    pytester.makeconftest(
-        """
-import json
-import os
-from pathlib import Path
-
-from held import held_alone
-
-pytest_plugins = ["fixtures.tiers"]
-BETWEEN = []
-
-
-def pytest_runtest_logreport(report):
-    if report.when == "teardown":  # after the test's teardown: between it and the next
-        BETWEEN.append([report.nodeid.split("::")[1], held_alone()])
-
-
-def pytest_sessionfinish(session):
-    Path(os.environ["BETWEEN"]).write_text(json.dumps(BETWEEN))
-"""
-    )
-    pytester.makepyfile(
-        test_alone="""
-import pytest
-from held import held_alone
-
-
-@pytest.mark.exclusive
-def test_a():
-    assert held_alone()
-
-
-@pytest.mark.exclusive
-def test_b():
-    assert held_alone()
-
-
-def test_c():
-    assert not held_alone()
-
-
-@pytest.mark.exclusive
-def test_d():
-    assert held_alone()
-"""
-    )
-    pytester.runpytest_subprocess("-q", "-p", "no:cacheprovider").assert_outcomes(passed=4)
-    between = json.loads((tmp_path / "between.json").read_text())
-    assert between == [["test_a", True], ["test_b", False], ["test_c", False], ["test_d", False]]
 
 
 def test_a_shared_build_is_made_once_and_remade_after_a_crash(tmp_path):
