@@ -26,7 +26,6 @@ from .clips import CLIPS, clip_table
 from .render import DEPTH_ENCODING, Renderer, camera_pans, encode_depth, follow_camera, intrinsics
 
 RECORDING_EPOCH = 1767225600  # 2026-01-01T00:00:00Z; recording k starts k days later
-RENDER_PIXELS = 1 << 16  # the pixels of the frames one render call takes (a few MB of rays and shading)
 NPC_FIELDS = (
     "type_id",
     "member_id",
@@ -224,13 +223,10 @@ def write_recording(
     shown = {e: np.isfinite(sk[e]).all(axis=(1, 2)) for e in meshes}
     shown["monster"] &= present
     rgb, depth = [], []
-    per_call = max(1, RENDER_PIXELS // (width * height))  # frames rendered in one call (Renderer.render_frames)
-    for a in range(0, N, per_call):
-        b = min(N, a + per_call)
-        bodies = [{e: (V[i], T) for e, (V, T) in meshes.items() if shown[e][i]} for i in range(a, b)]
-        img, z = renderer.render_frames(cam_pos[a:b], cam_rot[a:b], bodies)
-        rgb.extend(img)
-        depth.extend(encode(zi) for zi in z)
+    bodies = [{e: (V[i], T) for e, (V, T) in meshes.items() if shown[e][i]} for i in range(N)]
+    for img, z in renderer.frames(cam_pos, cam_rot, bodies):
+        rgb.append(img)
+        depth.append(encode(z))
     # Rendered in the first stage's frame; what the recording states in world coordinates moves into its stage.
     stage = role.stage
     sk = {e: stage.points(v) for e, v in sk.items()}

@@ -10,12 +10,15 @@ code = clip(round(1 + 254 · (1/z − 1/Z_FAR) / (1/Z_NEAR − 1/Z_FAR)), 1, 255
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import open3d as o3d
 
 from . import terrain as ter
 
 Z_NEAR, Z_FAR = 2.0, 300.0
+RENDER_PIXELS = 1 << 16  # the pixels of the frames one render call takes (``Renderer.frames``): a few MB
 VFOV_DEG = 60.0
 DEPTH_ENCODING = {
     "kind": "inverse_depth_u8",
@@ -181,6 +184,16 @@ class Renderer:
         name → this frame's mesh (``meshes``), a body not shown left out."""
         rgb, z = self.render_frames(pos[None], R_cw[None], [bodies])
         return rgb[0], z[0]
+
+    def frames(
+        self, pos: np.ndarray, R_cw: np.ndarray, bodies: list[dict[str, tuple[np.ndarray, np.ndarray]]]
+    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Each frame's ``render`` (cameras ``pos`` (N, 3), ``R_cw`` (N, 3, 3), ``bodies[i]`` frame i's), in order,
+        rendered ``RENDER_PIXELS`` of frames at a call (``render_frames``)."""
+        per_call = max(1, RENDER_PIXELS // (self.width * self.height))
+        for a in range(0, len(pos), per_call):
+            rgb, z = self.render_frames(pos[a : a + per_call], R_cw[a : a + per_call], bodies[a : a + per_call])
+            yield from zip(rgb, z, strict=True)
 
     def render_frames(
         self, pos: np.ndarray, R_cw: np.ndarray, bodies: list[dict[str, tuple[np.ndarray, np.ndarray]]]
