@@ -34,7 +34,7 @@ from marionette.synth import terrain as synth_terrain  # noqa: E402
 from terrain_scan import calibrate  # noqa: E402
 from terrain_scan.accumulate import scan_recording  # noqa: E402
 from terrain_scan.depth import DepthDecoder  # noqa: E402
-from terrain_scan.scan import ScanOptions  # noqa: E402
+from terrain_scan.options import ScanOptions
 
 
 def max_error(dec: DepthDecoder, truth: DepthDecoder, lo: float, hi: float) -> float:

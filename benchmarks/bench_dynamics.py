@@ -64,10 +64,11 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.checkpoint import save_checkpoint
+from marionette.dynamics.config import DynamicsConfig, TrainConfig
 from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
-from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, parameter_counts
+from marionette.dynamics.model import DynamicsModel, Frames, parameter_counts
 from marionette.dynamics.rollout import ModelStream, Rollout, force_windows, open_terrain_field, rollout
-from marionette.dynamics.train import TrainConfig, batches_from, losses, make_optimizer, train
+from marionette.dynamics.train import batches_from, losses, make_optimizer, train
 from marionette.eval.control import held_out_seeds, recorded_swingers, swing_rates
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
 from marionette.options import int_at_least
@@ -435,7 +436,8 @@ def part_heads(corpus: Path, steps: int, work: Path) -> None:
 def part_seeds(corpus: Path, steps: int, work: Path, seeds: list[int], sets: dict) -> None:
     """The tests' tiny recipe (``TINY_DYNAMICS``, one torch thread) with ``sets`` overriding its knobs, trained at each
     seed: held-out one-step figures against the baselines, the forcing test's swing rate and the probe's counts."""
-    from marionette.eval.protocol import PROTOCOLS, controllability_probe, select_windows
+    from marionette.eval.config import PROTOCOLS
+    from marionette.eval.protocol import controllability_probe, select_windows
 
     c = Corpus(corpus)
     paper = PROTOCOLS["paper"]

@@ -82,8 +82,8 @@ def protocol(a: argparse.Namespace) -> None:
     """Minutes per table at the quick and paper protocols, and the probe's headline numbers against the window count."""
     import numpy as np
 
+    from marionette.eval.config import PROTOCOLS
     from marionette.eval.protocol import (
-        PROTOCOLS,
         ablation_rollouts,
         controllability_probe,
         model_fps,

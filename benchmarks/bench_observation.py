@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
+from marionette.observation.config import ObservationTrainConfig
 from marionette.observation.data import ClipSource
 from marionette.observation.model import generate
-from marionette.observation.train import ObservationTrainConfig, load_model, train
+from marionette.observation.train import load_model, train
 
 CONFIG = ObservationTrainConfig(preset="tiny", batch_size=4, frames=5, reduce=4, patch=2, lr=1e-3, warmup=20)
 

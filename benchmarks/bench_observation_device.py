@@ -18,7 +18,8 @@ import time
 import torch
 from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
-from marionette.observation.model import OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss, sample_chunk
+from marionette.observation.config import OBS_PRESETS, ObservationConfig
+from marionette.observation.model import VideoDiT, flow_loss, sample_chunk
 
 TINY = ObservationConfig(frames=5, height=18, width_px=32, patch=2, width=96, layers=3, heads=4)
 

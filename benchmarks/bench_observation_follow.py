@@ -28,9 +28,10 @@ from pathlib import Path
 
 from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
+from marionette.observation.config import ObservationTrainConfig
 from marionette.observation.data import Clip, ClipSource
 from marionette.observation.quality import Segmenter, copy_error, follow_scores, relay_error, swap_pairs
-from marionette.observation.train import ObservationTrainConfig, load_model, train
+from marionette.observation.train import load_model, train
 
 CONFIG = ObservationTrainConfig(preset="tiny", batch_size=8, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
 

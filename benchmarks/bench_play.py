@@ -38,9 +38,11 @@ def make_inputs(work: Path, recordings: int) -> tuple[Corpus, Path, Path]:
     from bench_dynamics import paper_checkpoint
 
     from marionette.dynamics.checkpoint import save_checkpoint
-    from marionette.observation.model import ObservationConfig, VideoDiT
+    from marionette.observation.config import ObservationConfig
+    from marionette.observation.model import VideoDiT
     from marionette.synth import generate
-    from terrain_scan.scan import ScanOptions, scan_stages
+    from terrain_scan.options import ScanOptions
+    from terrain_scan.scan import scan_stages
 
     generate(work / "recordings", recordings=recordings, seconds=30.0, seed=3, width=320, height=180, workers=2)
     opts = IngestOptions(video=VideoSettings(height=176, width=320, chunk_frames=81, crf=28))

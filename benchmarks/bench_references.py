@@ -43,10 +43,11 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
 from marionette.corpus import Corpus
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus
+from marionette.observation.config import ObservationTrainConfig
 from marionette.observation.data import ClipSource
 from marionette.observation.quality import drift_growth, entity_drift, quarters, relay_videos
 from marionette.observation.references import layout_bands
-from marionette.observation.train import ObservationTrainConfig, load_model, train
+from marionette.observation.train import load_model, train
 
 RECIPE = ObservationTrainConfig(preset="tiny", batch_size=4, frames=5, reduce=2, patch=2, lr=1e-3, warmup=20)
 ARMS = {  # key: (row name, knobs)
@@ -65,7 +66,8 @@ ARMS = {  # key: (row name, knobs)
 def build(root: Path, recordings: int, seconds: float) -> Path:
     from marionette.bridge.targets import render_pose_targets
     from marionette.synth import generate
-    from terrain_scan.scan import ScanOptions, scan_stages
+    from terrain_scan.options import ScanOptions
+    from terrain_scan.scan import scan_stages
 
     corpus = root / "corpus"
     if (corpus / "meta" / "info.json").exists():

@@ -5,7 +5,7 @@ tables as artifacts.
     evaluate (Table 1 observation layer, Table 2 controllability, Table 3 driving states, long-horizon
     curves, the state layer) → report dir → artifacts
 
-``protocol`` names the counts and lengths (``marionette.eval.protocol.PROTOCOLS``: "paper", "quick");
+``protocol`` names the counts and lengths (``marionette.eval.config.PROTOCOLS``: "paper", "quick");
 ``segments``, ``seed_frames``, ``horizon``, ``rollouts`` and ``state_rollouts`` change them when given. The report directory holds
 ``report.md``, ``report.json`` and the plots; the flow publishes ``report.md`` as a markdown artifact and the
 headline numbers as a table artifact.

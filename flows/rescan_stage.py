@@ -28,7 +28,7 @@ from prefect.artifacts import create_markdown_artifact
 from flows.fanout import dask_cluster, dask_mapper
 from marionette import pipeline
 from terrain_scan.depth import DepthDecoder
-from terrain_scan.scan import ScanOptions
+from terrain_scan.options import ScanOptions
 
 
 def report_markdown(corpus: str, report: dict) -> str:

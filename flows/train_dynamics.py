@@ -15,7 +15,8 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
-from marionette.dynamics.train import TrainConfig, run
+from marionette.dynamics.config import TrainConfig
+from marionette.dynamics.train import run
 
 
 @task(cache_policy=NO_CACHE, task_run_name="train-{config.preset}")

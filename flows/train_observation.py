@@ -16,7 +16,8 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
 from flows.fanout import dask_mapper
-from marionette.observation.train import ObservationTrainConfig, run
+from marionette.observation.config import ObservationTrainConfig
+from marionette.observation.train import run
 
 
 @task(cache_policy=NO_CACHE, task_run_name="train-observation-{config.control}")

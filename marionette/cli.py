@@ -10,6 +10,11 @@ import sys
 import time
 from pathlib import Path
 
+from marionette.dynamics.config import TrainConfig
+from marionette.dynamics.controls import add_rollout_arguments
+from marionette.eval.config import PROTOCOLS
+from marionette.knobs import add_training_arguments
+from marionette.observation.config import ObservationTrainConfig, WanTrainConfig
 from marionette.options import (
     Parser,
     chunk_frames,
@@ -24,6 +29,8 @@ from marionette.options import (
     size_hxw,
     x264_crf,
 )
+from marionette.play import add_arguments as play_arguments
+from terrain_scan.knobs import KNOBS
 
 DESCRIPTION = (
     "Game recordings into a corpus, terrain and pose-control targets; dynamics and observation models trained, rolled out, "
@@ -145,7 +152,7 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
         layout = checked_scene(a)
     knobs = None
     if a.contact_scale:  # where the characters stood, the depth must show ground (terrain_scan.calibrate)
-        from terrain_scan.scan import ScanOptions
+        from terrain_scan.options import ScanOptions
 
         knobs = (ScanOptions.of_corpus(a.corpus) if a.corpus is not None else ScanOptions()).scan_kwargs()
     progress = lambda items, total, desc: _progress(items, total, desc, a.quiet)  # noqa: E731
@@ -162,7 +169,7 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     if a.corpus is not None:
         from marionette.corpus import Corpus
         from marionette.corpus.lock import corpus_lock
-        from terrain_scan.scan import ScanOptions
+        from terrain_scan.options import ScanOptions
 
         Corpus(a.corpus)  # a corpus, or a clear error
         with corpus_lock(a.corpus, "calibrate-depth"):
@@ -265,7 +272,7 @@ def inspect_text(corpus_path: Path, play_shards: int = 64, scene: str | None = N
     if info.total_segments and one:
         lines += play_stats_lines(play_stats(c, max_shards=play_shards))
     lines.append(f"shards   {len(info.shards)} state + video: {c.path / 'state'}, {c.path / 'video'}")
-    from terrain_scan.scan import ScanOptions
+    from terrain_scan.options import ScanOptions
 
     scanned = ScanOptions.stored(c.path)
     if scanned is None:
@@ -412,7 +419,7 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
     from marionette.io import read_json
     from marionette.pipeline import refresh
     from terrain_scan.depth import DepthDecoder
-    from terrain_scan.scan import ScanOptions
+    from terrain_scan.options import ScanOptions
 
     options = ScanOptions.of_corpus(a.corpus)
     if a.scan_config is not None:
@@ -438,7 +445,7 @@ def cmd_terrain_import(a: argparse.Namespace) -> int:
     from marionette.corpus import paths
     from marionette.corpus.lock import corpus_lock
     from marionette.pipeline import refresh
-    from terrain_scan.scan import ScanOptions
+    from terrain_scan.options import ScanOptions
     from terrain_scan.store import Stage, import_chunks
 
     check_stage(a.corpus, a.stage)
@@ -519,8 +526,9 @@ def cmd_render(a: argparse.Namespace) -> int:
 
 def cmd_train_dynamics(a: argparse.Namespace) -> int:
     """Train ActionGPT + PoseGPT on a corpus (resuming from --out when it holds a checkpoint)."""
-    from marionette.dynamics.train import TrainConfig, run
-    from marionette.training import config_from_args, nodes_from_args
+    from marionette.dynamics.config import TrainConfig
+    from marionette.dynamics.train import run
+    from marionette.knobs import config_from_args, nodes_from_args
 
     config = config_from_args(TrainConfig, a)
     summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
@@ -530,8 +538,9 @@ def cmd_train_dynamics(a: argparse.Namespace) -> int:
 
 def cmd_train_observation(a: argparse.Namespace) -> int:
     """Train the observation model on a corpus's video shards (resuming from --out)."""
-    from marionette.observation.train import ObservationTrainConfig, run
-    from marionette.training import config_from_args, nodes_from_args
+    from marionette.knobs import config_from_args, nodes_from_args
+    from marionette.observation.config import ObservationTrainConfig
+    from marionette.observation.train import run
 
     config = config_from_args(ObservationTrainConfig, a)
     summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
@@ -541,8 +550,9 @@ def cmd_train_observation(a: argparse.Namespace) -> int:
 
 def cmd_train_wan(a: argparse.Namespace) -> int:
     """Fine-tune Wan2.2-Fun-Control on a corpus's pose-control chunks (resuming from --out)."""
-    from marionette.observation.wan_train import WanTrainConfig, run
-    from marionette.training import config_from_args, nodes_from_args
+    from marionette.knobs import config_from_args, nodes_from_args
+    from marionette.observation.config import WanTrainConfig
+    from marionette.observation.wan_train import run
 
     config = config_from_args(WanTrainConfig, a)
     summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
@@ -633,7 +643,7 @@ def cmd_demo(a: argparse.Namespace) -> int:
     from marionette.ingest import IngestOptions, VideoSettings
     from marionette.pipeline import build
     from marionette.synth import generate
-    from terrain_scan.scan import ScanOptions
+    from terrain_scan.options import ScanOptions
 
     out = Path(a.out)
     src, corpus = out / "recordings", out / "corpus"
@@ -690,8 +700,9 @@ def cmd_demo(a: argparse.Namespace) -> int:
 def _demo_dynamics(c, out: Path, steps: int) -> None:
     """The demo's dynamics stages: train the tiny preset, then roll it out with an attack forced and render it."""
     from marionette.corpus.vocab import ActionTokens
+    from marionette.dynamics.config import TrainConfig
     from marionette.dynamics.rollout import write_rollout
-    from marionette.dynamics.train import TrainConfig, train
+    from marionette.dynamics.train import train
 
     runs = out / "dynamics"
     t = time.time()
@@ -738,8 +749,9 @@ def _demo_observation(c, out: Path, steps: int) -> None:
 
     import torch
 
+    from marionette.observation.config import ObservationTrainConfig
     from marionette.observation.generate import paint_video
-    from marionette.observation.train import ObservationTrainConfig, train
+    from marionette.observation.train import train
 
     runs, base = out / "observation", out / "observation-baseline"
     video = c.info.video
@@ -790,7 +802,8 @@ def _train_quietly(corpus: str, out: str, config: dict) -> list[str]:
     its log lines but the per-step ones."""
     import torch
 
-    from marionette.observation.train import ObservationTrainConfig, train
+    from marionette.observation.config import ObservationTrainConfig
+    from marionette.observation.train import train
 
     torch.set_num_threads(1)
     lines: list[str] = []
@@ -906,9 +919,32 @@ def _synthetic_arguments(
     s.add_argument("--workers", type=positive_int, default=workers, help="parallel worker processes")
 
 
+def generate_arguments(ap: argparse.ArgumentParser) -> None:
+    """The generate command's arguments."""
+    ap.add_argument(
+        "ckpt",
+        type=Path,
+        help="an observation checkpoint or training directory, or a Wan2.2-Fun-Control model directory (`train wan`'s OUT/model)",
+    )
+    pose_help = "a pose-control G-buffer video (.mkv), from `marionette export-chunk` or `marionette render`"
+    ap.add_argument("--pose", type=Path, required=True, help=pose_help)
+    ap.add_argument("--first-frame", type=Path, required=True, help="the first frame: an image of the pose video's size")
+    ap.add_argument("--out", type=Path, required=True, help="output .mp4")
+    ap.add_argument("--chunks", type=positive_int, default=None, help="chunks to relay (default: all the pose video holds)")
+    ap.add_argument("--steps", type=positive_int, default=20, help="sampling steps per chunk")
+    ap.add_argument("--seed", type=non_negative_int, default=0, help="seed of the sampling noise")
+    ap.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of the output video")
+    ap.add_argument(
+        "--no-references",
+        dest="references",
+        action="store_false",
+        help="a model trained with entity references paints without them (each chunk sees only its first frame)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``marionette`` command line: every subcommand, each option validated as it is parsed and its default shown."""
-    from terrain_scan.knobs import KNOBS
+    """The ``marionette`` command line: every subcommand, each option validated as it is parsed and its default shown.
+    It imports no heavy library (torch, open3d, prefect, diffusers, moderngl): each command imports what it runs."""
 
     p = Parser(prog="marionette", description=DESCRIPTION)
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
@@ -1117,45 +1153,32 @@ def build_parser() -> argparse.ArgumentParser:
     t = command("train", "train a model on a corpus")
     tsub = t.add_subparsers(dest="train_cmd", required=True, metavar="COMMAND")
     s = command("dynamics", "train ActionGPT + PoseGPT (a rerun with the same --out resumes)", tsub)
-    from marionette.dynamics.train import add_arguments as train_arguments
-
-    train_arguments(s)
+    add_training_arguments(s, TrainConfig)
     s.set_defaults(fn=cmd_train_dynamics)
 
     s = command("observation", "train the observation model (pose video + first frame → RGB) on the video shards", tsub)
-    from marionette.observation.train import add_arguments as observation_arguments
-
-    observation_arguments(s)
+    add_training_arguments(s, ObservationTrainConfig)
     s.set_defaults(fn=cmd_train_observation)
 
     s = command(
         "wan", "fine-tune Wan2.2-Fun-Control on the corpus's pose-control chunks (latent cache, full or LoRA; resumes)", tsub
     )
-    from marionette.observation.wan_train import add_arguments as wan_arguments
-
-    wan_arguments(s)
+    add_training_arguments(s, WanTrainConfig)
     s.set_defaults(fn=cmd_train_wan)
 
     s = command("generate", "paint RGB onto a pose-control video with a trained observation model")
-    from marionette.observation.generate import add_arguments as generate_arguments
-
     generate_arguments(s)
     s.set_defaults(fn=cmd_generate)
 
     s = command("rollout", "roll a trained dynamics model out from a recorded segment, with forced tokens and scripted roots")
-    from marionette.dynamics.rollout import add_arguments as rollout_arguments
-
-    rollout_arguments(s)
+    add_rollout_arguments(s)
     s.set_defaults(fn=cmd_rollout)
 
     s = command("play", "play the world model in a browser (keys force tokens, WASD moves a root), or replay state with no model")
-    from marionette.play import add_arguments as play_arguments
-
     play_arguments(s)
     s.set_defaults(fn=cmd_play)
 
     s = command("eval", "evaluate a dynamics checkpoint: the paper's three tables, long-horizon curves, state metrics")
-    from marionette.eval.protocol import PROTOCOLS
 
     at_least_two = int_at_least(2)
     s.add_argument("dynamics", type=Path, help="a dynamics checkpoint or training directory")

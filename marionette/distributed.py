@@ -19,14 +19,16 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-import torch.distributed as dist
-
 from marionette.io import write_json
+
+# torch is imported by the functions that use it: a training command's options (``Nodes`` and its checks) are read
+# by its ``--help`` and by the launcher, neither of which needs torch.
 
 
 def rank_world() -> tuple[int, int]:
     """(rank, world size) of this process: (0, 1) outside a process group."""
+    import torch.distributed as dist
+
     if dist.is_available() and dist.is_initialized():
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
@@ -38,6 +40,9 @@ def process_group_from_env() -> Iterator[None]:
     after; otherwise do nothing. Where torch sees a GPU, each rank takes its LOCAL_RANK device and collectives on
     CUDA tensors go through NCCL, those on CPU tensors through gloo (a trainer may run on the CPU of a GPU machine);
     elsewhere gloo alone. A block that ends normally ends at a barrier; one that raises leaves at once."""
+    import torch
+    import torch.distributed as dist
+
     started = False
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
         if torch.cuda.is_available():

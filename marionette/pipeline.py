@@ -64,7 +64,7 @@ def refresh(
 ) -> RefreshReport:
     """Scan the terrain of one stage (or all), then bring every pose target up to date, under the corpus lock.
 
-    ``scan_options`` is a ``terrain_scan.scan.ScanOptions`` (default: the synthetic game's depth decoder). The
+    ``scan_options`` is a ``terrain_scan.options.ScanOptions`` (default: the synthetic game's depth decoder). The
     recordings are scanned on ``workers`` local processes, or by ``scan_mapper`` (``terrain_scan.scan.Mapper``:
     the flows' run them on Dask); the pose targets likewise, a shard a job (``pose_mapper``).
     """

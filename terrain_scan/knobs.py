@@ -1,5 +1,5 @@
 """The knobs of a terrain scan and their checks, importable without the scan's heavy dependencies (the CLI's
-parser reads them; ``terrain_scan.scan.ScanOptions`` holds them)."""
+parser reads them; ``terrain_scan.options.ScanOptions`` holds them)."""
 
 from __future__ import annotations
 

@@ -11,142 +11,20 @@ give identical chunk files.
 from __future__ import annotations
 
 import itertools
-import json
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from marionette.corpus import paths
 from marionette.fanout import Mapper, pool_mapper, worker_identity
 from marionette.ingest.wildworld import SampleError, SampleRef
-from marionette.io import file_sha256, text_sha256, write_json
+from marionette.io import file_sha256, text_sha256
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.grouping import place
-from terrain_scan.knobs import DERIVE_KNOBS, KNOBS, knob_ok
-from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT, Observations
+from terrain_scan.layers import Observations
+from terrain_scan.options import ScanOptions
 from terrain_scan.store import IMPORT_PREFIX, Stage, chunk_observations
 from terrain_scan.trn2 import read_chunk, split_cell
-
-# 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug
-SCAN_VERSION = "4"
-
-
-@dataclass(frozen=True)
-class ScanOptions:
-    """How depth becomes observations and observations a stage: the depth decoder and every knob of ``KNOBS``
-    (defaults: the values tuned on the synthetic game, ``docs/tradeoffs.md``). A corpus keeps the options its
-    last scan used (``meta/scan.json``: ``stored``), so a later scan, ingest's and the flows' included, scans
-    with them unless told otherwise."""
-
-    decoder: dict = field(default_factory=lambda: DepthDecoder.synthetic().to_json())
-    frame_stride: int = 1
-    depth_subsample: int = 1
-    voxel_m: float = 0.25
-    max_depth_m: float = 20.0
-    min_normal_y: float = 0.5
-    image_normal_y: float = 0.8
-    edge_rel: float = 0.1
-    edge_m: float = 0.1
-    smooth_radius: int = 3
-    smooth_tol: float = 1.0
-    normal_radius_voxels: float = 2.0
-    mask_radius_scale: float = 3.0
-    mask_margin_m: float = 0.3
-    contact_speed: float = 0.2
-    contact_window: int = 2
-    contact_tol_m: float = 0.05
-    contact_hits: int = 1
-    alias_fraction: float = ALIAS_FRACTION
-    alias_dominance: float = ALIAS_DOMINANCE
-    alias_support: int = ALIAS_SUPPORT
-
-    def __post_init__(self) -> None:
-        for name, (check, _) in KNOBS.items():
-            v = getattr(self, name)
-            if not knob_ok(check, v):
-                raise ValueError(f"scan option {name} must be {check}, not {v!r}")
-            if check.startswith("a number"):  # 1 and 1.0 are one setting, with one key
-                object.__setattr__(self, name, float(v))
-        try:
-            DepthDecoder.from_json(self.decoder)
-        except (TypeError, ValueError, KeyError) as exc:
-            raise ValueError(f"scan option decoder: {exc}") from None
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_json(d: object, where: str = "scan options") -> ScanOptions:
-        """Options from JSON (a subset of the fields; the rest default); an unknown key or a bad value is an error
-        naming it and ``where``."""
-        if not isinstance(d, dict):
-            raise ValueError(f"{where}: scan options are a JSON object, not {type(d).__name__}")
-        unknown = sorted(set(d) - set(KNOBS) - {"decoder"})
-        if unknown:
-            raise ValueError(f"{where}: unknown scan option(s) {unknown}; known: decoder, {', '.join(KNOBS)}")
-        try:
-            return ScanOptions(**d)
-        except ValueError as exc:
-            raise ValueError(f"{where}: {exc}") from None
-
-    def updated(self, **changes) -> ScanOptions:
-        """These options with ``changes`` (None values ignored), checked."""
-        return self.merged({k: v for k, v in changes.items() if v is not None})
-
-    def merged(self, changes: object, where: str = "scan options") -> ScanOptions:
-        """These options with a JSON object of changes laid over them (a --scan-config file, a flow's ``scan``),
-        checked; errors name ``where``."""
-        if not isinstance(changes, dict):
-            raise ValueError(f"{where}: scan options are a JSON object, not {type(changes).__name__}")
-        return ScanOptions.from_json({**self.to_json(), **changes}, where)
-
-    def scan_kwargs(self) -> dict:
-        """``scan_recording``'s keyword arguments (every knob a recording's scan reads)."""
-        return {k: getattr(self, k) for k in KNOBS if k not in DERIVE_KNOBS}
-
-    def alias(self) -> tuple[float, float, int]:
-        """The stage's edge-alias rule by hits: (fraction, dominance, support)."""
-        return (self.alias_fraction, self.alias_dominance, self.alias_support)
-
-    def key(self) -> str:
-        """Hash of what a recording's contribution depends on (the decoder and every knob but the stage's)."""
-        d = {k: v for k, v in asdict(self).items() if k not in DERIVE_KNOBS}
-        return text_sha256(json.dumps(d, sort_keys=True), SCAN_VERSION)[:16]
-
-    def changed(self) -> dict:
-        """The knobs (and decoder) that differ from the defaults."""
-        base = ScanOptions().to_json()
-        return {k: v for k, v in self.to_json().items() if v != base[k]}
-
-    def describe(self) -> str:
-        """One line of what differs from the defaults ("the defaults" when nothing does)."""
-        return ", ".join(f"{k}={json.dumps(v, sort_keys=True)}" for k, v in self.changed().items()) or "the defaults"
-
-    @staticmethod
-    def of_corpus(corpus: Path) -> ScanOptions:
-        """The options of the corpus's last scan, else the defaults: what a scan given none uses."""
-        return ScanOptions.stored(corpus) or ScanOptions()
-
-    @staticmethod
-    def stored(corpus: Path) -> ScanOptions | None:
-        """The options of the corpus's last scan (``meta/scan.json``), or None before its first."""
-        path = Path(corpus) / SCAN_CONFIG
-        if not path.is_file():
-            return None
-        if path.stat().st_size > SCAN_CONFIG_MAX_BYTES:
-            raise ValueError(f"{path}: {path.stat().st_size} bytes, more than scan options take ({SCAN_CONFIG_MAX_BYTES})")
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: not JSON ({exc})") from None
-        return ScanOptions.from_json(data, str(path))
-
-    def store(self, corpus: Path) -> None:
-        write_json(Path(corpus) / SCAN_CONFIG, self.to_json())
-
-
-SCAN_CONFIG = "meta/scan.json"
-SCAN_CONFIG_MAX_BYTES = 1 << 16
 
 
 def corpus_stages(corpus: Path) -> dict[str, list[dict]]:

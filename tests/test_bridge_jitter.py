@@ -134,8 +134,9 @@ def test_jittered_training_targets_are_a_product_of_their_own(corpus, tmp_path):
 
     from marionette.bridge.targets import render_pose_targets
     from marionette.corpus import paths
+    from marionette.observation.config import ObservationTrainConfig
     from marionette.observation.data import ClipSource
-    from marionette.observation.train import ObservationTrainConfig, train
+    from marionette.observation.train import train
 
     work = tmp_path / "corpus"
     shutil.copytree(corpus, work)
@@ -164,7 +165,7 @@ def test_jittered_training_targets_are_a_product_of_their_own(corpus, tmp_path):
     # the Wan trainer reads the same product: its train windows (the first chunk's) are those of the jittered targets
     from test_wan import tiny_modules, write_backbone
 
-    from marionette.observation.wan_train import WanTrainConfig
+    from marionette.observation.config import WanTrainConfig
     from marionette.observation.wan_train import train as train_wan
 
     backbone = tmp_path / "wan"

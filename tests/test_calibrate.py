@@ -19,7 +19,7 @@ from marionette.synth import terrain as synth_terrain
 from terrain_scan import calibrate
 from terrain_scan.accumulate import scan_recording
 from terrain_scan.depth import DepthDecoder
-from terrain_scan.scan import ScanOptions
+from terrain_scan.options import ScanOptions
 
 pytestmark = pytest.mark.corpus  # generates its own recordings
 

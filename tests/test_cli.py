@@ -242,7 +242,8 @@ def assert_same_rows(a, b) -> None:
 
 
 def test_eval_rollouts_report_progress_and_the_same_numbers(posed, tmp_path):
-    from marionette.dynamics.train import TrainConfig, train
+    from marionette.dynamics.config import TrainConfig
+    from marionette.dynamics.train import train
     from marionette.eval.protocol import run_windows, select_windows, state_layer
 
     runs = tmp_path / "runs"

@@ -15,6 +15,7 @@ import torch
 from marionette import geometry as geo
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.corpus.paths import stage_dir
+from marionette.dynamics.config import TERRAIN_FEATURES, DynamicsConfig
 from marionette.dynamics.data import (
     ActionTokens,
     HeldOutWindows,
@@ -26,14 +27,8 @@ from marionette.dynamics.data import (
     terrain_feature_shard,
     vocab_sizes,
 )
-from marionette.dynamics.model import (
-    TERRAIN_FEATURES,
-    DynamicsConfig,
-    DynamicsModel,
-    action_training_pair,
-    pose_training_pair,
-    split_state,
-)
+from marionette.dynamics.model import DynamicsModel, action_training_pair, pose_training_pair
+from marionette.dynamics.state import split_state
 from terrain_scan.field import egocentric_patch, joint_clearances, open_stage
 
 HELD_OUT = "data_part1/rec0001"  # the recording the split tests move to "test"

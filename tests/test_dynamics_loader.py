@@ -14,8 +14,9 @@ import pytest
 import torch
 
 from marionette.dynamics.checkpoint import latest_checkpoint
+from marionette.dynamics.config import TrainConfig
 from marionette.dynamics.data import TrainBatches, WindowData, WindowSampler, train_batches
-from marionette.dynamics.train import TrainConfig, main, train
+from marionette.dynamics.train import main, train
 
 
 def ids(batches) -> list[tuple[str, int]]:

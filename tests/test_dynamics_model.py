@@ -10,20 +10,19 @@ import numpy as np
 import pytest
 import torch
 
-from marionette.dynamics import (
+from marionette.dynamics.config import DynamicsConfig
+from marionette.dynamics.model import (
     ActionGPT,
-    DynamicsConfig,
     DynamicsModel,
     Frames,
     PoseGPT,
     action_training_pair,
-    join_state,
+    apply_rope,
     parameter_counts,
     pose_training_pair,
-    root_stream_slices,
-    split_state,
+    rope_angles,
 )
-from marionette.dynamics.model import apply_rope, rope_angles
+from marionette.dynamics.state import join_state, root_stream_slices, split_state
 from marionette.schema import SchemaError, load_scene
 
 VOCAB = (7, 7)  # the synthetic game's: six clips per species + "no valid action"

@@ -10,9 +10,10 @@ import pytest
 from marionette.bridge.targets import TerrainScene, render_rows
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.corpus.paths import stage_dir
+from marionette.dynamics.config import TrainConfig
 from marionette.dynamics.data import ActionTokens
 from marionette.dynamics.rollout import Rollout, force_windows, forced_at, main, open_terrain_field, rollout
-from marionette.dynamics.train import TrainConfig, train
+from marionette.dynamics.train import train
 from marionette.io import read_ipc
 from marionette.schema import check_layout
 

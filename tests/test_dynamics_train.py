@@ -22,8 +22,9 @@ from safetensors.torch import load_file
 from marionette import training
 from marionette.corpus import Corpus
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint
-from marionette.dynamics.model import DynamicsConfig, DynamicsModel
-from marionette.dynamics.train import TrainConfig, run, train
+from marionette.dynamics.config import DynamicsConfig, TrainConfig
+from marionette.dynamics.model import DynamicsModel
+from marionette.dynamics.train import run, train
 
 HELD_OUT = "data_part1/rec0001"  # the recording moved to "test"
 

@@ -72,7 +72,8 @@ def test_a_file_of_other_names_or_shapes_is_refused_by_name(weights, tmp_path):
 def test_observation_rows_use_i3d_when_given(weights):
     """The report's observation rows with the I3D extractor: labelled FVD, per-chunk pieces of ≥ 9 frames."""
     from marionette.eval.report import _chunk_frames, observation_fvd
-    from marionette.observation.model import ObservationConfig, VideoDiT
+    from marionette.observation.config import ObservationConfig
+    from marionette.observation.model import VideoDiT
 
     ex = extractor_for(weights[0])
     model = VideoDiT(ObservationConfig(frames=5, height=18, width_px=32, patch=2, width=32, layers=1, heads=2), seed=0)

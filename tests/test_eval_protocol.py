@@ -20,11 +20,11 @@ import torch
 from marionette.corpus import Corpus, world_of_rows
 from marionette.eval import metrics as M
 from marionette.eval import report as R
+from marionette.eval.config import parse_protocol
 from marionette.eval.protocol import (
     PROBE_CONDITIONS,
     controllability_probe,
     foot_joints,
-    parse_protocol,
     recorded_rows,
     rule_ablation,
     run_windows,
@@ -62,7 +62,8 @@ def free(ckpt, corpus, windows):
 @pytest.fixture(scope="module")
 def obs_model():
     """An untrained observation model (fixed seed), small enough to paint every window's clip in seconds."""
-    from marionette.observation.model import ObservationConfig, VideoDiT
+    from marionette.observation.config import ObservationConfig
+    from marionette.observation.model import VideoDiT
 
     return VideoDiT(ObservationConfig(frames=5, height=36, width_px=64, patch=4, width=32, layers=1, heads=2), seed=0).eval()
 
@@ -214,7 +215,8 @@ def test_rollout_table_of_another_layout_is_a_clear_error(corpus, windows, free)
 
 
 def test_observation_fvd_on_a_small_model():
-    from marionette.observation.model import OBS_PRESETS, VideoDiT
+    from marionette.observation.config import OBS_PRESETS
+    from marionette.observation.model import VideoDiT
 
     model = VideoDiT(OBS_PRESETS["tiny"]).eval()
     g = torch.Generator().manual_seed(0)

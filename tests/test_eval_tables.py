@@ -11,13 +11,11 @@ import torch
 
 from marionette.corpus import Corpus
 from marionette.eval import video as V
+from marionette.eval.config import PROTOCOLS, EvalProtocol, parse_protocol
 from marionette.eval.protocol import (
-    PROTOCOLS,
-    EvalProtocol,
     _ablation_row,
     controllability_probe,
     pair_separation,
-    parse_protocol,
     recorded_window,
     select_windows,
     shuffle_frames,

@@ -346,7 +346,8 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
 @pytest.mark.timeout(600)
 def test_evaluate_deployment_writes_the_report_and_publishes_it(local_prefect, corpus, tmp_path):
     """The evaluate/weekly deployment (schedule declared, off) on a small checkpoint: report files and artifacts."""
-    from marionette.dynamics.train import TrainConfig, train
+    from marionette.dynamics.config import TrainConfig
+    from marionette.dynamics.train import train
 
     dep = rest("GET", f"{local_prefect['api']}/deployments/name/evaluate/weekly").json()
     assert [(s["schedule"]["cron"], s["active"]) for s in dep["schedules"]] == [("0 6 * * 1", False)]

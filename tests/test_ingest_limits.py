@@ -23,7 +23,8 @@ from fixtures.corpora import TEST_OPTIONS
 
 from marionette.ingest import build_corpus, discover
 from marionette.ingest.wildworld import SampleError, SkeletonArchive
-from terrain_scan.scan import ScanOptions, scan_stages
+from terrain_scan.options import ScanOptions
+from terrain_scan.scan import scan_stages
 from terrain_scan.trn2 import Chunk, TerrainFormatError, read_chunk
 
 NPC_KEY = "n1_0"  # the hunter's member in the synthetic recordings' skeleton.npz

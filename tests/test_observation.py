@@ -17,10 +17,11 @@ import torch
 
 from marionette.corpus import Corpus
 from marionette.corpus.video_shards import read_joined
+from marionette.observation.config import ObservationConfig, ObservationTrainConfig
 from marionette.observation.data import ChunkStore, ClipSource, _clip_bytes, reduce_codes
 from marionette.observation.generate import write_image
-from marionette.observation.model import ObservationConfig, VideoDiT, check_inputs, generate
-from marionette.observation.train import ObservationTrainConfig, load_model, train
+from marionette.observation.model import VideoDiT, check_inputs, generate
+from marionette.observation.train import load_model, train
 
 # 18×32 clips of the session corpus (its 72×128 chunks reduced by 4), two a step: the relay test reads seams against
 # steps inside a chunk and against other held-out chunks, which the shared pose model of tests/fixtures/models.py (the

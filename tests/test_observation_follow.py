@@ -13,10 +13,11 @@ import pytest
 import torch
 from fixtures.models import OBS_SIZE, obs_config
 
+from marionette.observation.config import ObservationConfig, ObservationTrainConfig
 from marionette.observation.data import Clip, ClipSource
-from marionette.observation.model import ObservationConfig, VideoDiT
+from marionette.observation.model import VideoDiT
 from marionette.observation.quality import Segmenter, bodies, copy_error, follow_scores, iou, relay_error, swap_pairs
-from marionette.observation.train import ObservationTrainConfig, _batch, load_model
+from marionette.observation.train import _batch, load_model
 
 CONFIG = obs_config()
 SIZE = OBS_SIZE

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from marionette.bridge.gbuffer import CODE_MAX
-from marionette.observation.model import ObservationConfig, VideoDiT, flow_loss, generate
+from marionette.observation.config import ObservationConfig
+from marionette.observation.model import VideoDiT, flow_loss, generate
 from marionette.observation.references import (
     EntityReferences,
     band_masks,

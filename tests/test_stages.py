@@ -16,7 +16,7 @@ from marionette.cli import main
 from marionette.corpus.stages import read_placements
 from marionette.synth import generate, load_truth
 from marionette.synth.cast import make_cast
-from terrain_scan import open_stage
+from terrain_scan.field import open_stage
 from terrain_scan.grouping import MIN_SHARED, agreement, place
 from terrain_scan.layers import Observations
 

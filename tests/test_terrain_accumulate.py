@@ -255,7 +255,7 @@ def test_subsampled_depth_keeps_pixels_and_maps_the_intrinsics(f):
     """Issue 16: ``depth_subsample`` keeps one source pixel per f × f block (never a blend of codes) and maps K so
     each kept pixel back-projects to the very world point it does at full size, far from the origin too."""
     from terrain_scan.accumulate import backproject, subsampled
-    from terrain_scan.scan import ScanOptions
+    from terrain_scan.options import ScanOptions
 
     rng = np.random.default_rng(f)
     H, W = 72, 128

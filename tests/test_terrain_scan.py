@@ -8,7 +8,8 @@ import shutil
 import numpy as np
 
 from marionette.corpus.paths import stage_dir
-from terrain_scan.scan import ScanOptions, corpus_stages, scan_stages
+from terrain_scan.options import ScanOptions
+from terrain_scan.scan import corpus_stages, scan_stages
 from terrain_scan.store import Stage
 from terrain_scan.trn2 import read_chunk
 

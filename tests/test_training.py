@@ -11,16 +11,16 @@ import math
 import pytest
 import torch
 
-from marionette import training
+from marionette import knobs, training
 from marionette.distributed import Nodes
-from marionette.dynamics.train import TrainConfig
-from marionette.observation.train import ObservationTrainConfig
+from marionette.dynamics.config import TrainConfig
+from marionette.observation.config import ObservationTrainConfig
 from marionette.options import Parser
 
 
 def _parser(cls) -> argparse.ArgumentParser:
     ap = Parser(prog="t")
-    training.add_arguments(ap, cls)
+    knobs.add_training_arguments(ap, cls)
     return ap
 
 
@@ -51,7 +51,7 @@ def test_flags_come_from_the_config_fields_with_help_defaults_and_checks(tmp_pat
         assert flag in text
     assert "(default: 1000)" in text and "(default: pose)" in text and "default: the preset's" in text
     a = ap.parse_args(["c", "--out", str(tmp_path), "--steps", "7", "--control", "actions"])
-    assert training.config_from_args(ObservationTrainConfig, a) == ObservationTrainConfig(steps=7, control="actions")
+    assert knobs.config_from_args(ObservationTrainConfig, a) == ObservationTrainConfig(steps=7, control="actions")
     for bad in (
         ["--steps", "0"],
         ["--batch-size", "-1"],
@@ -66,7 +66,7 @@ def test_flags_come_from_the_config_fields_with_help_defaults_and_checks(tmp_pat
         assert exit_.value.code == 2
         assert bad[0] in capsys.readouterr().err
     with pytest.raises(ValueError, match="frames"):
-        training.config_from_args(ObservationTrainConfig, ap.parse_args(["c", "--out", str(tmp_path), "--frames", "6"]))
+        knobs.config_from_args(ObservationTrainConfig, ap.parse_args(["c", "--out", str(tmp_path), "--frames", "6"]))
 
 
 def test_node_flags_are_checked_alone_and_together(tmp_path, capsys):
@@ -92,7 +92,7 @@ def test_node_flags_are_checked_alone_and_together(tmp_path, capsys):
             ap.parse_args(["c", "--out", str(tmp_path), *bad])
         assert exit_.value.code == 2
         assert said in capsys.readouterr().err, bad
-    nodes = training.nodes_from_args(ap.parse_args(["c", "--out", str(tmp_path), *several, "--node-rank", "1"]))
+    nodes = knobs.nodes_from_args(ap.parse_args(["c", "--out", str(tmp_path), *several, "--node-rank", "1"]))
     assert nodes == Nodes(2, 1, "10.0.0.5", 29500)
     assert nodes.torchrun_arguments(4) == [
         "--nnodes=2",
@@ -101,7 +101,7 @@ def test_node_flags_are_checked_alone_and_together(tmp_path, capsys):
         "--master-port=29500",
         "--nproc-per-node=4",
     ]
-    one = training.nodes_from_args(ap.parse_args(["c", "--out", str(tmp_path)]))
+    one = knobs.nodes_from_args(ap.parse_args(["c", "--out", str(tmp_path)]))
     assert one == Nodes() and one.torchrun_arguments(2) == ["--standalone", "--nproc-per-node=2"]
     with pytest.raises(ValueError, match="--nnodes 2 needs --master-addr and --master-port"):
         Nodes(2, 0)
@@ -112,7 +112,7 @@ def test_config_json_then_flags(tmp_path):
     a = _parser(TrainConfig).parse_args(
         ["c", "--out", "o", "--config", str(tmp_path / "c.json"), "--steps", "9", "--betas", "0.8", "0.9"]
     )
-    assert training.config_from_args(TrainConfig, a) == TrainConfig(steps=9, lr=1e-3, betas=(0.8, 0.9))
+    assert knobs.config_from_args(TrainConfig, a) == TrainConfig(steps=9, lr=1e-3, betas=(0.8, 0.9))
     with pytest.raises(ValueError, match="dropout"):
         TrainConfig(dropout=1.0)
 

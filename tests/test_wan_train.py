@@ -22,9 +22,10 @@ from torch import nn
 from marionette.bridge.gbuffer import GBufferMeta, write_gbuffer
 from marionette.cli import main as cli
 from marionette.dynamics.checkpoint import load_checkpoint
+from marionette.observation.config import WanTrainConfig
 from marionette.observation.generate import write_image
 from marionette.observation.wan import WanFunControl, save_original
-from marionette.observation.wan_train import Trainable, WanTrainConfig, crop_box, train, trainable_transformer
+from marionette.observation.wan_train import Trainable, crop_box, train, trainable_transformer
 
 # 9-frame windows (3 latent frames), the follow corpus's 36×64 chunks cropped to 32×64 (2×4 latents): 10 windows per
 # 81-frame chunk; 4 train chunks, 2 held out

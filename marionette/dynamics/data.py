@@ -6,7 +6,7 @@ Everything here is derived from the corpus alone; the definitions, exactly:
 z = (x − mean) / max(std, std_floor), with mean and std the ``state`` entry of ``meta/stats.json``
 (population statistics over the train split's source-rate rows; over all rows when the corpus has no
 train split, which ``stats.json`` records as ``"split": "all"``), mapped through the same index lists as
-``model.split_state``. ``std_floor`` (default 1e-3, in the dimension's own unit: metres or 6D
+``state.split_state``. ``std_floor`` (default 1e-3, in the dimension's own unit: metres or 6D
 entries) keeps dimensions that barely vary from blowing up: a joint rigidly attached to its root
 (the synthetic drake's spine, or any 6D entry of a yaw-only rotation) has a std of float32 rounding
 noise (~1e-5 m) or exactly 0, and dividing by that would turn rounding noise into unit-scale signal
@@ -123,15 +123,9 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from marionette import geometry as geo
 from marionette.corpus import RESAMPLE_VERSION, Corpus, fixed_rows, world_of_rows
 from marionette.corpus.vocab import ActionTokens, entity_type_key  # noqa: F401 — the models' token tables
-from marionette.dynamics.model import (
-    N_CLEARANCES,
-    PATCH_SIZE,
-    PLAYED_OUT_SLACK,
-    TERRAIN_FEATURES,
-    Frames,
-    body_index,
-    root_index,
-)
+from marionette.dynamics.config import N_CLEARANCES, PATCH_SIZE, TERRAIN_FEATURES
+from marionette.dynamics.model import PLAYED_OUT_SLACK, Frames
+from marionette.dynamics.state import body_index, root_index
 from marionette.io import read_ipc, text_sha256, write_ipc, write_json
 from marionette.schema import Layout, SchemaError
 from terrain_scan.field import LayeredField, egocentric_patch, joint_clearances, open_stage

@@ -46,6 +46,8 @@ from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
 from marionette.corpus import Corpus, fixed_rows, state_table, world_of_rows
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
+from marionette.dynamics.config import DynamicsConfig
+from marionette.dynamics.controls import Force, add_rollout_arguments
 from marionette.dynamics.data import (
     ActionTokens,
     Normaliser,
@@ -55,11 +57,10 @@ from marionette.dynamics.data import (
     relative_roots,
     terrain_features_of,
 )
-from marionette.dynamics.model import DynamicsConfig, DynamicsModel, Frames, join_state, split_state
+from marionette.dynamics.model import DynamicsModel, Frames
+from marionette.dynamics.state import join_state, split_state
 from marionette.io import write_ipc
 from marionette.schema import state_schema
-
-Force = tuple[str, int, int, int]  # (entity, start, end exclusive, token), predicted-frame indices
 
 
 def checkpoint_dir(ckpt: Path | str) -> Path:
@@ -667,63 +668,6 @@ def rollout_table(
     return pa.concat_tables([seeded, predicted])
 
 
-def _frames_arg(flag: str, s: str, start: str, end: str) -> tuple[int, int]:
-    """(START, END) predicted frames of a ``flag`` value ``s``: integers with 0 ≤ START < END."""
-    try:
-        a, b = int(start), int(end)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{flag} {s!r}: START and END are integers") from None
-    if not 0 <= a < b:
-        raise argparse.ArgumentTypeError(f"{flag} {s!r}: frames [{a}, {b}) are empty or negative (0 ≤ START < END)")
-    return a, b
-
-
-def _parse_force(s: str) -> Force:
-    """``ENTITY:START:END:TOKEN`` (predicted frames, END exclusive; TOKEN ≥ 1, 0 being "no valid action")."""
-    parts = s.rsplit(":", 3)
-    if len(parts) != 4 or not parts[0]:
-        raise argparse.ArgumentTypeError(f"--force {s!r}: expected ENTITY:START:END:TOKEN")
-    start, end = _frames_arg("--force", s, parts[1], parts[2])
-    try:
-        token = int(parts[3])
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--force {s!r}: TOKEN is an integer") from None
-    if token < 1:
-        raise argparse.ArgumentTypeError(f"--force {s!r}: TOKEN is at least 1 (0 is 'no valid action')")
-    return parts[0], start, end, token
-
-
-def _parse_script(s: str) -> tuple[str, Any]:
-    """``ENTITY:START:END:VX,VY,VZ`` (a constant root velocity in the entity's own frame, m/s; END
-    exclusive) or ``ENTITY:FILE.npy`` (a (horizon, 9) array of E.root then E.rot6d, NaN = the model's)."""
-    name, _, rest = s.partition(":")
-    if not name:
-        raise argparse.ArgumentTypeError(f"--script-root {s!r}: expected ENTITY:START:END:VX,VY,VZ or ENTITY:FILE.npy")
-    if rest.endswith(".npy"):
-        return name, Path(rest)
-    parts = rest.split(":")
-    if len(parts) != 3 or len(parts[2].split(",")) != 3:
-        raise argparse.ArgumentTypeError(f"--script-root {s!r}: expected ENTITY:START:END:VX,VY,VZ or ENTITY:FILE.npy")
-    start, end = _frames_arg("--script-root", s, parts[0], parts[1])
-    try:
-        velocity = tuple(float(v) for v in parts[2].split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--script-root {s!r}: VX,VY,VZ are numbers (m/s)") from None
-    if not all(np.isfinite(velocity)):
-        raise argparse.ArgumentTypeError(f"--script-root {s!r}: VX,VY,VZ are finite")
-    return name, (start, end, velocity)
-
-
-def parse_rules(s: str) -> str:
-    """``auto``, ``none`` or a comma list of known rules (returned as given; ``run`` splits it)."""
-    if s in ("auto", "none"):
-        return s
-    unknown = [r for r in s.split(",") if r not in RULES]
-    if unknown or not s:
-        raise argparse.ArgumentTypeError(f"--rules {s!r}: expected auto, none or a comma list of {','.join(RULES)}")
-    return s
-
-
 def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: float, layout) -> dict[str, np.ndarray] | None:
     """Parsed ``--script-root`` values → the dict form of ``rollout``'s ``script_root`` (entity → (horizon, 9))."""
     if not scripts:
@@ -747,28 +691,6 @@ def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: floa
                 )
             arr[start : min(end, horizon), 0:3] = np.asarray(velocity) / fps  # metres per model frame
     return out
-
-
-def add_arguments(ap: argparse.ArgumentParser) -> None:
-    """The rollout command's arguments (shared by ``marionette rollout`` and ``python -m``), each checked as it is parsed."""
-    from marionette.options import HelpFormatter, non_negative_float, non_negative_int, positive_int, size_hxw
-
-    ap.formatter_class = HelpFormatter  # every option's default in --help, under either entry point
-    ap.add_argument("ckpt", type=Path, help="a checkpoint directory or a training output directory")
-    ap.add_argument("corpus", type=Path, help="the corpus the segment comes from")
-    ap.add_argument("--segment", required=True, help="the recorded segment whose first frames seed the rollout")
-    ap.add_argument("--seed-frames", type=positive_int, default=64, help="recorded frames fed before the first predicted one")
-    ap.add_argument("--horizon", type=positive_int, required=True, help="predicted frames")
-    ap.add_argument("--temperature", type=non_negative_float, default=0.0, help="sampling temperature; 0: argmax, deterministic")
-    ap.add_argument("--seed", type=non_negative_int, default=0, help="the sampler's seed")
-    force_help = "ENTITY:START:END:TOKEN, predicted frames, END exclusive (repeatable; default: no forced tokens)"
-    ap.add_argument("--force", type=_parse_force, nargs="+", action="extend", default=[], help=force_help)
-    script_help = "ENTITY:START:END:VX,VY,VZ (m/s, own frame) or ENTITY:FILE.npy ((horizon, 9) root channels; default: none)"
-    ap.add_argument("--script-root", type=_parse_script, nargs="+", action="extend", default=[], help=script_help)
-    ap.add_argument("--rules", type=parse_rules, default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
-    ap.add_argument("--out", type=Path, required=True, help="STATES.arrow (the corpus state schema)")
-    ap.add_argument("--render", type=Path, default=None, help="also render the rollout (follow camera) to this .mkv")
-    ap.add_argument("--size", type=size_hxw, default=(352, 640), metavar="HxW", help="render size, HxW")
 
 
 def write_rollout(
@@ -829,7 +751,7 @@ ARGUMENTS = (
 def main(argv: list[str] | None = None) -> pa.Table:
     """``python -m marionette.dynamics.rollout DIR CORPUS --segment ID --horizon N --out STATES.arrow [...]``."""
     ap = argparse.ArgumentParser(prog="python -m marionette.dynamics.rollout", description=__doc__.splitlines()[0])
-    add_arguments(ap)
+    add_rollout_arguments(ap)
     parsed = vars(ap.parse_args(argv))
     return write_rollout(**{k: parsed[k] for k in ARGUMENTS})
 

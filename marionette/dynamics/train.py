@@ -57,7 +57,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Generator
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +71,7 @@ from marionette import training
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import save_checkpoint
+from marionette.dynamics.config import PATCH_SIZE, PRESETS, ROOT_PER_ENTITY, DynamicsConfig, TrainConfig
 from marionette.dynamics.data import (
     ActionTokens,
     Batch,
@@ -81,107 +82,15 @@ from marionette.dynamics.data import (
     ended_events,
     train_batches,
 )
-from marionette.dynamics.model import (
-    PATCH_SIZE,
-    PRESETS,
-    ROOT_PER_ENTITY,
-    DynamicsConfig,
-    DynamicsModel,
-    Frames,
-    action_training_pair,
-    body_slices,
-    parameter_counts,
-    pose_training_pair,
-)
-from marionette.io import check_json_fields
+from marionette.dynamics.model import DynamicsModel, Frames, action_training_pair, parameter_counts, pose_training_pair
+from marionette.dynamics.state import body_slices
 from marionette.schema import Layout
-from marionette.training import knob
 
 HELD_OUT_SPLIT = "test"
 N_PATCH = PATCH_SIZE * PATCH_SIZE  # terrain feature slots before the key joints' clearances
 TENSORBOARD = "tensorboard"  # event files under the training directory (rank 0)
 SUMMARY = training.SUMMARY
 LOADER_FIELDS = ("loader_workers",)  # how batches are stacked, not which: a resumed run may change them
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Every knob of a training run; saved as JSON in each checkpoint's meta."""
-
-    preset: str = knob("tiny", "model size (dynamics.model.PRESETS)", choices=sorted(PRESETS))
-    scene: str | None = knob(
-        None, "the scene to train on, in a corpus of several (a species slice); default: the corpus's only scene"
-    )
-    steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
-    batch_size: int = knob(16, "windows per step and process", min=1)
-    loader_workers: int = knob(
-        0, "DataLoader worker processes stacking each rank's batches; 0: in the training process (same batches either way)", min=0
-    )
-    window: int | None = knob(None, "model steps per window; default: the preset's, capped to the train segments", min=1)
-    lr: float = knob(3e-4, "peak learning rate", above=0.0)
-    betas: tuple[float, float] = knob((0.9, 0.95), "AdamW betas", min=0.0, below=1.0)
-    weight_decay: float = knob(0.1, "AdamW weight decay (matrices and embeddings only)", min=0.0)
-    warmup: int = knob(100, "linear warm-up steps", min=0)
-    min_lr_ratio: float = knob(0.1, "the cosine decays to this fraction of lr", min=0.0, max=1.0)
-    grad_clip: float = knob(1.0, "gradient-norm clipping", above=0.0)
-    seed: int = knob(0, "seed of the initial weights, the windows drawn and the input noise", min=0)
-    terrain: bool = knob(True, "load terrain features: monsters read them (DynamicsConfig.from_layout), the hinge uses them")
-    # the relative position is what the fighters' behaviour turns on (the hunter keeps its distance and circles, the
-    # drake turns to face it): on, free rollouts keep the pair together and the probe's count steadies over seeds
-    relative: bool = knob(True, "the relative-position feature (DESIGN: beyond the paper)")
-    pose_progress: bool = knob(True, "PoseGPT reads the progress of each token it animates (beyond the paper)")
-    dropout: float = knob(0.0, "dropout in both transformers", min=0.0, below=1.0)
-    # Long rollouts (docs/tradeoffs.md): residual heads integrate their errors and leave the data; a learned gain on
-    # the body anchor (it falls below 1 on noised inputs) keeps bones steady over 10,000 frames; on the displacement
-    # it ran off by kilometres, so displacements are absolute unless ``displacement_gate`` blends in the current one (in a
-    # rollout: the model's own proposal, not the rules' correction of it). Untrained, the anchors are the baselines.
-    # The gate and PoseGPT's progress are the defaults: over four seeds they beat constant velocity on every seed and
-    # raised the probe and forcing means (docs/tradeoffs.md, "Seed to seed"). events_end is on: an event that has played
-    # out gives way (by the vocab's definition an event never wraps), so at an event's end the model names what follows
-    # (the game's recovery) where copy-last cannot; time_left and adaptive_copy stay off (they cost the probe).
-    residual: bool = knob(False, "both heads add a change to the current frame, gain 1 (DynamicsConfig.residual)")
-    token_classes: bool = knob(True, "add a learned embedding of each token's motion class (DynamicsConfig.token_classes)")
-    time_left: bool = knob(False, "ActionGPT reads each event's time left (DynamicsConfig.clip_frames)")
-    events_end: bool = knob(True, "a played-out event is followed by another token (DynamicsConfig.events_end)")
-    body_anchor: bool = knob(True, "PoseGPT predicts gain ⊙ current body + a change, a gain per dimension; off with residual")
-    rotation_anchor: bool = knob(True, "ActionGPT predicts each root rotation as the current one + a change; off with residual")
-    adaptive_copy: bool = knob(False, "ActionGPT's copy gain on the current token gets a learned per-frame term")
-    displacement_gate: bool = knob(
-        True, "ActionGPT predicts each displacement as g · the current one + (1 − g) · a head, g a learned gate in (0, 1)"
-    )
-    input_noise: float = knob(
-        0.1, "std (normalised units) of Gaussian noise on the models' body inputs and PoseGPT's root inputs", min=0.0
-    )
-    root_noise: float | None = knob(
-        None,
-        "std of the Gaussian noise on ActionGPT's root inputs; None: 0 with the gate (it carries them), else input_noise",
-        min=0.0,
-    )
-    w_action: float = knob(1.0, "weight of the next-action cross-entropy", min=0.0)
-    label_smoothing: float = knob(0.1, "label smoothing of the next-action cross-entropy", min=0.0, below=1.0)
-    w_root: float = knob(1.0, "weight of the next-root MSE", min=0.0)
-    w_body: float = knob(1.0, "weight of the next-body MSE", min=0.0)
-    w_drift: float = knob(0.1, "weight of the vertical-drift term", min=0.0)
-    w_hinge: float = knob(0.1, "weight of the penetration hinge", min=0.0)
-    hinge_margin: float = knob(0.15, "metres, DESIGN's ReLU(H_j + margin − y_j)²")
-    eval_every: int = knob(0, "evaluate on the held-out windows every N steps; 0: only at the end", min=0)
-    eval_batch_size: int = knob(64, "held-out windows per evaluation batch", min=1)
-    checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
-    bf16: bool | None = knob(None, "bf16 autocast; default: where the hardware has it (CUDA with bf16)")
-    fps: float = knob(20.0, "frame rate the model runs at (the dynamics view's, resampled from the corpus)", above=0.0)
-
-    def __post_init__(self) -> None:
-        training.check_knobs(self)
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["betas"] = list(self.betas)
-        return d
-
-    @classmethod
-    def from_json(cls, d: dict) -> TrainConfig:
-        check_json_fields(cls, d, "train config")
-        return cls(**{**d, **({"betas": tuple(d["betas"])} if "betas" in d else {})})
 
 
 # -- schedule and optimizer --------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """The evaluation report: run a protocol on a checkpoint and write a directory of the paper's tables and plots.
 
-``evaluate`` takes a protocol (``protocol.EvalProtocol``: "paper" or "quick", fields overridable) and runs:
+``evaluate`` takes a protocol (``config.EvalProtocol``: "paper" or "quick", fields overridable) and runs:
 
 - on ``probe_windows`` held-out windows (``seed_frames`` + ``horizon``): the Free rollouts (rules "auto") and their
   state-layer metrics beside the recorded rows, and **Table 2**, the controllability probe (Free / Force-GT /
@@ -42,15 +42,14 @@ import torch
 from marionette.bridge.rules import RuleParams
 from marionette.corpus import Corpus
 from marionette.eval import fvd
+from marionette.eval.config import EvalProtocol, parse_protocol
 from marionette.eval.protocol import (
-    EvalProtocol,
     Progress,
     Window,
     ablation_rollouts,
     controllability_probe,
     model_fps,
     model_scene,
-    parse_protocol,
     rule_ablation,
     run_windows,
     select_windows,
@@ -901,7 +900,7 @@ def evaluate(
     progress: Progress | None = None,
     **overrides: Any,
 ) -> dict[str, Any]:
-    """Run the protocol (``protocol.PROTOCOLS`` name or an ``EvalProtocol``; ``overrides`` change its fields) and write the
+    """Run the protocol (``config.PROTOCOLS`` name or an ``EvalProtocol``; ``overrides`` change its fields) and write the
     report directory ``out_dir`` (module doc).
 
     Returns {"out_dir", "report_md", "report_json", "plots" (name → path), "headline" (name → number), "windows"

@@ -35,7 +35,8 @@ import torch
 from marionette.corpus import Corpus, world_of_rows
 from marionette.eval import fvd
 from marionette.eval import metrics as M
-from marionette.eval.protocol import EvalProtocol, Progress, Window, body_share_frames, predicted, terrain_scene
+from marionette.eval.config import EvalProtocol
+from marionette.eval.protocol import Progress, Window, body_share_frames, predicted, terrain_scene
 
 MARIONETTE_STATE = "+ collider"  # the driving state Table 1's Marionette column paints
 SHEET_POINTS = 4  # time points of the contact sheet

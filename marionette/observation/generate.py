@@ -9,7 +9,6 @@ model made, first frame included), at ``fps``.
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
@@ -127,28 +126,3 @@ def paint_video(
     write_bytes(out, encode_mp4(frames, fps, VideoSettings(height=h, width=w, crf=18)))
     print(f"wrote {out}: {len(frames)} frames {w}×{h} ({(len(frames) - 1) / took:.1f} generated frames/s, {steps} steps)")
     return Path(out)
-
-
-def add_arguments(ap: argparse.ArgumentParser) -> None:
-    """The generate command's arguments."""
-    from marionette.options import non_negative_int, positive_float, positive_int
-
-    ap.add_argument(
-        "ckpt",
-        type=Path,
-        help="an observation checkpoint or training directory, or a Wan2.2-Fun-Control model directory (`train wan`'s OUT/model)",
-    )
-    pose_help = "a pose-control G-buffer video (.mkv), from `marionette export-chunk` or `marionette render`"
-    ap.add_argument("--pose", type=Path, required=True, help=pose_help)
-    ap.add_argument("--first-frame", type=Path, required=True, help="the first frame: an image of the pose video's size")
-    ap.add_argument("--out", type=Path, required=True, help="output .mp4")
-    ap.add_argument("--chunks", type=positive_int, default=None, help="chunks to relay (default: all the pose video holds)")
-    ap.add_argument("--steps", type=positive_int, default=20, help="sampling steps per chunk")
-    ap.add_argument("--seed", type=non_negative_int, default=0, help="seed of the sampling noise")
-    ap.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of the output video")
-    ap.add_argument(
-        "--no-references",
-        dest="references",
-        action="store_false",
-        help="a model trained with entity references paints without them (each chunk sees only its first frame)",
-    )

@@ -47,134 +47,13 @@ gives the same video.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from marionette.io import check_json_fields
+from marionette.observation.config import POSE, RGB, ObservationConfig
 from marionette.observation.references import paint
-
-RGB, POSE = 3, 3
-CONTROLS = ("pose", "actions")
-FORMAT = 2
-
-
-@dataclass(frozen=True)
-class ObservationConfig:
-    """Everything that fixes the network's parameter set; saved as JSON beside its checkpoints."""
-
-    frames: int = 9  # clip length, 4k + 1
-    height: int = 36
-    width_px: int = 64
-    patch: int = 4
-    width: int = 128
-    layers: int = 4
-    heads: int = 4
-    mlp_ratio: int = 4
-    control: str = "pose"  # "pose": pose-control frames; "actions": the pixel-AR baseline's action schedule
-    vocab_sizes: tuple[int, ...] = ()  # per articulated entity, for control "actions"
-    # what the inputs mean. 2: the first frame on frame 0's tokens only. A checkpoint without it gave the first
-    # frame to every frame's tokens: its parameters have the same shapes but would paint wrong video here.
-    format: int = FORMAT
-    # persistent entity references (observation.references): the render-id band [first, last] of each entity slot,
-    # and a reference's side in pixels; () and 0: none
-    reference_bands: tuple[tuple[int, int], ...] = ()
-    reference_size: int = 0
-    reference_paint: bool = False  # the references also laid over their bodies in every frame (references.paint)
-    # conditioning augmentation of the given frame against a relay's drift: trained on first frames noised by
-    # N(0, σ²) with σ uniform in [0, handoff_noise] (RGB units), σ told to the network; a relay gives each hand-off
-    # frame noised at handoff_level (0: none, the network has no input for it)
-    handoff_noise: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.format != FORMAT:
-            raise ValueError(f"observation config: format {self.format}; this version reads format {FORMAT} (retrain the model)")
-        if self.control not in CONTROLS:
-            raise ValueError(f"observation config: control {self.control!r} is not one of {CONTROLS}")
-        if self.control == "actions" and not self.vocab_sizes:
-            raise ValueError("observation config: an action-conditioned model needs vocab_sizes")
-        if self.frames < 2 or (self.frames - 1) % 4:
-            raise ValueError(f"observation config: frames {self.frames} must be 4k + 1 with k ≥ 1")
-        if self.height % self.patch or self.width_px % self.patch:
-            raise ValueError(
-                f"observation config: {self.height}×{self.width_px} is not a whole number of {self.patch}-pixel patches"
-            )
-        if self.width % self.heads:
-            raise ValueError(f"observation config: width {self.width} does not split into {self.heads} heads")
-        if (
-            isinstance(self.handoff_noise, bool)
-            or not isinstance(self.handoff_noise, int | float)
-            or not 0 <= self.handoff_noise <= 2
-        ):
-            raise ValueError(f"observation config: handoff_noise {self.handoff_noise} is not within [0, 2]")
-        if not isinstance(self.reference_paint, bool):
-            raise ValueError(f"observation config: reference_paint {self.reference_paint!r} is not true or false")
-        if self.reference_bands:
-            if self.reference_size < self.patch or self.reference_size % self.patch:
-                raise ValueError(
-                    f"observation config: reference_size {self.reference_size} is not a whole number of {self.patch}-pixel patches"
-                )
-            for a, b in self.reference_bands:
-                if not 1 <= a <= b <= 254:
-                    raise ValueError(f"observation config: reference band [{a}, {b}] is not within the render ids 1–254")
-            if self.control != "pose":
-                raise ValueError("observation config: entity references need pose control (their masks come from it)")
-        elif self.reference_size or self.reference_paint:
-            raise ValueError("observation config: reference_size or reference_paint without reference_bands")
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self.height, self.width_px
-
-    @property
-    def tokens(self) -> int:
-        return self.frames * (self.height // self.patch) * (self.width_px // self.patch)
-
-    @property
-    def in_channels(self) -> int:
-        """Per pixel: noisy RGB, the pose frame (pose control only), the given frame (the first frame on frame 0,
-        zeros after) and its mask, and (``reference_paint``) the references laid over their bodies and their mask."""
-        return RGB + (POSE if self.control == "pose" else 0) + RGB + 1 + (RGB + 1 if self.reference_paint else 0)
-
-    @property
-    def handoff_level(self) -> float:
-        """The noise σ a relay adds to each hand-off frame (the middle of the trained range; 0 without)."""
-        return self.handoff_noise / 2
-
-    @property
-    def references(self) -> int:
-        """Entity reference slots (0: a model without references)."""
-        return len(self.reference_bands)
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["vocab_sizes"] = list(self.vocab_sizes)
-        d["reference_bands"] = [list(b) for b in self.reference_bands]
-        return d
-
-    @classmethod
-    def from_json(cls, d: dict) -> ObservationConfig:
-        check_json_fields(cls, d, "observation config")
-        if "format" not in d:
-            raise ValueError(
-                "observation config JSON has no format: a model from before format 2 (first frame on every frame's "
-                "tokens), which this version would run wrongly; retrain it"
-            )
-        bands = d.get("reference_bands", ())
-        if not isinstance(bands, list | tuple) or not all(
-            isinstance(b, list | tuple) and len(b) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in b)
-            for b in bands
-        ):
-            raise ValueError(f"observation config JSON: reference_bands {bands!r} is not a list of [first, last] ids")
-        return cls(**{**d, "vocab_sizes": tuple(d.get("vocab_sizes", ())), "reference_bands": tuple(tuple(b) for b in bands)})
-
-
-OBS_PRESETS = {
-    "tiny": ObservationConfig(frames=9, height=36, width_px=64, patch=4, width=96, layers=3, heads=4),
-    "small": ObservationConfig(frames=17, height=88, width_px=160, patch=8, width=256, layers=8, heads=8),
-}
 
 
 def sincos(positions: Tensor, dim: int) -> Tensor:

@@ -23,7 +23,7 @@ ranks; rank 0 evaluates and writes checkpoints and ``summary.json``.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -34,104 +34,13 @@ from marionette import training
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
-from marionette.io import check_json_fields
+from marionette.observation.config import OBS_PRESETS, ObservationConfig, ObservationTrainConfig
 from marionette.observation.data import ChunkStore, Clip, ClipSource, jittered_targets
-from marionette.observation.model import CONTROLS, OBS_PRESETS, ObservationConfig, VideoDiT, flow_loss
+from marionette.observation.model import VideoDiT, flow_loss
 from marionette.observation.references import REF_PATCHES, EntityReferences, band_masks, chunk_references, layout_bands
-from marionette.training import knob
 
 HELD_OUT = "test"
 EVAL_DRAWS = 8
-REFERENCE_SWAP = 0.2  # the default under pose control (docs/tradeoffs.md, "Observation: reference swap ...")
-
-
-@dataclass(frozen=True)
-class ObservationTrainConfig:
-    """Every knob of an observation training run; saved in each checkpoint's meta."""
-
-    preset: str = knob("tiny", "network size (observation.model.OBS_PRESETS)", choices=sorted(OBS_PRESETS))
-    steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
-    batch_size: int = knob(4, "clips per step and process", min=1)
-    frames: int | None = knob(None, "clip length in frames, 4k + 1; default: the preset's", min=5)
-    reduce: int = knob(4, "the corpus chunk's height and width divided by the model's", min=1)
-    patch: int | None = knob(None, "patch side in pixels; default: the preset's", min=1)
-    lr: float = knob(3e-4, "peak learning rate", above=0.0)
-    warmup: int = knob(50, "linear warm-up steps", min=0)
-    seed: int = knob(0, "seed of the initial weights, the clips drawn and the noise", min=0)
-    checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
-    cache_mb: int = knob(
-        2048, "decoded chunks kept in memory per split (MiB, least recently used evicted); results do not depend on it", min=0
-    )
-    control: str = knob(
-        "pose", "pose: pose-control video; actions: the pixel-AR baseline (first frame + action schedule)", choices=CONTROLS
-    )
-    # None: 0.2 under pose control, 0 for the baseline (which can learn where bodies are only from its first frame)
-    reference_swap: float | None = knob(
-        None,
-        "probability that a training clip's first frame comes from another chunk "
-        "(teaches pose-following); default: 0.2 under pose control, 0 for the baseline",
-        min=0.0,
-        below=1.0,
-    )
-
-    references: bool = knob(
-        False,
-        "give every clip a crop of each entity from its chunk's frames up to the clip's start, taken as a relay "
-        "takes it (persistent references against appearance drift over a relay; observation.references)",
-    )
-    reference_paint: bool = knob(
-        True,
-        "with --references: also lay each entity's crop over its pixels in every frame's control (four more input "
-        "channels a pixel); off: the references are only read as tokens (docs/tradeoffs.md, 'Persistent entity references')",
-    )
-    first_frame_drift: float = knob(
-        0.0,
-        "each entity's pixels in a clip's given first frame shifted by a random colour (per channel, this standard "
-        "deviation in [-1, 1] units), as a relayed frame's drifted look: teaches the model to take a body's look "
-        "from its references",
-        min=0.0,
-        max=2.0,
-    )
-    handoff_noise: float = knob(
-        0.0,
-        "each clip's given first frame noised by N(0, σ²), σ uniform in [0, this] (RGB in [-1, 1]) and told to the "
-        "network; a relay gives its hand-off frames noised at half this (conditioning augmentation against drift)",
-        min=0.0,
-        max=2.0,
-    )
-    jitter_root_m: float = knob(
-        0.0, "training targets rendered from state whose roots are shifted this far (m; bridge.jitter)", min=0.0
-    )
-    jitter_joint_deg: float = knob(
-        0.0, "training targets rendered from state whose bones are turned by up to this (°)", min=0.0, max=45.0
-    )
-    jitter_time_s: float = knob(0.0, "training targets rendered from state whose time is warped by up to this (s)", min=0.0)
-
-    def __post_init__(self) -> None:
-        training.check_knobs(self)
-        if self.frames is not None and (self.frames - 1) % 4:
-            raise ValueError(f"ObservationTrainConfig.frames: clips are 4k + 1 frames, not {self.frames}")
-        if self.reference_swap and self.control != "pose":
-            raise ValueError("reference_swap needs pose control: the baseline learns where bodies are from its first frame")
-        if self.first_frame_drift and self.control != "pose":
-            raise ValueError("first_frame_drift needs pose control: the entities' pixels are found by the pose frame's id mask")
-        if self.references and self.control != "pose":
-            raise ValueError("references need pose control: an entity's crop is found by the pose frame's id mask")
-
-    @property
-    def swap(self) -> float:
-        """The reference-swap probability in effect."""
-        if self.reference_swap is not None:
-            return self.reference_swap
-        return REFERENCE_SWAP if self.control == "pose" else 0.0
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_json(cls, d: dict) -> ObservationTrainConfig:
-        check_json_fields(cls, d, "observation train config")
-        return cls(**d)
 
 
 def model_config(corpus: Corpus, config: ObservationTrainConfig) -> ObservationConfig:

@@ -46,7 +46,6 @@ from __future__ import annotations
 import hashlib
 import shutil
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -59,77 +58,17 @@ from marionette import training
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.dynamics.checkpoint import full_state, load_checkpoint, write_checkpoint
-from marionette.io import atomic_path, check_json_fields, file_sha256, read_tensors, write_json
+from marionette.io import atomic_path, file_sha256, read_tensors, write_json
+from marionette.observation.config import WanTrainConfig
 from marionette.observation.data import Clip, ClipSource, jittered_targets
 from marionette.observation.generate import WAN_SETTINGS
 from marionette.observation.references import chunk_references, layout_bands, reference_sheet
 from marionette.observation.wan import WanFunControl, find_vae, forward_with_reference, ref_tokens, save_original
-from marionette.training import knob
 
 CACHE_DIR = "derived/wan-latents"
 LORA_TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "ffn.net.0.proj", "ffn.net.2")
 EVAL_DRAWS = 4
 HELD_OUT = "test"
-
-
-@dataclass(frozen=True)
-class WanTrainConfig:
-    """Every knob of a Wan fine-tuning run; saved in each checkpoint's meta."""
-
-    backbone: str = knob("", "the Wan2.2-Fun-Control checkpoint directory to start from (release or diffusers layout)")
-    steps: int = knob(1000, "optimizer steps in all (the length of the LR schedule)", min=1)
-    batch_size: int = knob(1, "windows per step and process", min=1)
-    frames: int = knob(81, "window length in frames, 4k + 1", min=5)
-    reduce: int = knob(1, "the corpus chunk's height and width divided by the backbone's input", min=1)
-    lr: float = knob(1e-4, "peak learning rate", above=0.0)
-    warmup: int = knob(50, "linear warm-up steps", min=0)
-    seed: int = knob(0, "seed of the windows drawn, the noise and the LoRA initialisation", min=0)
-    lora_rank: int = knob(0, "LoRA rank on the attention and feed-forward layers; 0: every weight trains", min=0)
-    lora_alpha: float | None = knob(None, "LoRA scale numerator (alpha / rank scales the update); default: the rank", above=0.0)
-    shift: float = knob(5.0, "Wan's timestep shift of the training σ", above=0.0)
-    max_chunks: int = knob(0, "train on the first N chunks of the train split (and of the held-out split); 0: all", min=0)
-    bf16: bool = knob(False, "bf16 autocast of the transformer's forward pass")
-    gradient_checkpointing: bool = knob(False, "recompute each block's activations in the backward pass")
-    checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
-    jitter_root_m: float = knob(
-        0.0, "training targets rendered from state whose roots are shifted this far (m; bridge.jitter)", min=0.0
-    )
-    jitter_joint_deg: float = knob(
-        0.0, "training targets rendered from state whose bones are turned by up to this (°)", min=0.0, max=45.0
-    )
-    jitter_time_s: float = knob(0.0, "training targets rendered from state whose time is warped by up to this (s)", min=0.0)
-    references: bool = knob(
-        False, "give every window a sheet of each entity's first look in its chunk up to the window's start (ref_conv)"
-    )
-    fsdp: bool = knob(
-        False,
-        "with several processes, shard the weights, gradients and optimizer state over them (FSDP2, each transformer "
-        "block a unit) instead of copying the model to each (DDP); checkpoints stay whole; one process: no effect",
-    )
-    device: str = knob(
-        "cpu", "where the transformer trains: cpu, or cuda (each process its LOCAL_RANK's GPU)", choices=("cpu", "cuda")
-    )
-
-    def __post_init__(self) -> None:
-        training.check_knobs(self)
-        if (self.frames - 1) % 4:
-            raise ValueError(f"WanTrainConfig.frames: windows are 4k + 1 frames, not {self.frames}")
-        if not self.backbone:
-            raise ValueError("WanTrainConfig.backbone: the Wan checkpoint directory to fine-tune is required")
-        if self.device == "cuda" and not torch.cuda.is_available():
-            raise ValueError("WanTrainConfig.device: cuda, and this torch sees no CUDA GPU (torch.cuda.is_available() is False)")
-
-    @property
-    def alpha(self) -> float:
-        return float(self.lora_alpha if self.lora_alpha is not None else self.lora_rank)
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_json(cls, d: dict) -> WanTrainConfig:
-        check_json_fields(cls, d, "Wan train config")
-        return cls(**d)
 
 
 def vae_key(vae_dir: Path) -> str:

@@ -40,7 +40,7 @@ def port_number(s: str) -> int:
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The play command's arguments, each checked as it is parsed."""
-    from marionette.dynamics.rollout import parse_rules
+    from marionette.dynamics.controls import parse_rules
     from marionette.options import non_negative_float, non_negative_int, positive_int, size_hxw
 
     ap.add_argument("run", type=Path, nargs="?", help="a dynamics checkpoint or training directory (live play)")
