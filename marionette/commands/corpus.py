@@ -1,0 +1,406 @@
+"""The corpus commands: survey, calibrate-depth, synth, ingest, inspect, export-chunk."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from marionette.commands import command, strict_status
+from marionette.corpus.summary import inspect_text, segment_row, segment_rows, segments_text
+from marionette.options import (
+    checked_scene,
+    chunk_frames,
+    even_int,
+    even_size_hxw,
+    int_at_least,
+    int_in,
+    non_negative_float,
+    non_negative_int,
+    png_path,
+    positive_float,
+    positive_int,
+    scene_arguments,
+    scene_name,
+    x264_crf,
+)
+from marionette.progress import ProgressBars, progress_items
+
+
+def synthetic_arguments(
+    s: argparse.ArgumentParser, recordings: int, workers: int, seconds: float = 20.0, size: tuple[int, int] = (320, 180)
+) -> None:
+    """The synthetic recordings' options (``synth`` and ``demo``)."""
+    s.add_argument("--recordings", type=positive_int, default=recordings, help="recordings to write")
+    s.add_argument("--seconds", type=positive_float, default=seconds, help="length of each recording, seconds")
+    s.add_argument("--seed", type=non_negative_int, default=0, help="seed of the synthetic game")
+    s.add_argument("--width", type=even_int, default=size[0], help="source video width, pixels (even)")
+    s.add_argument("--height", type=even_int, default=size[1], help="source video height, pixels (even)")
+    s.add_argument("--workers", type=positive_int, default=workers, help="parallel worker processes")
+
+
+def cmd_synth(a: argparse.Namespace) -> int:
+    from marionette.synth import generate
+
+    t0 = time.time()
+    dirs = generate(
+        a.out,
+        recordings=a.recordings,
+        seconds=a.seconds,
+        seed=a.seed,
+        width=a.width,
+        height=a.height,
+        workers=a.workers,
+        hidden_depth=a.hidden_depth,
+        species=a.species,
+        players=a.players,
+        weapons=a.weapons,
+        stages=a.stages,
+        skins=a.skins,
+        camera_pans=a.camera_pans,
+    )
+    print(f"wrote {len(dirs)} recordings under {a.out} in {time.time() - t0:.1f} s")
+    return 0
+
+
+def cmd_survey(a: argparse.Namespace) -> int:
+    """Report what a recording tree holds (``marionette.ingest.survey``) and, with --rigs-out, draft its rigs and scenes."""
+    from marionette.ingest.survey import DraftRules, draft_rigs, survey, write_drafts
+    from marionette.io import write_json
+
+    bars = None if a.quiet else ProgressBars()
+    report = survey(a.source, progress=bars)
+    for line in report.lines():
+        print(line)
+    out = report.to_json()
+    status = 0
+    if a.rigs_out is not None:
+        rules = DraftRules(drop_shorter_than=a.drop_shorter_than, frames_per_type=a.frames_per_type)
+        rigs, scenes, problems = draft_rigs(a.source, report, rules, progress=bars)
+        written = write_drafts(a.rigs_out, rigs, scenes)
+        for name, rig in sorted(rigs.items()):
+            m = rig["measured"]
+            agree = m.get("forward_agreement")
+            print(
+                f"rig      {name:<8} {len(rig['keep']):>3} of {len(rig['source_joints'])} joints kept, root {rig['root']}, "
+                f"forward {rig['forward_axis']}"
+                + (f" (motion agrees {agree:.2f})" if agree is not None else "")
+                + f", contacts {' '.join(rig['contact_joints']) or '-'}, radius {rig['capsule_radius_m']} m, {m['frames']} frames"
+            )
+        for name in sorted(scenes):
+            print(f"scene    {name}")
+        for key, why in sorted(problems.items()):
+            print(f"no draft {key}: {why}")
+        print(
+            f"wrote {len(written)} drafts under {a.rigs_out}: review them, then `marionette ingest --rigs {a.rigs_out} --scene NAME`"
+        )
+        out["drafts"] = {"rigs": sorted(rigs), "scenes": sorted(scenes), "problems": problems}
+        status = 1 if problems and a.strict else 0
+    if a.out is not None:
+        write_json(a.out, out)
+        print(f"wrote {a.out}")
+    return 1 if a.strict and report.problems else status
+
+
+def cmd_calibrate_depth(a: argparse.Namespace) -> int:
+    """Fit the 8-bit depth mapping from a recording tree's skeletons and depth (``terrain_scan.calibrate``); write
+    it as JSON, plot it, and make it the scan decoder of a corpus."""
+    from marionette.ingest.wildworld import discover
+    from marionette.io import write_json
+    from terrain_scan import calibrate
+
+    refs = discover(a.source)
+    if not refs:
+        raise ValueError(f"{a.source}: no recordings (data_part*/<id>/ with state.csv) under it")
+    refs = refs[: a.max_recordings] if a.max_recordings else refs
+    if a.scene == "auto":  # each recording's own rigs (the tree may hold many species)
+        from marionette.ingest.survey import recording_layout, rig_index
+
+        index = rig_index(a.rigs)
+        layout = lambda ref: recording_layout(ref, a.rigs, index)  # noqa: E731
+    else:
+        layout = checked_scene(a)
+    knobs = None
+    if a.contact_scale:  # where the characters stood, the depth must show ground (terrain_scan.calibrate)
+        from terrain_scan.options import ScanOptions
+
+        knobs = (ScanOptions.of_corpus(a.corpus) if a.corpus is not None else ScanOptions()).scan_kwargs()
+    progress = lambda items, total, desc: progress_items(items, total, desc, a.quiet)  # noqa: E731
+    cal, failed = calibrate.calibrate_recordings(refs, layout, a.frame_stride, a.family, knobs, progress)
+    for why in failed:
+        print(f"skipped: {why}")
+    for line in cal.lines():
+        print(line)
+    if a.out is not None:
+        write_json(a.out, {"decoder": cal.chosen.to_json(), "report": cal.report()})
+        print(f"wrote {a.out}")
+    if a.plot is not None:
+        print(f"plotted {calibrate.plot(cal, a.plot)}")
+    if a.corpus is not None:
+        from marionette.corpus import Corpus
+        from marionette.corpus.lock import corpus_lock
+        from terrain_scan.options import ScanOptions
+
+        Corpus(a.corpus)  # a corpus, or a clear error
+        with corpus_lock(a.corpus, "calibrate-depth"):
+            ScanOptions.of_corpus(a.corpus).updated(decoder=cal.chosen.to_json()).store(a.corpus)
+        print(
+            f"{a.corpus}: its scans decode depth with this mapping now (meta/scan.json); rescan with `marionette terrain scan {a.corpus}`"
+        )
+    return 0
+
+
+def ingest_options(a: argparse.Namespace):
+    from marionette.ingest import IngestOptions, VideoSettings
+
+    h, w = a.video_size
+    if a.scene != "auto":
+        checked_scene(a)
+    return IngestOptions(
+        scene=a.scene,
+        rigs=None if a.rigs is None else str(a.rigs),
+        monster_species=a.monster_species,
+        weapon=a.weapon,
+        min_segment_frames=a.min_segment_frames,
+        video=VideoSettings(height=h, width=w, chunk_frames=a.chunk_frames, crf=a.crf),
+        compression=a.compression,
+        max_member_bytes=a.max_member_bytes,
+    )
+
+
+def cmd_ingest(a: argparse.Namespace) -> int:
+    """Ingest, then scan the terrain and render the pose targets (``marionette.pipeline.build``); 1 with --strict when anything failed."""
+    from marionette.pipeline import build
+
+    t0 = time.time()
+    report = build(a.src, a.corpus, ingest_options(a), workers=a.workers, terrain=a.terrain, pose=a.pose, progress=not a.quiet)
+    counts: dict[str, int] = {}
+    for r in report["results"]:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+        if r["status"] in ("quarantined", "skipped"):
+            print(f"{r['status']}: {r['sample']}: {r['reason']}")
+    for path, why in report["skipped"]:
+        print(f"not a sample: {path}: {why}")
+    info = report["info"]
+    print(
+        f"corpus {a.corpus}: {info['total_segments']} segments, {info['total_frames']} frames, "
+        f"{', '.join(f'{v} {k}' for k, v in sorted(counts.items()))} in {time.time() - t0:.1f} s"
+    )
+    for line in report["refresh"].lines():
+        print(line)
+    return strict_status(a.strict, report["failures"])
+
+
+def cmd_inspect(a: argparse.Namespace) -> int:
+    if a.segments or a.split is not None:
+        rows = segment_rows(a.corpus, a.split)
+        print(json.dumps(rows, indent=1) if a.json else segments_text(rows))
+    elif a.json:
+        from marionette.corpus import Corpus
+
+        print(json.dumps(Corpus(a.corpus).info.to_json(), indent=1))
+    else:
+        print(inspect_text(a.corpus, scene=a.scene))
+    return 0
+
+
+def joined_chunks(c, segment: str, kinds: tuple[str, ...]) -> tuple[Path, dict[int, dict[str, bytes]]]:
+    """The video shard holding ``segment`` and the segment's chunks there, joined with their current pose targets
+    (``video_shards.read_joined``): chunk number → {kind → bytes} of ``kinds``."""
+    from marionette.corpus.paths import parse_chunk_key
+    from marionette.corpus.video_shards import read_joined
+
+    n = segment_row(c, segment)["shard"]
+    shard = c.video_path(n)
+    if not shard.exists():
+        raise FileNotFoundError(f"{shard}: the video shard of segment {segment!r} is missing")
+    joined = read_joined(shard, c.pose_path(n), c.shard_hash(n), segment, kinds)
+    chunks = {parse_chunk_key(k)[1]: v for k, v in joined.items()}
+    return shard, dict(sorted(chunks.items()))
+
+
+def export_chunk(c, segment: str, chunk: int, out: Path) -> tuple[int, int]:
+    """Write chunk ``chunk`` of ``segment`` as ``out``/pose.mkv (its pose target), first.png (its first RGB frame) and
+    rgb.mp4 (the recorded RGB); returns the frame's (height, width). A chunk without a pose target says how to render one."""
+    from marionette.corpus.paths import chunk_key
+    from marionette.ingest.video import decode_frames
+    from marionette.io import write_bytes
+    from marionette.observation.generate import write_image
+
+    shard, chunks = joined_chunks(c, segment, ("rgb.mp4", "pose.mkv"))
+    if chunk not in chunks:
+        have = ", ".join(map(str, chunks)) or "none"
+        raise ValueError(f"{shard}: segment {segment!r} has no chunk {chunk} (its chunks: {have})")
+    m = chunks[chunk]
+    if "pose.mkv" not in m:
+        raise ValueError(
+            f"{shard}: chunk {chunk} of segment {segment!r} has no pose target; render the targets with "
+            f"`marionette terrain scan {c.path}` (or ingest without --no-pose)"
+        )
+    if "rgb.mp4" not in m:
+        raise ValueError(f"{shard}: chunk {chunk} of segment {segment!r} has no rgb.mp4")
+    first = decode_frames(m["rgb.mp4"], {0}).get(0)
+    if first is None:
+        raise ValueError(f"{shard}: {chunk_key(segment, chunk)}.rgb.mp4 holds no frame")
+    out = Path(out)
+    write_bytes(out / "pose.mkv", m["pose.mkv"])
+    write_bytes(out / "rgb.mp4", m["rgb.mp4"])
+    write_image(out / "first.png", first)
+    return first.shape[0], first.shape[1]
+
+
+def cmd_export_chunk(a: argparse.Namespace) -> int:
+    """Take one video chunk's pose target and first RGB frame out of a corpus (the inputs of ``marionette generate``), or
+    list the segment's chunks."""
+    from marionette.corpus import Corpus
+    from marionette.corpus.paths import chunk_key
+    from marionette.corpus.video_shards import chunk_record
+
+    c = Corpus(a.corpus)
+    if a.chunk is None:
+        shard, chunks = joined_chunks(c, a.segment, ("json", "pose.mkv"))
+        if not chunks:
+            raise ValueError(f"{shard}: segment {a.segment!r} has no video chunks (it is shorter than one chunk)")
+        print(f"segment {a.segment}: {len(chunks)} video chunks in {shard}")
+        for k, m in chunks.items():
+            rec = chunk_record(m["json"], chunk_key(a.segment, k), str(shard)) if "json" in m else {}
+            f0, f1 = rec.get("frames", ("?", "?"))
+            print(f"  --chunk {k}: source frames [{f0}, {f1}), {'pose target' if 'pose.mkv' in m else 'no pose target'}")
+        return 0
+    if a.out is None:
+        raise ValueError("export-chunk --chunk N needs --out DIR")
+    out = Path(a.out)
+    h, w = export_chunk(c, a.segment, a.chunk, out)
+    print(f"wrote {out / 'pose.mkv'}, {out / 'first.png'} ({h}x{w}) and {out / 'rgb.mp4'} (the recorded RGB)")
+    print(f"next: marionette generate RUNS --pose {out / 'pose.mkv'} --first-frame {out / 'first.png'} --out painted.mp4")
+    return 0
+
+
+def register(sub) -> None:
+    """Add survey, calibrate-depth, synth, ingest, inspect, export-chunk to ``sub`` (the ``marionette`` subparsers)."""
+    s = command("survey", "report what a recording tree holds without building anything; draft rigs for its skeletons", sub)
+    s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
+    s.add_argument("--rigs-out", type=Path, default=None, help="draft a rig per skeleton type and a scene per combination here")
+    s.add_argument(
+        "--drop-shorter-than",
+        type=non_negative_float,
+        default=0.0,
+        help="drafts drop helper joints whose median distance to their parent is below this, metres (0: keep all)",
+    )
+    s.add_argument("--frames-per-type", type=int_at_least(10), default=3000, help="frames of each skeleton type read to draft it")
+    s.add_argument("--out", type=Path, default=None, help="write the report (and the drafts' names) as JSON here")
+    s.add_argument("--strict", action="store_true", help="exit 1 when a sample has missing or unreadable files or a draft failed")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(fn=cmd_survey)
+
+    s = command("calibrate-depth", "fit the unpublished 8-bit depth mapping from recorded skeletons and cameras", sub)
+    s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
+    scene_arguments(
+        s,
+        "auto",
+        "scene layout: which rigs the skeletons are (auto: each recording's own, its types' rigs found by their edges key)",
+    )
+    s.add_argument("--frame-stride", type=positive_int, default=5, help="use every Nth frame")
+    s.add_argument("--max-recordings", type=positive_int, default=None, help="use the first N recordings (default: all)")
+    s.add_argument(
+        "--family",
+        choices=("auto", "inverse", "log", "linear", "table"),
+        default="auto",
+        help="the mapping's form (auto: the parametric one whose inliers scatter least)",
+    )
+    s.add_argument("--out", type=Path, default=None, help="write the mapping and the fit's report here (JSON)")
+    s.add_argument("--plot", type=png_path, default=None, help="plot the pairs, the fits and the residuals here (.png)")
+    s.add_argument("--corpus", type=Path, default=None, help="make the mapping this corpus's scan decoder (meta/scan.json)")
+    s.add_argument(
+        "--no-contact-scale",
+        dest="contact_scale",
+        action="store_false",
+        help="keep the joints' fit as it is (by default every depth is scaled so that the ground stands where the "
+        "characters' contact joints stood; a second pass over the recordings)",
+    )
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(fn=cmd_calibrate_depth)
+
+    s = command("synth", "write synthetic WildWorld-format recordings", sub)
+    s.add_argument("out", type=Path, help="directory to write the recordings under")
+    synthetic_arguments(s, recordings=2, workers=1)
+    s.add_argument(
+        "--hidden-depth",
+        action="store_true",
+        help="encode depth with a mapping drawn from a family by --seed, written only to the truth (calibrate it with "
+        "`marionette calibrate-depth`)",
+    )
+    s.add_argument(
+        "--species",
+        type=int_in(0, 20),
+        default=0,
+        help="monster species with generated skeletons (40–80 joints, recorded in no tree order); 0: the drake alone",
+    )
+    s.add_argument("--players", type=int_in(1, 4), default=1, help="player characters (one npc skeleton, each its own size)")
+    s.add_argument(
+        "--weapons", type=int_in(1, 2), default=1, help="weapon types: the 5-point greatsword, then a 2-point short blade"
+    )
+    s.add_argument(
+        "--stages", type=int_in(1, 4), default=1, help="stages: each further one the first's map turned 90° and raised 1.5 m"
+    )
+    s.add_argument(
+        "--skins",
+        action="store_true",
+        help="each recording's monster and player in colours of their own (appearance a model must read from the "
+        "video, as between the real game's variants and armour)",
+    )
+    s.add_argument(
+        "--camera-pans",
+        action="store_true",
+        help="the player looks around now and then (the camera turned 120–180° for 2.5–4 s every 2–5 s): the bodies "
+        "leave the view and come back",
+    )
+    s.set_defaults(fn=cmd_synth)
+
+    s = command("ingest", "ingest WildWorld recordings into a corpus (then finalize, scan terrain, render pose targets)", sub)
+    s.add_argument("src", type=Path, help="the source tree: a directory holding sample directories")
+    s.add_argument("corpus", type=Path, help="the corpus directory (created, or updated incrementally)")
+    scene_arguments(
+        s,
+        "duel",
+        "the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs); auto: each recording the "
+        "layout of what it holds (its species', player's and weapon's rigs: one corpus, many scenes)",
+    )
+    species_help = "ingest only recordings whose monster has this species id (default: every species the rig declares)"
+    s.add_argument("--monster-species", type=non_negative_int, help=species_help)
+    s.add_argument("--weapon", type=non_negative_int, help="ingest only recordings whose hunter has this weapon (default: any)")
+    s.add_argument(
+        "--workers", type=positive_int, default=1, help="samples ingested (then recordings scanned) in parallel processes"
+    )
+    s.add_argument("--min-segment-frames", type=positive_int, default=30, help="shortest segment kept, frames")
+    s.add_argument("--video-size", type=even_size_hxw, default=(176, 320), metavar="HxW", help="video chunks' size, HxW (even)")
+    s.add_argument("--chunk-frames", type=chunk_frames, default=81, help="frames per video chunk (4k + 1, at least 5)")
+    s.add_argument("--crf", type=x264_crf, default=20, help="x264 quality of the video chunks, 0..51 (lower is better)")
+    s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd", help="codec of the Arrow state shards")
+    s.add_argument(
+        "--max-member-bytes",
+        type=positive_int,
+        default=2 << 30,
+        help="largest skeleton.npz array a sample may declare, bytes (checked before it is inflated)",
+    )
+    s.add_argument("--quiet", action="store_true", help="no progress bars")
+    s.add_argument("--no-terrain", dest="terrain", action="store_false", help="skip the incremental terrain scan after ingest")
+    s.add_argument("--no-pose", dest="pose", action="store_false", help="skip rendering the pose-control targets after ingest")
+    s.add_argument("--strict", action="store_true", help="exit 1 when any sample is quarantined or any scan or pose target fails")
+    s.set_defaults(fn=cmd_ingest)
+
+    s = command("inspect", "summarise a corpus, or list its segments", sub)
+    s.add_argument("corpus", type=Path, help="a corpus directory")
+    s.add_argument("--segments", action="store_true", help="list the segments: id, split, frames, stage, video chunks")
+    s.add_argument("--split", default=None, help="list only this split's segments, e.g. test (implies --segments)")
+    s.add_argument("--json", action="store_true", help="print info.json (with --segments: the segment rows) as JSON")
+    s.add_argument("--scene", type=scene_name, default=None, help="in a corpus of several scenes: show this one's")
+    s.set_defaults(fn=cmd_inspect)
+
+    s = command("export-chunk", "take a video chunk's pose target and first frame out of a corpus (the inputs of generate)", sub)
+    s.add_argument("corpus", type=Path, help="a corpus directory")
+    s.add_argument("--segment", required=True, help="segment id (`marionette inspect CORPUS --segments` lists them)")
+    s.add_argument("--chunk", type=non_negative_int, default=None, help="chunk number in the segment (default: list its chunks)")
+    s.add_argument("--out", type=Path, default=None, help="directory for pose.mkv, first.png and rgb.mp4 (required with --chunk)")
+    s.set_defaults(fn=cmd_export_chunk)

@@ -1,0 +1,91 @@
+"""The render command: a corpus segment or a rollout table to a lossless G-buffer video."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from marionette.commands import command
+from marionette.corpus.summary import segment_row
+from marionette.options import (
+    near_ids,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    size_hxw,
+)
+
+
+def render_source(
+    source: Path,
+    out: Path,
+    segment: str | None = None,
+    camera: str | None = None,
+    size: tuple[int, int] = (704, 1280),
+    fps: float | None = None,
+    terrain: Path | None = None,
+    jitter: tuple[float, float, float, int] = (0.0, 0.0, 0.0, 0),
+) -> None:
+    """Render one corpus segment, or a rollout table, to a G-buffer video at ``out`` (``camera``: recorded for a
+    corpus, follow for a rollout by default; ``jitter``: root metres, joint degrees, time seconds, seed)."""
+    from marionette.bridge.jitter import Jitter
+    from marionette.bridge.targets import TerrainScene, render_rows, source_size
+    from marionette.corpus import Corpus
+    from marionette.io import read_ipc
+    from marionette.schema import layout_of_schema
+
+    src = Path(source)
+    t0 = time.time()
+    camera = camera or ("recorded" if src.is_dir() else "follow")
+    if src.is_dir():
+        if segment is None:
+            raise ValueError(f"{src}: a corpus needs --segment ID")
+        c = Corpus(src)
+        segment_row(c, segment)
+        rows, layout = c.read_segment(segment), c.layout
+        scene = TerrainScene.of_stage(terrain or c.terrain(segment))
+        size_src = source_size(c, segment) if camera == "recorded" else None
+    else:
+        rows = read_ipc(src)
+        layout = layout_of_schema(rows.schema, str(src))
+        if segment is not None:
+            import pyarrow.compute as pc
+
+            ids = pc.unique(rows["segment"]).to_pylist()
+            if segment not in ids:
+                raise ValueError(f"{src}: no segment {segment!r}{near_ids(ids, segment)} (it holds {', '.join(ids)})")
+            rows = rows.filter(pc.equal(rows["segment"], segment))
+        scene = TerrainScene.of_stage(terrain) if terrain else TerrainScene.empty()
+        if camera == "recorded":
+            raise ValueError(f"{src}: a rollout has no recorded camera to follow; use --camera follow")
+        size_src = None
+    meta = render_rows(layout, rows, out, scene, camera, size, fps, size_src, jitter=Jitter(*jitter), key=segment or "")
+    took = time.time() - t0
+    heights = f"heights {meta.h_min:g}..{meta.h_max:g} m"
+    print(f"wrote {out}: {meta.width}×{meta.height} at {meta.fps:g} fps, {heights}, {took:.1f} s")
+
+
+def cmd_render(a: argparse.Namespace) -> int:
+    """Render one corpus segment, or a rollout table, to a G-buffer video."""
+    jitter = (a.jitter_root, a.jitter_joint_deg, a.jitter_time, a.jitter_seed)
+    render_source(a.source, a.out, a.segment, a.camera, a.size, a.fps, a.terrain, jitter)
+    return 0
+
+
+def register(sub) -> None:
+    """Add render to ``sub`` (the ``marionette`` subparsers)."""
+    s = command("render", "render a corpus segment or a rollout table to a lossless G-buffer video", sub)
+    s.add_argument("source", type=Path, help="a corpus directory or a STATES.arrow rollout")
+    s.add_argument("--segment", default=None, help="segment id (required for a corpus; `inspect CORPUS --segments` lists them)")
+    s.add_argument("--camera", choices=["recorded", "follow"], help="default: recorded for a corpus, follow for a rollout")
+    s.add_argument("--out", type=Path, required=True, help="output .mkv")
+    s.add_argument("--size", type=size_hxw, default=(704, 1280), metavar="HxW", help="output size, HxW")
+    s.add_argument("--fps", type=positive_float, default=None, help="output rate (default: the state's)")
+    s.add_argument("--terrain", type=Path, default=None, help="a stage directory (default: the segment's stage)")
+    jit = s.add_argument_group("jitter", "move the state before it is rendered, as training targets can be (bridge.jitter)")
+    jit.add_argument("--jitter-root", type=non_negative_float, default=0.0, metavar="M", help="shift each character by M metres")
+    jit.add_argument("--jitter-joint-deg", type=non_negative_float, default=0.0, metavar="D", help="turn each bone by up to D°")
+    jit.add_argument("--jitter-time", type=non_negative_float, default=0.0, metavar="S", help="warp time by up to S seconds")
+    jit.add_argument("--jitter-seed", type=non_negative_int, default=0, metavar="N", help="seed of the jitter's draws")
+    s.set_defaults(fn=cmd_render)

@@ -1,0 +1,28 @@
+"""The rollout command: a trained dynamics model rolled out from a recorded segment."""
+
+from __future__ import annotations
+
+import argparse
+
+from marionette.commands import command
+from marionette.corpus.summary import segment_row
+from marionette.dynamics.controls import add_rollout_arguments
+
+
+def cmd_rollout(a: argparse.Namespace) -> int:
+    """Roll a trained dynamics model out from a recorded segment's first frames."""
+    from marionette.corpus import Corpus
+    from marionette.dynamics.rollout import ARGUMENTS, write_rollout
+
+    segment_row(Corpus(a.corpus), a.segment)
+    write_rollout(**{k: getattr(a, k) for k in ARGUMENTS})
+    return 0
+
+
+def register(sub) -> None:
+    """Add rollout to ``sub`` (the ``marionette`` subparsers)."""
+    s = command(
+        "rollout", "roll a trained dynamics model out from a recorded segment, with forced tokens and scripted roots", sub
+    )
+    add_rollout_arguments(s)
+    s.set_defaults(fn=cmd_rollout)
