@@ -30,9 +30,9 @@ pa.set_cpu_count(1)
 pa.set_io_thread_count(1)
 
 from marionette import synth  # noqa: E402
-from marionette.ingest import wildworld as ww  # noqa: E402
 from marionette.ingest.sample import IngestOptions, segment_states, valid_runs  # noqa: E402
 from marionette.io import read_ipc, write_ipc  # noqa: E402
+from marionette.recordings import wildworld as ww  # noqa: E402
 
 CODECS = ("none", "lz4", "zstd")
 

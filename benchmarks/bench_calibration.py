@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from common import preamble, table  # noqa: E402
 
-from marionette.ingest.wildworld import discover  # noqa: E402
+from marionette.recordings.wildworld import discover  # noqa: E402
 from marionette.schema import load_scene  # noqa: E402
 from marionette.synth import generate, load_truth  # noqa: E402
 from marionette.synth import terrain as synth_terrain  # noqa: E402

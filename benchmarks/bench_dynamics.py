@@ -62,8 +62,8 @@ import numpy as np
 import torch
 from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
+from marionette.checkpoint import save_checkpoint
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
-from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.config import DynamicsConfig, TrainConfig
 from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
 from marionette.dynamics.model import DynamicsModel, Frames, parameter_counts

@@ -36,10 +36,10 @@ pa.set_io_thread_count(1)
 
 from marionette import geometry as geo  # noqa: E402
 from marionette import synth  # noqa: E402
-from marionette.ingest import wildworld as ww  # noqa: E402
 from marionette.ingest.sample import IngestOptions, _segment_table, action_stats, moments, segment_states, valid_runs  # noqa: E402
-from marionette.ingest.wildworld import SampleRef  # noqa: E402
 from marionette.io import write_ipc  # noqa: E402
+from marionette.recordings import wildworld as ww  # noqa: E402
+from marionette.recordings.wildworld import SampleRef  # noqa: E402
 
 
 def needed_columns(layout) -> list[str]:

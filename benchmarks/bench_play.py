@@ -37,7 +37,7 @@ def make_inputs(work: Path, recordings: int) -> tuple[Corpus, Path, Path]:
     """(corpus, paper checkpoint, painting model) under ``work``."""
     from bench_dynamics import paper_checkpoint
 
-    from marionette.dynamics.checkpoint import save_checkpoint
+    from marionette.checkpoint import save_checkpoint
     from marionette.observation.config import ObservationConfig
     from marionette.observation.model import VideoDiT
     from marionette.synth import generate

@@ -90,7 +90,7 @@ import torch  # noqa: E402
 torch.set_num_threads(1)
 
 from marionette import synth  # noqa: E402
-from marionette.ingest.wildworld import discover  # noqa: E402
+from marionette.recordings.wildworld import discover  # noqa: E402
 from marionette.schema import load_scene  # noqa: E402
 from marionette.synth import terrain  # noqa: E402
 from terrain_scan.accumulate import scan_recording, scan_sample  # noqa: E402

@@ -39,8 +39,8 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from marionette.checkpoint import is_dtensor, latest_checkpoint, load_checkpoint, read_meta
 from marionette.distributed import ONE_NODE, Nodes, process_group_from_env, rank_world, train_under_torchrun
-from marionette.dynamics.checkpoint import is_dtensor, latest_checkpoint, load_checkpoint, read_meta
 from marionette.io import read_json, write_json
 from marionette.knobs import add_training_arguments, config_from_args, nodes_from_args
 from marionette.options import Parser

@@ -41,7 +41,7 @@ import open3d as o3d
 from av.video.reformatter import VideoReformatter
 
 from marionette.geometry import quat_to_matrix
-from marionette.ingest.wildworld import RecordedSample, SampleError, SampleRef, read_sample
+from marionette.recordings.wildworld import RecordedSample, SampleError, SampleRef, read_sample
 from marionette.schema import Layout
 
 from .depth import DepthDecoder, depth_edges, smooth_codes

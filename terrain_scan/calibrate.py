@@ -35,7 +35,7 @@ from typing import TypeVar
 import numpy as np
 
 from marionette.geometry import quat_to_matrix
-from marionette.ingest.wildworld import SampleRef, read_sample
+from marionette.recordings.wildworld import SampleRef, read_sample
 from marionette.schema import Layout
 from terrain_scan.accumulate import contact_positions, depth_frames, frame_points
 from terrain_scan.depth import CODES, PARAMETRIC, DepthDecoder, curve, curve_inverse
@@ -383,7 +383,7 @@ def per_recording(
     """``read(ref, its layout)`` of each recording, or the reason it gave nothing (an unreadable file, named).
     ``layout`` is one for every recording, or a function giving each its own
     (``marionette.ingest.survey.recording_layout``)."""
-    from marionette.ingest.wildworld import SampleError, SampleSkipped
+    from marionette.recordings.wildworld import SampleError, SampleSkipped
 
     for ref in refs:
         try:

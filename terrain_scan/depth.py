@@ -8,7 +8,7 @@ the far plane) and decodes to NaN. Kinds (the parametric ones: the code affine i
 
 - ``"inverse"``: g = 1/z, code 255 at ``z_near`` and 1 at ``z_far`` —
   ``code = 1 + 254 (1/z − 1/z_far) / (1/z_near − 1/z_far)`` — the synthetic game's default mapping
-  (``marionette.synth.render.DEPTH_ENCODING``, also stored in its truth JSON as ``depth_encoding``);
+  (``SYNTHETIC_DEPTH_ENCODING``, also stored in its truth JSON as ``depth_encoding``);
 - ``"linear"``: g = z, code 1 at ``z_near`` and 255 at ``z_far``;
 - ``"log"``: g = ln z, code 1 at ``z_near`` and 255 at ``z_far`` (a constant share of z per code);
 - ``"table"``: any monotone mapping, given as the depth of each code 1..255 (``table``; fractional
@@ -29,6 +29,17 @@ PARAMETRIC = ("inverse", "linear", "log")
 # the names the synthetic game (and possibly other writers) use for the kinds above
 _ALIASES = {"inverse_depth_u8": "inverse", "linear_depth_u8": "linear", "log_depth_u8": "log", **{k: k for k in KINDS}}
 CODES = np.arange(1, 256, dtype=np.float64)  # the codes that carry a depth
+
+
+# The synthetic game's 8-bit depth mapping: ``marionette.synth`` renders with it and records it in its truth JSON.
+SYNTHETIC_Z_NEAR, SYNTHETIC_Z_FAR = 2.0, 300.0
+SYNTHETIC_DEPTH_ENCODING = {
+    "kind": "inverse_depth_u8",
+    "z_near_m": SYNTHETIC_Z_NEAR,
+    "z_far_m": SYNTHETIC_Z_FAR,
+    "formula": "code = 0 if no hit or z > z_far else clip(round(1 + 254 * (1/z - 1/z_far) / (1/z_near - 1/z_far)), 1, 255)",
+    "depth": "z-depth along the camera's viewing axis (m), characters included",
+}
 
 
 def curve(kind: str, z):
@@ -91,10 +102,8 @@ class DepthDecoder:
 
     @staticmethod
     def synthetic() -> DepthDecoder:
-        """The synthetic game's default mapping (read from its renderer, so the two cannot drift apart)."""
-        from marionette.synth.render import DEPTH_ENCODING
-
-        return DepthDecoder.from_json(DEPTH_ENCODING)
+        """The synthetic game's mapping (``SYNTHETIC_DEPTH_ENCODING``, the one its renderer encodes with)."""
+        return DepthDecoder.from_json(SYNTHETIC_DEPTH_ENCODING)
 
     def scaled(self, s: float) -> DepthDecoder:
         """This mapping with every depth multiplied by ``s`` > 0 (exact for every kind: each is affine in a g(z) with

@@ -16,8 +16,8 @@ from pathlib import Path
 
 from marionette.corpus import paths
 from marionette.fanout import Mapper, pool_mapper, worker_identity
-from marionette.ingest.wildworld import SampleError, SampleRef
 from marionette.io import file_sha256, text_sha256
+from marionette.recordings.wildworld import SampleError, SampleRef
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.grouping import place

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from marionette.cli import main as cli
-from marionette.ingest.wildworld import discover
+from marionette.recordings.wildworld import discover
 from marionette.schema import load_scene
 from marionette.synth import generate, load_truth
 from marionette.synth import terrain as synth_terrain

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from marionette.dynamics import checkpoint as ck
+from marionette import checkpoint as ck
 
 
 def setup(seed=0):

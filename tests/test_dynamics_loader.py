@@ -13,7 +13,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from marionette.dynamics.checkpoint import latest_checkpoint
+from marionette.checkpoint import latest_checkpoint
 from marionette.dynamics.config import TrainConfig
 from marionette.dynamics.data import TrainBatches, WindowData, WindowSampler, train_batches
 from marionette.dynamics.train import main, train

@@ -20,8 +20,8 @@ import torch
 from safetensors.torch import load_file
 
 from marionette import training
+from marionette.checkpoint import latest_checkpoint, load_checkpoint
 from marionette.corpus import Corpus
-from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint
 from marionette.dynamics.config import DynamicsConfig, TrainConfig
 from marionette.dynamics.model import DynamicsModel
 from marionette.dynamics.train import run, train

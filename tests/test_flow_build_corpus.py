@@ -295,7 +295,7 @@ def test_train_dynamics_deployment_trains_under_ddp_resumes_and_reports(local_pr
     params = {"corpus": corpus, "out": out, "steps": 4, "batch_size": 4, "window": 16, "checkpoint_every": 2, "nproc": 2}
     params["loader_workers"] = 1
     run_id = run_deployment(local_prefect, deployment="train-dynamics/weekly", **params)
-    from marionette.dynamics.checkpoint import latest_checkpoint
+    from marionette.checkpoint import latest_checkpoint
 
     ckpt = latest_checkpoint(out)
     assert ckpt is not None and ckpt.name == "step-00000004"
@@ -331,7 +331,7 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
         "n_workers": 1,
     }
     run_id = run_deployment(local_prefect, deployment="train-observation/weekly", **params)
-    from marionette.dynamics.checkpoint import latest_checkpoint
+    from marionette.checkpoint import latest_checkpoint
 
     ckpt = latest_checkpoint(out)
     assert ckpt is not None and ckpt.name == "step-00000004"

@@ -15,7 +15,7 @@ import pytest
 
 from marionette.cli import main
 from marionette.ingest.survey import DraftRules, draft_rig, draft_rigs, parents_from_edges, survey
-from marionette.ingest.wildworld import discover
+from marionette.recordings.wildworld import discover
 from marionette.schema import Entity, SchemaError, build_layout, load_rig, load_scene
 from marionette.synth import generate, load_truth
 from marionette.synth.cast import _tree_order, make_cast

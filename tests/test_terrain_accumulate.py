@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from marionette.ingest.wildworld import RecordedSample, SampleRef, discover, read_sample
+from marionette.recordings.wildworld import RecordedSample, SampleRef, discover, read_sample
 from marionette.schema import load_scene
 from marionette.synth import generate, load_truth, terrain
 from marionette.synth.render import decode_depth, encode_depth

@@ -131,7 +131,7 @@ def test_noise_seeds_differ_per_step_rank_and_stream():
 
 
 def test_resume_names_the_fields_that_differ(tmp_path):
-    from marionette.dynamics.checkpoint import save_checkpoint
+    from marionette.checkpoint import save_checkpoint
 
     model = torch.nn.Linear(2, 2)
     opt = torch.optim.AdamW(model.parameters())

@@ -20,9 +20,9 @@ import torch
 from fixtures.corpora import TEST_OPTIONS
 from safetensors.torch import save_file
 
+from marionette.checkpoint import latest_checkpoint
 from marionette.corpus import paths, video_shards
 from marionette.corpus.lock import CorpusLocked, corpus_lock
-from marionette.dynamics.checkpoint import latest_checkpoint
 from marionette.ingest import build_corpus
 
 

@@ -20,8 +20,8 @@ from test_wan import TEXT_LEN, tiny_modules, write_backbone
 from torch import nn
 
 from marionette.bridge.gbuffer import GBufferMeta, write_gbuffer
+from marionette.checkpoint import load_checkpoint
 from marionette.cli import main as cli
-from marionette.dynamics.checkpoint import load_checkpoint
 from marionette.observation.config import WanTrainConfig
 from marionette.observation.generate import write_image
 from marionette.observation.wan import WanFunControl, save_original

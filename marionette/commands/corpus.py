@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 from marionette.commands import command, strict_status
+from marionette.commands.args import checked_scene, scene_arguments, scene_name
 from marionette.corpus.summary import inspect_text, segment_row, segment_rows, segments_text
 from marionette.options import (
-    checked_scene,
     chunk_frames,
     even_int,
     even_size_hxw,
@@ -21,8 +21,6 @@ from marionette.options import (
     png_path,
     positive_float,
     positive_int,
-    scene_arguments,
-    scene_name,
     x264_crf,
 )
 from marionette.progress import ProgressBars, progress_items
@@ -106,8 +104,8 @@ def cmd_survey(a: argparse.Namespace) -> int:
 def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     """Fit the 8-bit depth mapping from a recording tree's skeletons and depth (``terrain_scan.calibrate``); write
     it as JSON, plot it, and make it the scan decoder of a corpus."""
-    from marionette.ingest.wildworld import discover
     from marionette.io import write_json
+    from marionette.recordings.wildworld import discover
     from terrain_scan import calibrate
 
     refs = discover(a.source)

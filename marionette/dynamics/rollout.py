@@ -44,8 +44,8 @@ import torch
 
 from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
+from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_meta
 from marionette.corpus import Corpus, fixed_rows, state_table, world_of_rows
-from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, read_meta
 from marionette.dynamics.config import DynamicsConfig
 from marionette.dynamics.controls import Force, add_rollout_arguments
 from marionette.dynamics.data import (

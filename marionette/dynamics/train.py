@@ -68,9 +68,9 @@ from torch import Tensor, nn
 
 from marionette import geometry as geo
 from marionette import training
+from marionette.checkpoint import save_checkpoint
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
-from marionette.dynamics.checkpoint import save_checkpoint
 from marionette.dynamics.config import PATCH_SIZE, PRESETS, ROOT_PER_ENTITY, DynamicsConfig, TrainConfig
 from marionette.dynamics.data import (
     ActionTokens,

@@ -25,7 +25,7 @@ from marionette.ingest.sample import (
     split_of,
 )
 from marionette.ingest.video import VideoSettings
-from marionette.ingest.wildworld import SampleError, SampleRef, discover, read_sample
+from marionette.recordings.wildworld import SampleError, SampleRef, discover, read_sample
 from marionette.schema import SchemaError
 
 __all__ = [

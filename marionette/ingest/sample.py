@@ -20,7 +20,8 @@ import pyarrow as pa
 from marionette import geometry as geo
 from marionette.corpus import paths, state_table
 from marionette.ingest.video import VideoSettings, write_video_shard
-from marionette.ingest.wildworld import (
+from marionette.io import file_sha256, text_sha256, write_ipc, write_json
+from marionette.recordings.wildworld import (
     MAX_MEMBER_BYTES,
     RecordedSample,
     SampleError,
@@ -29,7 +30,6 @@ from marionette.ingest.wildworld import (
     check_in_tree,
     read_sample,
 )
-from marionette.io import file_sha256, text_sha256, write_ipc, write_json
 from marionette.schema import Layout, SchemaError, load_scene
 
 INGEST_VERSION = "1"

@@ -31,9 +31,7 @@ import numpy as np
 import pyarrow.compute as pc
 
 from marionette.io import write_json
-from marionette.schema import Layout, Rig, SchemaError, rig_from_json
-
-from .wildworld import (
+from marionette.recordings.wildworld import (
     MAX_MEMBER_BYTES,
     REQUIRED_FILES,
     SampleError,
@@ -49,6 +47,7 @@ from .wildworld import (
     tuple_column,
     video_info,
 )
+from marionette.schema import Layout, Rig, SchemaError, rig_from_json
 
 Progress = Callable[[str, int, int], None]
 SKELETON_KEY = re.compile(r"([mnw])([1-9][0-9]{0,2})_([0-9]{1,6})")

@@ -19,7 +19,7 @@ import numpy as np
 from av.video.reformatter import VideoReformatter
 
 from marionette.corpus import video_shards
-from marionette.ingest.wildworld import SampleError
+from marionette.recordings.wildworld import SampleError
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ warm-up then cosine decay to a tenth, gradient clipping at 1 (the loop, resume a
 ``marionette.training``'s, shared with the dynamics trainer).
 Evaluation, on the held-out split ("test", or the train split when there is none): the flow loss of
 every held-out chunk's first clip at 8 fixed (s, ε) draws (seed 1234), so successive evaluations
-compare like with like. Checkpoints: ``dynamics.checkpoint`` (safetensors + JSON, atomic, ``latest``).
+compare like with like. Checkpoints: ``marionette.checkpoint`` (safetensors + JSON, atomic, ``latest``).
 
 DDP: under torchrun (``train_in_processes``, ``marionette train observation --nproc N``) the network is
 wrapped in ``DistributedDataParallel`` (gloo on CPU, NCCL on GPU); rank r draws its clips from
@@ -31,9 +31,9 @@ import numpy as np
 import torch
 
 from marionette import training
+from marionette.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
-from marionette.dynamics.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from marionette.observation.config import OBS_PRESETS, ObservationConfig, ObservationTrainConfig
 from marionette.observation.data import ChunkStore, Clip, ClipSource, jittered_targets
 from marionette.observation.model import VideoDiT, flow_loss
@@ -293,7 +293,7 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
     ckpt = p if (p / "meta.json").exists() else latest_checkpoint(p)
     if ckpt is None:
         raise FileNotFoundError(f"{p}: neither an observation checkpoint nor a training directory with a 'latest' one")
-    from marionette.dynamics.checkpoint import read_meta
+    from marionette.checkpoint import read_meta
 
     meta = read_meta(ckpt)
     if meta.get("kind") != "observation":

@@ -55,9 +55,9 @@ from safetensors.torch import save_file
 from torch import Tensor, nn
 
 from marionette import training
+from marionette.checkpoint import full_state, load_checkpoint, write_checkpoint
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
-from marionette.dynamics.checkpoint import full_state, load_checkpoint, write_checkpoint
 from marionette.io import atomic_path, file_sha256, read_tensors, write_json
 from marionette.observation.config import WanTrainConfig
 from marionette.observation.data import Clip, ClipSource, jittered_targets

@@ -19,11 +19,12 @@ import numpy as np
 
 from marionette.geometry import matrix_to_quat, yaw_quat
 from marionette.schema import load_rig
+from terrain_scan.depth import SYNTHETIC_DEPTH_ENCODING
 
 from . import sim
 from .cast import GREATSWORD, Cast, make_cast
 from .clips import CLIPS, clip_table
-from .render import DEPTH_ENCODING, Renderer, camera_pans, encode_depth, follow_camera, intrinsics
+from .render import Renderer, camera_pans, encode_depth, follow_camera, intrinsics
 
 RECORDING_EPOCH = 1767225600  # 2026-01-01T00:00:00Z; recording k starts k days later
 NPC_FIELDS = (
@@ -164,7 +165,7 @@ def write_recording(
     ray_threads: int = 0,
 ) -> Path:
     """Simulate, render and write one recording (its depth in ``depth_mapping``, a ``DepthDecoder`` JSON; default
-    the game's ``DEPTH_ENCODING``; who plays and where from ``make_cast(seed, **cast)``, default the drake, player 0
+    the game's ``SYNTHETIC_DEPTH_ENCODING``; who plays and where from ``make_cast(seed, **cast)``, default the drake, player 0
     and the greatsword on the first stage); ``ray_threads``: the renderer's (``Renderer``); returns its sample
     directory."""
     sample_id = f"rec{index:04d}"
@@ -356,7 +357,7 @@ def write_recording(
         "width": width,
         "height": height,
         "recording_time": RECORDING_EPOCH + 86400 * index,
-        "depth_encoding": DEPTH_ENCODING if depth_mapping is None else depth_mapping,
+        "depth_encoding": SYNTHETIC_DEPTH_ENCODING if depth_mapping is None else depth_mapping,
         "camera_K": list(K),
         "monster_absent_frames": list(plan.absent),
         "cast": cast or {},

@@ -15,18 +15,13 @@ from collections.abc import Iterator
 import numpy as np
 import open3d as o3d
 
+from terrain_scan.depth import SYNTHETIC_Z_FAR as Z_FAR
+from terrain_scan.depth import SYNTHETIC_Z_NEAR as Z_NEAR
+
 from . import terrain as ter
 
-Z_NEAR, Z_FAR = 2.0, 300.0
 RENDER_PIXELS = 1 << 16  # the pixels of the frames one render call takes (``Renderer.frames``): a few MB
 VFOV_DEG = 60.0
-DEPTH_ENCODING = {
-    "kind": "inverse_depth_u8",
-    "z_near_m": Z_NEAR,
-    "z_far_m": Z_FAR,
-    "formula": "code = 0 if no hit or z > z_far else clip(round(1 + 254 * (1/z - 1/z_far) / (1/z_near - 1/z_far)), 1, 255)",
-    "depth": "z-depth along the camera's viewing axis (m), characters included",
-}
 
 
 def encode_depth(z: np.ndarray) -> np.ndarray:
