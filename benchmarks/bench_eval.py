@@ -29,8 +29,8 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
 from marionette.corpus import Corpus
 from marionette.eval import fvd
+from marionette.eval.clips import _corpus_clips, observation_fvd
 from marionette.eval.i3d import I3DExtractor, InceptionI3d
-from marionette.eval.report import _corpus_clips, observation_fvd
 from marionette.observation.train import load_model
 
 

@@ -71,7 +71,7 @@ def test_a_file_of_other_names_or_shapes_is_refused_by_name(weights, tmp_path):
 
 def test_observation_rows_use_i3d_when_given(weights):
     """The report's observation rows with the I3D extractor: labelled FVD, per-chunk pieces of ≥ 9 frames."""
-    from marionette.eval.report import _chunk_frames, observation_fvd
+    from marionette.eval.clips import _chunk_frames, observation_fvd
     from marionette.observation.config import ObservationConfig
     from marionette.observation.model import VideoDiT
 

@@ -18,8 +18,10 @@ import pytest
 import torch
 
 from marionette.corpus import Corpus, world_of_rows
+from marionette.eval import clips as C
 from marionette.eval import metrics as M
 from marionette.eval import report as R
+from marionette.eval.clips import observation_fvd, rollout_clip, rollout_clips, rollout_fvd
 from marionette.eval.config import parse_protocol
 from marionette.eval.protocol import (
     PROBE_CONDITIONS,
@@ -32,7 +34,7 @@ from marionette.eval.protocol import (
     state_layer,
     window_metrics,
 )
-from marionette.eval.report import evaluate, observation_fvd, rollout_clip, rollout_clips, rollout_fvd
+from marionette.eval.report import evaluate
 from marionette.schema import load_scene, state_schema
 
 SEED, HORIZON, N = 16, 32, 3
@@ -247,7 +249,7 @@ def test_rollout_clips_start_from_the_recorded_view(corpus, windows, free):
         t_seed, t_first = float(table["t"][w.seed_frames - 1].as_py()), float(rows["t"][i].as_py())
         assert t_seed - 1e-6 <= t_first < t_seed + 1 / 30  # the first video frame at or after the last (recorded) seed row
         # the bridge camera's first frame is the recorded camera of that frame (the chunk's intrinsics) ...
-        chunk = next(r for r in R.segment_chunks(corpus, w.segment) if r["frames"][0] <= a < r["frames"][1])
+        chunk = next(r for r in C.segment_chunks(corpus, w.segment) if r["frames"][0] <= a < r["frames"][1])
         np.testing.assert_allclose(clip.cameras.pos[0], fixed_rows(rows["camera.pos"], 3)[i], atol=1e-9)
         np.testing.assert_allclose(clip.cameras.rot[0], quat_to_matrix(fixed_rows(rows["camera.rot"], 4)[i]), atol=1e-9)
         np.testing.assert_allclose(clip.cameras.K[0], chunk["K"][a - chunk["frames"][0]], atol=1e-9)
@@ -260,19 +262,19 @@ def test_rollout_clips_start_from_the_recorded_view(corpus, windows, free):
 
 def test_rollout_windows_without_video_are_skipped_with_reasons(corpus, windows, free, monkeypatch):
     gone = windows[0].segment
-    real = R.segment_chunks
-    monkeypatch.setattr(R, "segment_chunks", lambda c, s: [] if s == gone else real(c, s))
+    real = C.segment_chunks
+    monkeypatch.setattr(C, "segment_chunks", lambda c, s: [] if s == gone else real(c, s))
     clips, skipped, T = rollout_clips(corpus, windows, free[0], 5, (36, 64))
     lost = [k for k, w in enumerate(windows) if w.segment == gone]
     assert [r["window"] for r in skipped] == lost and [k for k, _ in clips] == [k for k in range(N) if k not in lost]
     assert all("are not all in the segment's video chunks" in r["reason"] and r["segment"] == gone for r in skipped)
     w = windows[1]
     rows, chunks = corpus.read_segment(w.segment), real(corpus, w.segment)
-    with pytest.raises(R.WindowSkipped, match="has no rgb.mp4"):
+    with pytest.raises(C.WindowSkipped, match="has no rgb.mp4"):
         rollout_clip(corpus, w, free[0][1], T, (36, 64), rows, [{**r, "rgb": None} for r in chunks])
-    with pytest.raises(R.WindowSkipped, match="fewer than the clip's"):
+    with pytest.raises(C.WindowSkipped, match="fewer than the clip's"):
         rollout_clip(corpus, w, free[0][1], 10 * T, (36, 64), rows, chunks)
-    with pytest.raises(R.WindowSkipped, match="does not reduce"):
+    with pytest.raises(C.WindowSkipped, match="does not reduce"):
         rollout_clip(corpus, w, free[0][1], T, (20, 64), rows, chunks)
 
 
@@ -315,7 +317,7 @@ def test_rollout_clips_match_the_recorded_pose_targets(posed, windows, free):
     clips, _, _ = rollout_clips(c, windows, free[0], 5, (36, 64))
     for k, clip in clips:
         a = clip.source_frames[0]
-        chunk = next(r for r in R.segment_chunks(c, windows[k].segment) if r["frames"][0] <= a < r["frames"][1])
+        chunk = next(r for r in C.segment_chunks(c, windows[k].segment) if r["frames"][0] <= a < r["frames"][1])
         with tarfile.open(c.pose_path(c.segment_row(windows[k].segment)["shard"])) as tar:
             target = list(iter_codes(tar.extractfile(f"{chunk['key']}.pose.mkv").read()))[a - chunk["frames"][0]]
         ours, theirs = clip.pose[0, 1].numpy() > 0, target[..., 1] > 0

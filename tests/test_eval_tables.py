@@ -239,7 +239,7 @@ def test_the_report_opens_with_the_model_against_its_trivial_baselines(tmp_path)
     a summary with a non-number is refused naming the file; a directory without one adds nothing."""
     import json
 
-    from marionette.eval.report import _baseline_lines, training_against_baselines
+    from marionette.eval.markdown import _baseline_lines, training_against_baselines
 
     ev = {"action_accuracy": 0.98, "body_mse": 0.01, "root_mse": 0.05, "windows": 6, "step": 300}
     base = {

@@ -12,8 +12,8 @@ import pytest
 from fixtures.corpora import SYNTH, TEST_OPTIONS
 
 from marionette import geometry as geo
+from marionette.commands.summary import inspect_text
 from marionette.corpus import Corpus, world_of_rows
-from marionette.corpus.summary import inspect_text
 from marionette.ingest import build_corpus
 from marionette.ingest.video import decode_frames
 from marionette.schema import SchemaError

@@ -298,7 +298,8 @@ def test_depth_is_lossless_and_metric(synth):
     assert truth["depth_encoding"]["kind"] == "inverse_depth_u8"
     codes = _frames(d / "depth.mkv")
     f = 20
-    from marionette.synth.game import RIGS, rig_edges
+    from marionette.synth.cast import rig_edges
+    from marionette.synth.game import RIGS
     from marionette.synth.render import Renderer, encode_depth
 
     rigs = {e: load_rig(r) for e, r in RIGS.items()}

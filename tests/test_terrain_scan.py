@@ -70,7 +70,7 @@ def test_scan_options_are_checked_kept_and_shown(corpus, tmp_path, capsys):
     import pytest
 
     from marionette.cli import main as cli
-    from marionette.corpus.summary import inspect_text
+    from marionette.commands.summary import inspect_text
 
     with pytest.raises(ValueError, match="max_depth_m must be a number > 0"):
         ScanOptions.from_json({"max_depth_m": -1.0})

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from marionette.commands import command, strict_status
 from marionette.commands.args import checked_scene, scene_arguments, scene_name
-from marionette.corpus.summary import inspect_text, segment_row, segment_rows, segments_text
+from marionette.commands.summary import inspect_text, segment_row, segment_rows, segments_text
 from marionette.options import (
     chunk_frames,
     even_int,

@@ -9,7 +9,7 @@ from pathlib import Path
 from marionette.commands import command
 from marionette.commands.corpus import export_chunk, joined_chunks, synthetic_arguments
 from marionette.commands.render import render_source
-from marionette.corpus.summary import inspect_text
+from marionette.commands.summary import inspect_text
 from marionette.options import (
     positive_int,
 )

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from marionette.commands import command
-from marionette.corpus.summary import segment_row
+from marionette.commands.summary import segment_row
 from marionette.options import (
     near_ids,
     non_negative_float,

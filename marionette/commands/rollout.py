@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from marionette.commands import command
-from marionette.corpus.summary import segment_row
+from marionette.commands.summary import segment_row
 from marionette.dynamics.controls import add_rollout_arguments
 
 

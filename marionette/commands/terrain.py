@@ -7,7 +7,7 @@ from pathlib import Path
 
 from marionette.commands import command, strict_status
 from marionette.commands.args import id_string, scan_option
-from marionette.corpus.summary import check_stage
+from marionette.commands.summary import check_stage
 from marionette.options import mesh_path, positive_float, positive_int
 from terrain_scan.knobs import KNOBS
 

@@ -21,25 +21,18 @@ Videos are float tensors (N, T, 3, H, W) in [-1, 1]: N clips of T RGB frames. An
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from marionette.eval.features import VideoFeatureExtractor, check_videos
+from marionette.eval.i3d import I3DExtractor
+
 FVD_LABEL = "FVD"
 PROXY_LABEL = "proxy-FVD (not FVD)"
 _ENERGY_FLOOR = 1e-3  # added before the log of motion energies: a still clip reads log(1e-3), not −inf
-_RANGE_LIMIT = 1.5  # videos beyond ±this are in the wrong range (e.g. [0, 255]); within it they are clamped to [-1, 1]
-
-
-class VideoFeatureExtractor(Protocol):
-    """Maps videos (N, T, 3, H, W) in [-1, 1] to (N, D) float64 features; ``is_fvd`` only for the real I3D."""
-
-    name: str
-    is_fvd: bool
-
-    def extract(self, videos: torch.Tensor) -> np.ndarray: ...
 
 
 # -- Gaussians and the Fréchet distance ------------------------------------------------------------------
@@ -158,23 +151,6 @@ def fvd_with_interval(
 # -- feature extractors ----------------------------------------------------------------------------------
 
 
-def check_videos(videos: torch.Tensor, what: str = "videos") -> torch.Tensor:
-    """Validate videos (N, T, 3, H, W) in [-1, 1] and return them as float32, clamped to [-1, 1]."""
-    if not isinstance(videos, torch.Tensor):
-        raise TypeError(f"{what}: expected a torch.Tensor, got {type(videos).__name__}")
-    if videos.ndim != 5 or videos.shape[2] != 3:
-        raise ValueError(f"{what}: expected shape (N, T, 3, H, W), got {tuple(videos.shape)}")
-    if not videos.is_floating_point():
-        raise ValueError(f"{what}: expected float values in [-1, 1], got dtype {videos.dtype}")
-    v = videos.detach().to(torch.float32)
-    if not torch.isfinite(v).all():
-        raise ValueError(f"{what}: contains NaN or inf")
-    peak = float(v.abs().max()) if v.numel() else 0.0
-    if peak > _RANGE_LIMIT:
-        raise ValueError(f"{what}: values reach {peak:.3g}; expected [-1, 1] (is it in [0, 255]?)")
-    return v.clamp(-1.0, 1.0)
-
-
 class ProxyExtractor:
     """Proxy video features without trained weights: a seeded 3-D conv bank at two scales + colour/motion stats.
 
@@ -258,8 +234,6 @@ def extractor_for(path: Path | None) -> VideoFeatureExtractor:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"I3D weights not found: {path}")
-    from marionette.eval.i3d import I3DExtractor
-
     return I3DExtractor.from_safetensors(path)
 
 

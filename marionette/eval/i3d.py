@@ -31,6 +31,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from marionette.eval.features import check_videos
+
 # per Inception module: input channels, [1×1, 3×3 reduce, 3×3, 3×3 reduce, 3×3, pool projection]
 MIXED = {
     "Mixed_3b": (192, (64, 96, 128, 16, 32, 32)),
@@ -150,8 +152,6 @@ class I3DExtractor:
     @torch.inference_mode()
     def extract(self, videos: Tensor) -> np.ndarray:
         """(N, T, 3, H, W) in [−1, 1], T ≥ 9 → (N, classes) float64."""
-        from marionette.eval.fvd import check_videos
-
         v = check_videos(videos, "videos")
         if v.shape[1] < MIN_FRAMES:
             raise ValueError(f"videos of {v.shape[1]} frames: I3D needs at least {MIN_FRAMES}")

@@ -41,6 +41,11 @@ STAGE_TURN = np.pi / 2  # each further stage turns by this much about the arena 
 STAGE_LIFT_M = 1.5  # … and rises by this much
 
 
+def rig_edges(rig) -> np.ndarray:
+    """A rig's source edges as [[parent, child], ...] (its skeleton_edges.json entry)."""
+    return np.array([(p, c) for c, p in enumerate(rig.source_parents) if p >= 0], dtype=np.int64)
+
+
 def _drake():
     return load_rig("drake")
 
@@ -407,8 +412,6 @@ class Cast:
 
     def edges(self) -> dict[str, list[list[int]]]:
         """``skeleton_edges.json`` of a tree of this cast."""
-        from .game import rig_edges
-
         out = {}
         if not self.species:
             out[f"em_{DRAKE_TYPE}"] = rig_edges(_drake()).tolist()

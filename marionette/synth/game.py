@@ -22,7 +22,7 @@ from marionette.schema import load_rig
 from terrain_scan.depth import SYNTHETIC_DEPTH_ENCODING
 
 from . import sim
-from .cast import GREATSWORD, Cast, make_cast
+from .cast import GREATSWORD, Cast, make_cast, rig_edges
 from .clips import CLIPS, clip_table
 from .render import Renderer, camera_pans, encode_depth, follow_camera, intrinsics
 
@@ -83,11 +83,6 @@ def _atomic(path: Path, write) -> None:
     tmp = path.with_name(path.name + ".tmp")
     write(tmp)
     os.replace(tmp, path)
-
-
-def rig_edges(rig) -> np.ndarray:
-    """A rig's source edges as [[parent, child], ...] (its skeleton_edges.json entry)."""
-    return np.array([(p, c) for c, p in enumerate(rig.source_parents) if p >= 0], dtype=np.int64)
 
 
 def _hp(plan: sim.Plan, roots: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
