@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from marionette.corpus import paths
 from marionette.corpus.paths import CorpusPathError, inside
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
@@ -529,3 +530,18 @@ def _to_chunks(layers: Observations, filled: np.ndarray, max_layers: int) -> dic
         rec["ts"][i, s] = np.clip(layers.ts[sel], 0, 2**32 - 1)
         out[key] = ch
     return out
+
+
+def stage_terrain(corpus: Path | str, stage: str) -> Stage | None:
+    """A corpus's scanned terrain of ``stage`` (its ``Stage``), or None when it was never scanned."""
+    d = paths.stage_dir(Path(corpus), stage)
+    if not (d / "manifest.json").is_file():
+        return None
+    scanned = Stage(d)
+    return scanned if scanned.manifest["chunks"] else None
+
+
+def segment_terrain(corpus, segment: str) -> Stage | None:
+    """The one answer to "this segment's terrain" in a ``marionette.corpus.Corpus``: its stage's ``Stage``, or None
+    when that stage is unscanned."""
+    return stage_terrain(corpus.path, corpus.stage_of(segment))

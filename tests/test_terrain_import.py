@@ -14,7 +14,7 @@ from marionette.corpus import Corpus
 from marionette.corpus.paths import stage_dir
 from terrain_scan.field import open_stage
 from terrain_scan.scan import scan_stages
-from terrain_scan.store import IMPORT_PREFIX, Stage
+from terrain_scan.store import IMPORT_PREFIX, Stage, stage_terrain
 from terrain_scan.trn2 import TerrainFormatError, read_chunk
 
 
@@ -46,7 +46,7 @@ def test_open_stage_of_a_missing_empty_or_foreign_directory_is_an_error(tmp_path
 
 def test_upstream_chunks_open_read_only_and_stay_inside(scanned_corpus, tmp_path):
     c = Corpus(scanned_corpus)
-    stage = c.stage_terrain(c.segments["stage"][0].as_py())
+    stage = stage_terrain(c.path, c.segments["stage"][0].as_py())
     up = _upstream_copy(stage, tmp_path / "upstream")
     ours, theirs = open_stage(stage.dir), open_stage(up)
     rng = np.random.default_rng(0)
@@ -78,7 +78,7 @@ def test_upstream_chunks_open_read_only_and_stay_inside(scanned_corpus, tmp_path
 def test_import_reproduces_the_stage_and_survives_a_scan(corpus, scanned_corpus, tmp_path, capsys):
     scanned = Corpus(scanned_corpus)
     st = scanned.segments["stage"][0].as_py()
-    source = scanned.stage_terrain(st)
+    source = stage_terrain(scanned.path, st)
     up = _upstream_copy(source, tmp_path / "upstream")
     work = tmp_path / "c"
     shutil.copytree(corpus, work)  # the same corpus, never scanned
@@ -86,7 +86,7 @@ def test_import_reproduces_the_stage_and_survives_a_scan(corpus, scanned_corpus,
     assert "no stage 'nowhere' (its stages: default)" in capsys.readouterr().err
     assert cli(["terrain", "import", str(up), str(work), "--stage", st, "--no-pose", "--quiet"]) == 0
     assert "import:upstream" in capsys.readouterr().out
-    imported = Corpus(work).stage_terrain(st)
+    imported = stage_terrain(Corpus(work).path, st)
     # the scan's measured layers, merged and derived again (alias rule, hole fill), give its chunks: the same
     # layers and flags, hits and times; a hole-filled layer and a normal differ by float32 rounding (the scan filled from its
     # float64 heights, the import from the files' float32)

@@ -28,6 +28,7 @@ from marionette.corpus import Corpus, fixed_rows, paths, video_shards
 from marionette.corpus.lock import corpus_lock
 from marionette.io import file_sha256, text_sha256
 from marionette.schema import Entity, Layout
+from terrain_scan.store import stage_terrain
 
 from .camera import Cameras, follow_cameras, recorded_cameras
 from .gbuffer import GBufferMeta, write_gbuffer
@@ -201,7 +202,7 @@ class _Pass:
 
     def terrain(self, stage: str) -> TerrainScene:
         if stage not in self.terrains:
-            self.terrains[stage] = TerrainScene.of_stage(self.corpus.stage_terrain(stage))
+            self.terrains[stage] = TerrainScene.of_stage(stage_terrain(self.corpus.path, stage))
         return self.terrains[stage]
 
     def target(self, vpath: Path, key: str, rec: dict) -> tuple[Path, str, list[str]]:

@@ -34,6 +34,7 @@ def render_source(
     from marionette.corpus import Corpus
     from marionette.io import read_ipc
     from marionette.schema import layout_of_schema
+    from terrain_scan.store import segment_terrain
 
     src = Path(source)
     t0 = time.time()
@@ -44,7 +45,7 @@ def render_source(
         c = Corpus(src)
         segment_row(c, segment)
         rows, layout = c.read_segment(segment), c.layout
-        scene = TerrainScene.of_stage(terrain or c.terrain(segment))
+        scene = TerrainScene.of_stage(terrain or segment_terrain(c, segment))
         size_src = source_size(c, segment) if camera == "recorded" else None
     else:
         rows = read_ipc(src)

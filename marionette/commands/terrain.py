@@ -68,10 +68,11 @@ def cmd_terrain_export(a: argparse.Namespace) -> int:
 
     from marionette.corpus import Corpus
     from terrain_scan.mesh import export
+    from terrain_scan.store import stage_terrain
 
     check_stage(a.corpus, a.stage)
     c = Corpus(a.corpus)
-    st = c.stage_terrain(a.stage)
+    st = stage_terrain(c.path, a.stage)
     layers = st.layers()[0] if st is not None else ()
     if not len(layers):
         raise ValueError(f"{c.path}: stage {a.stage!r} has no terrain yet (run `marionette terrain scan {c.path}` first)")

@@ -165,20 +165,6 @@ class Corpus:
         """The stage a segment was recorded on."""
         return self.segment_row(segment)["stage"]
 
-    def stage_terrain(self, stage: str):
-        """A stage's scanned terrain (a ``terrain_scan.store.Stage``), or None when it was never scanned."""
-        from terrain_scan.store import Stage
-
-        d = paths.stage_dir(self.path, stage)
-        if not (d / "manifest.json").is_file():
-            return None
-        scanned = Stage(d)
-        return scanned if scanned.manifest["chunks"] else None
-
-    def terrain(self, segment: str):
-        """The one answer to "this segment's terrain": its stage's ``Stage``, or None when it is unscanned."""
-        return self.stage_terrain(self.stage_of(segment))
-
     def read_segment(self, segment: str) -> pa.Table:
         """All source-rate rows of one segment."""
         row = self.segment_row(segment)

@@ -27,6 +27,15 @@ CHUNK_KEY = re.compile(r"(?P<segment>[A-Za-z0-9_-]{1,200})__c(?P<chunk>\d{5})")
 SHARD_NAME = re.compile(r"shard-(?P<n>\d{6})")
 STAGED_FILES = ("record.json", "state.arrow", "video.tar")
 POSE_HASH = re.compile(r"[0-9a-f]{16}")
+# the fixed metadata files under meta/ (``meta``)
+INFO = "info.json"
+SEGMENTS = "segments.parquet"
+SAMPLES = "samples.parquet"
+QUARANTINE = "quarantine.parquet"
+VOCAB = "vocab.json"
+STATS = "stats.json"
+SCAN = "scan.json"
+DERIVED_NAME = re.compile(r"[A-Za-z0-9_.-]{1,200}")
 
 
 class CorpusPathError(ValueError):
@@ -62,12 +71,12 @@ def shard_name(n: int) -> str:
 
 def state_shard(root: Path, n: int) -> Path:
     """``<root>/state/shard-NNNNNN.arrow``."""
-    return Path(root) / "state" / f"{shard_name(n)}.arrow"
+    return state_dir(root) / f"{shard_name(n)}.arrow"
 
 
 def video_shard(root: Path, n: int) -> Path:
     """``<root>/video/shard-NNNNNN.tar``."""
-    return Path(root) / "video" / f"{shard_name(n)}.tar"
+    return video_dir(root) / f"{shard_name(n)}.tar"
 
 
 def jitter_dir(root: Path, jitter: str) -> Path:
@@ -75,7 +84,7 @@ def jitter_dir(root: Path, jitter: str) -> Path:
     whose key is ``jitter`` (16 hex digits), in the layout of the corpus's own (``targets/``, ``pose/``)."""
     if not POSE_HASH.fullmatch(jitter):
         raise CorpusPathError(f"jitter key {jitter!r} is not 16 hex digits")
-    return Path(root) / "derived" / f"jitter-{jitter}"
+    return derived(root, f"jitter-{jitter}")
 
 
 def pose_shard(root: Path, n: int, jitter: str | None = None) -> Path:
@@ -84,19 +93,62 @@ def pose_shard(root: Path, n: int, jitter: str | None = None) -> Path:
     return (Path(root) if jitter is None else jitter_dir(root, jitter)) / "pose" / f"{shard_name(n)}.tar"
 
 
+def meta_dir(root: Path) -> Path:
+    """``<root>/meta``: the corpus's metadata (info, segments, samples, vocab, stats, the scan's options, the lock)."""
+    return Path(root) / "meta"
+
+
 def meta(root: Path, name: str) -> Path:
     """``<root>/meta/<name>`` for one of the corpus's fixed metadata files."""
-    return Path(root) / "meta" / name
+    return meta_dir(root) / name
+
+
+def samples_dir(root: Path) -> Path:
+    """``<root>/meta/samples``: one record per committed sample (``sample_record``)."""
+    return meta_dir(root) / "samples"
+
+
+def builds_dir(root: Path) -> Path:
+    """``<root>/meta/builds``: the build flow's reports and its task cache."""
+    return meta_dir(root) / "builds"
+
+
+def derived(root: Path, name: str) -> Path:
+    """``<root>/derived/<name>``: a product derived from the corpus (the dynamics view, terrain features, windows,
+    Wan latents, jittered pose targets), rebuilt when missing."""
+    if not DERIVED_NAME.fullmatch(name) or name in (".", ".."):
+        raise CorpusPathError(f"{name!r} is not a derived product's name")
+    return Path(root) / "derived" / name
+
+
+def state_dir(root: Path) -> Path:
+    """``<root>/state``: the Arrow state shards."""
+    return Path(root) / "state"
+
+
+def video_dir(root: Path) -> Path:
+    """``<root>/video``: the webdataset video shards."""
+    return Path(root) / "video"
+
+
+def staging_root(root: Path) -> Path:
+    """``<root>/staging``: samples staged by ingest, not yet committed (``staging_dir``)."""
+    return Path(root) / "staging"
+
+
+def terrain_dir(root: Path) -> Path:
+    """``<root>/terrain``: the stages' terrain (``stage_dir``)."""
+    return Path(root) / "terrain"
 
 
 def sample_record(root: Path, key: str, where: str = "") -> Path:
     """``<root>/meta/samples/<key>.json``: a committed sample's record."""
-    return Path(root) / "meta" / "samples" / f"{check_id(key, 'sample key', where)}.json"
+    return samples_dir(root) / f"{check_id(key, 'sample key', where)}.json"
 
 
 def staging_dir(root: Path, key: str, where: str = "") -> Path:
     """``<root>/staging/<key>``: a sample staged by ingest, not yet committed."""
-    return Path(root) / "staging" / check_id(key, "sample key", where)
+    return staging_root(root) / check_id(key, "sample key", where)
 
 
 def staged_file(root: Path, key: str, name: str, where: str = "") -> Path:
@@ -124,7 +176,7 @@ def parse_chunk_key(key: str, where: str = "") -> tuple[str, int]:
 
 def pose_targets_dir(root: Path, jitter: str | None = None) -> Path:
     """``<root>/derived/pose``: the rendered pose-control targets (with ``jitter``: ``jitter_dir``'s ``targets``)."""
-    return Path(root) / "derived" / "pose" if jitter is None else jitter_dir(root, jitter) / "targets"
+    return derived(root, "pose") if jitter is None else jitter_dir(root, jitter) / "targets"
 
 
 def pose_target(root: Path, key: str, digest: str, jitter: str | None = None) -> Path:
@@ -137,7 +189,7 @@ def pose_target(root: Path, key: str, digest: str, jitter: str | None = None) ->
 
 def stage_dir(root: Path, stage: str) -> Path:
     """``<root>/terrain/stage_<id>`` (the stage id made file-safe)."""
-    return Path(root) / "terrain" / f"stage_{re.sub(r'[^A-Za-z0-9_-]', '-', str(stage))}"
+    return terrain_dir(root) / f"stage_{re.sub(r'[^A-Za-z0-9_-]', '-', str(stage))}"
 
 
 def resolve_plan_entry(root: Path, rel: object, where: str) -> Path:

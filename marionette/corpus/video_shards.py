@@ -30,8 +30,12 @@ from pathlib import Path
 from marionette.corpus.paths import CorpusPathError, chunk_key, parse_chunk_key
 from marionette.io import atomic_path
 
-VIDEO_KINDS = ("rgb.mp4", "json")  # a video shard's member kinds, in the order they follow one another
-POSE_KINDS = ("pose.json", "pose.mkv")  # a pose shard's
+RGB_KIND = "rgb.mp4"  # a chunk's recorded RGB (H.264)
+CHUNK_KIND = "json"  # a chunk's record: its source frames, cameras, keys
+POSE_RECORD_KIND = "pose.json"  # a pose target's record: what it was rendered from
+POSE_KIND = "pose.mkv"  # a chunk's pose-control target (the bridge's G-buffer video)
+VIDEO_KINDS = (RGB_KIND, CHUNK_KIND)  # a video shard's member kinds, in the order they follow one another
+POSE_KINDS = (POSE_RECORD_KIND, POSE_KIND)  # a pose shard's
 KINDS = VIDEO_KINDS + POSE_KINDS
 MAX_MEMBER_BYTES = 1 << 30  # an 81-frame chunk at the training resolution is a few MB
 
@@ -57,7 +61,7 @@ def shard_kinds(path: Path) -> tuple[str, ...]:
     """The member kinds a shard may hold: a pose shard's (under ``pose/``) or a video shard's. A video shard
     written before pose targets had shards of their own may still hold ``pose.mkv`` members; they are read
     past, never joined."""
-    return POSE_KINDS if Path(path).parent.name == "pose" else (*VIDEO_KINDS, "pose.mkv")
+    return POSE_KINDS if Path(path).parent.name == "pose" else (*VIDEO_KINDS, POSE_KIND)
 
 
 def _checked(tar: tarfile.TarFile, path: Path) -> Iterator[tuple[tarfile.TarInfo, str, str]]:
@@ -237,13 +241,13 @@ def read_joined(
 ) -> dict[str, dict[str, bytes]]:
     """Chunk key → {kind: bytes} of a video shard's chunks (of one ``segment``, if given) joined with their pose
     targets from ``pose`` (current ones only: ``PoseShard.get``), reading only ``kinds``."""
-    chunks = read_chunks(video, segment, tuple(k for k in VIDEO_KINDS if k in kinds or k == "json"))
+    chunks = read_chunks(video, segment, tuple(k for k in VIDEO_KINDS if k in kinds or k == CHUNK_KIND))
     with PoseShard(pose) as ps:
         for key, m in chunks.items():
-            got = ps.get(key, m["json"], state_hash) if "json" in m and set(kinds) & set(POSE_KINDS) else None
+            got = ps.get(key, m[CHUNK_KIND], state_hash) if CHUNK_KIND in m and set(kinds) & set(POSE_KINDS) else None
             if got is not None:
                 rec, mkv = got
-                m.update({"pose.json": json.dumps(rec, sort_keys=True).encode(), "pose.mkv": mkv})
+                m.update({POSE_RECORD_KIND: json.dumps(rec, sort_keys=True).encode(), POSE_KIND: mkv})
             for kind in KINDS:
                 if kind not in kinds:
                     m.pop(kind, None)

@@ -129,6 +129,7 @@ from marionette.dynamics.state import body_index, root_index
 from marionette.io import read_ipc, text_sha256, write_ipc, write_json
 from marionette.schema import Layout, SchemaError
 from terrain_scan.field import LayeredField, egocentric_patch, joint_clearances, open_stage
+from terrain_scan.store import stage_terrain
 
 DEFAULT_FPS = 20.0
 DEFAULT_STD_FLOOR = 1e-3
@@ -288,7 +289,7 @@ def relative_of_rows(layout: Layout, table: pa.Table) -> np.ndarray:
 
 def stage_chunk_hashes(c: Corpus, stage: str) -> dict[str, str]:
     """Chunk name "cx_cz" → sha256 of each chunk of a stage, from its manifest.json; empty when it was never scanned."""
-    scanned = c.stage_terrain(stage)
+    scanned = stage_terrain(c.path, stage)
     return {name: digest for name, (_, digest) in scanned.chunk_files().items()} if scanned is not None else {}
 
 
@@ -385,7 +386,7 @@ def terrain_feature_shard(
     known = np.zeros(feats.shape, bool)
     for st in sorted(set(stage_of.values())):
         rows = np.flatnonzero(np.isin(segs, [s for s, v in stage_of.items() if v == st]))
-        scanned = c.stage_terrain(st)
+        scanned = stage_terrain(c.path, st)
         field = open_stage(scanned.dir) if scanned is not None else None
         feats[rows], known[rows] = compute_terrain_features(layout, view.take(pa.array(rows)), field)
     cols: dict[str, pa.Array] = {"segment": view["segment"].combine_chunks(), "frame": view["frame"].combine_chunks()}

@@ -61,6 +61,7 @@ from marionette.dynamics.model import DynamicsModel, Frames
 from marionette.dynamics.state import join_state, split_state
 from marionette.io import write_ipc
 from marionette.schema import state_schema
+from terrain_scan.store import segment_terrain
 
 
 def checkpoint_dir(ckpt: Path | str) -> Path:
@@ -78,7 +79,7 @@ def open_terrain_field(corpus: Corpus, segment: str):
     """The segment's stage as a ``LayeredField``, or None when the stage was never scanned."""
     from terrain_scan.field import open_stage
 
-    stage = corpus.terrain(segment)
+    stage = segment_terrain(corpus, segment)
     return open_stage(stage.dir) if stage is not None else None
 
 
@@ -726,7 +727,9 @@ def write_rollout(
     if render is not None:
         from marionette.bridge.targets import TerrainScene, render_rows
 
-        meta = render_rows(c.layout, table, render, TerrainScene.of_stage(c.terrain(segment)), camera="follow", size=size)
+        meta = render_rows(
+            c.layout, table, render, TerrainScene.of_stage(segment_terrain(c, segment)), camera="follow", size=size
+        )
         log(f"{render}: {meta.width}×{meta.height} at {meta.fps:g} fps (follow camera)")
     return table
 

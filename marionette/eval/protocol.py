@@ -66,6 +66,7 @@ from marionette.dynamics.rollout import (
 )
 from marionette.eval import metrics as M
 from marionette.schema import Layout
+from terrain_scan.store import segment_terrain
 
 FOOT_NAMES = ("foot", "toe", "claw", "ankle", "heel", "paw", "hoof")  # a contact joint whose name holds one is a foot
 ABLATION: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -414,7 +415,7 @@ def terrain_scene(c: Corpus, segment: str) -> Any:
     """The segment's stage terrain as the bridge renders it (empty when the stage is unscanned)."""
     from marionette.bridge.targets import TerrainScene
 
-    return TerrainScene.of_stage(c.terrain(segment))
+    return TerrainScene.of_stage(segment_terrain(c, segment))
 
 
 # -- the controllability probe -----------------------------------------------------------------------------

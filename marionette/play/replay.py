@@ -23,6 +23,7 @@ from marionette.corpus import Corpus
 from marionette.eval.control import tip_speeds
 from marionette.io import read_ipc
 from marionette.schema import layout_of_schema
+from terrain_scan.store import stage_terrain
 
 from .session import Playable, _int_field
 from .view import FrameView, stage_map
@@ -88,7 +89,7 @@ class ReplaySession(Playable):
         self.frame = 0
         self._seek: int | None = 0
         self.stage = self._stage(rows)
-        self.terrain = TerrainScene.of_stage(self.corpus.stage_terrain(self.stage)) if self.stage else TerrainScene.empty()
+        self.terrain = TerrainScene.of_stage(stage_terrain(self.corpus.path, self.stage)) if self.stage else TerrainScene.empty()
         self._map = stage_map(self.terrain)
         self.cams = follow_view(self.layout, self.skel, self.fps, self.size[1], self.size[0])
         self.tips = {

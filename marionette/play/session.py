@@ -41,6 +41,7 @@ from marionette.dynamics.data import as_corpus
 from marionette.dynamics.rollout import Rollout, checkpoint_dir, open_terrain_field, rollout_table
 from marionette.eval.control import tip_speeds
 from marionette.io import write_ipc
+from terrain_scan.store import segment_terrain
 
 from .view import FrameView, Orbit, stage_map
 
@@ -362,7 +363,7 @@ class LiveSession(Playable):
         first = self.view is None
         if stage != self.stage:  # the terrain (collider, render, map) of the new stage
             self.ro.field = open_terrain_field(self.corpus, segment)
-            self.terrain = TerrainScene.of_stage(self.corpus.terrain(segment))
+            self.terrain = TerrainScene.of_stage(segment_terrain(self.corpus, segment))
             self.stage = stage
             self._map = stage_map(self.terrain)
             if self.view is not None:
