@@ -27,13 +27,11 @@ from prefect.runtime import flow_run
 
 from flows.fanout import dask_cluster, dask_runner
 from marionette import ingest
+from marionette.corpus import paths
 from marionette.corpus.lock import corpus_lock
 from marionette.fanout import worker_identity
 from marionette.ingest import IngestOptions, SampleRef, VideoSettings
 from marionette.io import write_json
-
-CACHE_DIR = Path("meta") / "builds" / "cache"  # Prefect cache records, inside the corpus
-REPORT_DIR = Path("meta") / "builds"  # one build report per flow run
 
 
 def sample_cache_key(context: TaskRunContext, parameters: dict) -> str | None:
@@ -106,7 +104,9 @@ def ingest_samples(source: str, corpus: str, options: dict) -> list[dict]:
     opts = IngestOptions.from_json(options)
     refs = discover_samples(source)
     logger.info("%d samples under %s", len(refs), source)
-    ingest_task = ingest_one.with_options(result_storage=Path(corpus).resolve() / CACHE_DIR)  # a Path: local storage
+    ingest_task = ingest_one.with_options(
+        result_storage=paths.builds_dir(Path(corpus).resolve()) / "cache"
+    )  # a Path: local storage
     futures = ingest_task.map(refs, corpus=corpus, options=opts)
     results = []
     for fut in as_completed(futures):
@@ -159,7 +159,7 @@ def report_markdown(report: dict) -> str:
 @task(cache_policy=NO_CACHE)
 def publish_report(corpus: str, report: dict) -> str:
     """Write ``<corpus>/meta/builds/<flow-run-id>.json`` atomically and publish a markdown artifact."""
-    path = Path(corpus) / REPORT_DIR / f"{report['flow_run_id']}.json"
+    path = paths.builds_dir(corpus) / f"{report['flow_run_id']}.json"
     write_json(path, report)
     create_markdown_artifact(key="build-corpus-report", markdown=report_markdown(report), description=str(path))
     return str(path)

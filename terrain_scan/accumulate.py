@@ -41,7 +41,7 @@ import open3d as o3d
 from av.video.reformatter import VideoReformatter
 
 from marionette.geometry import quat_to_matrix
-from marionette.recordings.wildworld import RecordedSample, SampleError, SampleRef, read_sample
+from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, RecordedSample, SampleError, SampleRef, read_sample
 from marionette.schema import Layout
 
 from .depth import DepthDecoder, depth_edges, smooth_codes
@@ -524,8 +524,8 @@ def scan_recording(
     observations without error.
     """
     sample = read_sample(ref, layout)
-    depth = ref.path / "depth.mkv"
+    depth = ref.path / DEPTH_FILE
     if not depth.exists():
         raise SampleError(f"{depth}: missing")
-    ts = recording_time(ref.path / "rgb.mp4")
+    ts = recording_time(ref.path / RGB_FILE)
     return scan_sample(sample, layout, depth_frames(depth), decoder, ts, frame_stride, voxel_m, min_normal_y, **options)

@@ -35,7 +35,7 @@ from typing import TypeVar
 import numpy as np
 
 from marionette.geometry import quat_to_matrix
-from marionette.recordings.wildworld import SampleRef, read_sample
+from marionette.recordings.wildworld import DEPTH_FILE, SampleRef, read_sample
 from marionette.schema import Layout
 from terrain_scan.accumulate import contact_positions, depth_frames, frame_points
 from terrain_scan.depth import CODES, PARAMETRIC, DepthDecoder, curve, curve_inverse
@@ -119,7 +119,7 @@ def recording_pairs(ref: SampleRef, layout: Layout, frame_stride: int = 5) -> Pa
         names += [f"{e.rig.name}/{j}" for j in e.rig.keep]  # by rig: recordings of other species never share a name
         offset += [e.rig.capsule_radius_m] * len(e.rig.keep)
     codes, zjs, dists, joints, at, frames = [], [], [], [], [], 0
-    for i, img in enumerate(depth_frames(ref.path / "depth.mkv")):
+    for i, img in enumerate(depth_frames(ref.path / DEPTH_FILE)):
         if i % frame_stride or sample.camera_valid is None or i >= len(sample.camera_valid) or not sample.camera_valid[i]:
             continue
         frames += 1
@@ -466,7 +466,7 @@ def contact_points(ref: SampleRef, layout: Layout, decoder: DepthDecoder, frame_
     )
     kw = {k: knobs[k] for k in point_knobs if k in knobs}
     cams, offs, frames = [], [], 0
-    for i, codes in enumerate(depth_frames(ref.path / "depth.mkv")):
+    for i, codes in enumerate(depth_frames(ref.path / DEPTH_FILE)):
         if i >= sample.n_frames:
             break
         if i % frame_stride or sample.camera_valid is None or not sample.camera_valid[i]:

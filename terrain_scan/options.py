@@ -7,6 +7,7 @@ import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from marionette.corpus import paths
 from marionette.io import text_sha256, write_json
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.knobs import DERIVE_KNOBS, KNOBS, knob_ok
@@ -115,7 +116,7 @@ class ScanOptions:
     @staticmethod
     def stored(corpus: Path) -> ScanOptions | None:
         """The options of the corpus's last scan (``meta/scan.json``), or None before its first."""
-        path = Path(corpus) / SCAN_CONFIG
+        path = paths.meta(corpus, paths.SCAN)
         if not path.is_file():
             return None
         if path.stat().st_size > SCAN_CONFIG_MAX_BYTES:
@@ -127,8 +128,7 @@ class ScanOptions:
         return ScanOptions.from_json(data, str(path))
 
     def store(self, corpus: Path) -> None:
-        write_json(Path(corpus) / SCAN_CONFIG, self.to_json())
+        write_json(paths.meta(corpus, paths.SCAN), self.to_json())
 
 
-SCAN_CONFIG = "meta/scan.json"
 SCAN_CONFIG_MAX_BYTES = 1 << 16

@@ -17,7 +17,7 @@ from pathlib import Path
 from marionette.corpus import paths
 from marionette.fanout import Mapper, pool_mapper, worker_identity
 from marionette.io import file_sha256, text_sha256
-from marionette.recordings.wildworld import SampleError, SampleRef
+from marionette.recordings.wildworld import DEPTH_FILE, SampleError, SampleRef
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.grouping import place
@@ -31,12 +31,11 @@ def corpus_stages(corpus: Path) -> dict[str, list[dict]]:
     """Stage id → the ingested recordings on it (sample, source directory, ingest input hash)."""
     import pyarrow.parquet as pq
 
-    meta = Path(corpus) / "meta"
-    seg = pq.read_table(meta / "segments.parquet").to_pylist()
+    seg = pq.read_table(paths.meta(corpus, paths.SEGMENTS)).to_pylist()
     stage_of = {r["sample"]: r["stage"] for r in seg}
     scene_of = {r["sample"]: r.get("scene") for r in seg}
     out: dict[str, list[dict]] = {}
-    for r in pq.read_table(meta / "samples.parquet").to_pylist():
+    for r in pq.read_table(paths.meta(corpus, paths.SAMPLES)).to_pylist():
         if r["status"] == "ingested" and r["sample"] in stage_of:
             out.setdefault(stage_of[r["sample"]], []).append({**r, "scene": scene_of[r["sample"]]})
     return {k: sorted(v, key=lambda r: r["sample"]) for k, v in sorted(out.items())}
@@ -83,7 +82,7 @@ def scan_job(job: ScanJob, layouts: dict, options: ScanOptions) -> ScanOutcome:
     already holds that hash. Never raises: a failure is the outcome's ``reason``, naming the file."""
     out = ScanOutcome(job, worker=worker_identity())
     ref = _ref(job.source)
-    depth = ref.path / "depth.mkv"
+    depth = ref.path / DEPTH_FILE
     try:
         out.input_hash = text_sha256(job.ingest_hash, file_sha256(depth) if depth.exists() else "missing", options.key())[:32]
         if job.stored_hash == out.input_hash:
@@ -142,7 +141,7 @@ def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: Sc
         stages = {stage: stages[stage]}
     held = {st: Stage(paths.stage_dir(corpus, st), alias=options.alias()) for st in stages}
     if stage is None:  # a stage every recording left (moved by a placement): its scanned contributions go
-        for d in sorted((Path(corpus) / "terrain").glob("stage_*")):
+        for d in sorted(paths.terrain_dir(corpus).glob("stage_*")):
             st = d.name[len("stage_") :]
             if st not in stages and paths.ID_PATTERN.fullmatch(st) and (d / "manifest.json").exists():
                 held[st] = Stage(d, alias=options.alias())

@@ -27,6 +27,7 @@ import pyarrow as pa
 from marionette.corpus import Corpus, fixed_rows, paths, video_shards
 from marionette.corpus.lock import corpus_lock
 from marionette.io import file_sha256, text_sha256
+from marionette.recordings.wildworld import RGB_FILE
 from marionette.schema import Entity, Layout
 from terrain_scan.store import stage_terrain
 
@@ -281,8 +282,10 @@ class _Pass:
                 self.report.failed[key] = f"{type(exc).__name__}: {exc}"
             else:
                 pose = video_shards.pose_record(key, digest, seen, rec["frames"][1] - rec["frames"][0], m["json"], state_hash)
-                out.append((video_shards.member_name(key, "pose.json"), json.dumps(pose, sort_keys=True).encode()))
-                out.append((video_shards.member_name(key, "pose.mkv"), target))
+                out.append(
+                    (video_shards.member_name(key, video_shards.POSE_RECORD_KIND), json.dumps(pose, sort_keys=True).encode())
+                )
+                out.append((video_shards.member_name(key, video_shards.POSE_KIND), target))
             progress(1)
         return out
 
@@ -490,7 +493,7 @@ def source_size(corpus: Corpus, segment: str) -> tuple[int, int]:
     if sample and sample[0]["source"]:
         import av
 
-        with av.open(str(Path(sample[0]["source"]) / "rgb.mp4")) as c:
+        with av.open(str(Path(sample[0]["source"]) / RGB_FILE)) as c:
             cc = c.streams.video[0].codec_context
             return int(cc.height), int(cc.width)
     raise ValueError(f"{corpus.path}: cannot tell the source video size of segment {segment!r}")

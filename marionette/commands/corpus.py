@@ -10,6 +10,7 @@ from pathlib import Path
 from marionette.commands import command, strict_status
 from marionette.commands.args import checked_scene, scene_arguments, scene_name
 from marionette.commands.summary import inspect_text, segment_row, segment_rows, segments_text
+from marionette.corpus.video_shards import CHUNK_KIND, POSE_KIND, RGB_KIND
 from marionette.options import (
     chunk_frames,
     even_int,
@@ -226,24 +227,24 @@ def export_chunk(c, segment: str, chunk: int, out: Path) -> tuple[int, int]:
     from marionette.io import write_bytes
     from marionette.observation.generate import write_image
 
-    shard, chunks = joined_chunks(c, segment, ("rgb.mp4", "pose.mkv"))
+    shard, chunks = joined_chunks(c, segment, (RGB_KIND, POSE_KIND))
     if chunk not in chunks:
         have = ", ".join(map(str, chunks)) or "none"
         raise ValueError(f"{shard}: segment {segment!r} has no chunk {chunk} (its chunks: {have})")
     m = chunks[chunk]
-    if "pose.mkv" not in m:
+    if POSE_KIND not in m:
         raise ValueError(
             f"{shard}: chunk {chunk} of segment {segment!r} has no pose target; render the targets with "
             f"`marionette terrain scan {c.path}` (or ingest without --no-pose)"
         )
-    if "rgb.mp4" not in m:
+    if RGB_KIND not in m:
         raise ValueError(f"{shard}: chunk {chunk} of segment {segment!r} has no rgb.mp4")
-    first = decode_frames(m["rgb.mp4"], {0}).get(0)
+    first = decode_frames(m[RGB_KIND], {0}).get(0)
     if first is None:
         raise ValueError(f"{shard}: {chunk_key(segment, chunk)}.rgb.mp4 holds no frame")
     out = Path(out)
-    write_bytes(out / "pose.mkv", m["pose.mkv"])
-    write_bytes(out / "rgb.mp4", m["rgb.mp4"])
+    write_bytes(out / POSE_KIND, m[POSE_KIND])
+    write_bytes(out / RGB_KIND, m[RGB_KIND])
     write_image(out / "first.png", first)
     return first.shape[0], first.shape[1]
 
@@ -257,21 +258,21 @@ def cmd_export_chunk(a: argparse.Namespace) -> int:
 
     c = Corpus(a.corpus)
     if a.chunk is None:
-        shard, chunks = joined_chunks(c, a.segment, ("json", "pose.mkv"))
+        shard, chunks = joined_chunks(c, a.segment, (CHUNK_KIND, POSE_KIND))
         if not chunks:
             raise ValueError(f"{shard}: segment {a.segment!r} has no video chunks (it is shorter than one chunk)")
         print(f"segment {a.segment}: {len(chunks)} video chunks in {shard}")
         for k, m in chunks.items():
-            rec = chunk_record(m["json"], chunk_key(a.segment, k), str(shard)) if "json" in m else {}
+            rec = chunk_record(m[CHUNK_KIND], chunk_key(a.segment, k), str(shard)) if CHUNK_KIND in m else {}
             f0, f1 = rec.get("frames", ("?", "?"))
-            print(f"  --chunk {k}: source frames [{f0}, {f1}), {'pose target' if 'pose.mkv' in m else 'no pose target'}")
+            print(f"  --chunk {k}: source frames [{f0}, {f1}), {'pose target' if POSE_KIND in m else 'no pose target'}")
         return 0
     if a.out is None:
         raise ValueError("export-chunk --chunk N needs --out DIR")
     out = Path(a.out)
     h, w = export_chunk(c, a.segment, a.chunk, out)
-    print(f"wrote {out / 'pose.mkv'}, {out / 'first.png'} ({h}x{w}) and {out / 'rgb.mp4'} (the recorded RGB)")
-    print(f"next: marionette generate RUNS --pose {out / 'pose.mkv'} --first-frame {out / 'first.png'} --out painted.mp4")
+    print(f"wrote {out / POSE_KIND}, {out / 'first.png'} ({h}x{w}) and {out / RGB_KIND} (the recorded RGB)")
+    print(f"next: marionette generate RUNS --pose {out / POSE_KIND} --first-frame {out / 'first.png'} --out painted.mp4")
     return 0
 
 

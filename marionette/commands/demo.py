@@ -10,6 +10,7 @@ from marionette.commands import command
 from marionette.commands.corpus import export_chunk, joined_chunks, synthetic_arguments
 from marionette.commands.render import render_source
 from marionette.commands.summary import inspect_text
+from marionette.corpus.video_shards import POSE_KIND
 from marionette.options import (
     positive_int,
 )
@@ -166,7 +167,7 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     print(f"    both trained in {time.time() - t:.1f} s")
     split = "test" if c.segment_ids("test") else None
     for seg in (r["segment"] for r in c.segments.to_pylist() if r["chunks"] and split in (None, r["split"])):
-        posed = list(joined_chunks(c, seg, ("pose.mkv",))[1])  # the chunks holding a pose target
+        posed = list(joined_chunks(c, seg, (POSE_KIND,))[1])  # the chunks holding a pose target
         if posed:
             chunk = posed[0]
             break
@@ -175,7 +176,7 @@ def _demo_observation(c, out: Path, steps: int) -> None:
         return
     export_chunk(c, seg, chunk, out)  # out/pose.mkv, out/first.png (and the recorded out/rgb.mp4)
     print(f"    painting chunk {chunk} of held-out segment {seg} from its first frame")
-    paint_video(runs, out / "pose.mkv", out / "first.png", out / "generated.mp4", chunks=4, steps=8, seed=0, fps=30.0)
+    paint_video(runs, out / POSE_KIND, out / "first.png", out / "generated.mp4", chunks=4, steps=8, seed=0, fps=30.0)
 
 
 def _train_quietly(corpus: str, out: str, config: dict) -> list[str]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from marionette.corpus import paths
 from marionette.options import near_ids
 
 
@@ -50,14 +51,14 @@ def inspect_text(corpus_path: Path, play_shards: int = 64, scene: str | None = N
         lines.append(f"vocab    {etype}: {v['size']} tokens ({', '.join(f'{n} {k}' for k, n in sorted(kinds.items()))})")
     if info.total_segments and one:
         lines += play_stats_lines(play_stats(c, max_shards=play_shards))
-    lines.append(f"shards   {len(info.shards)} state + video: {c.path / 'state'}, {c.path / 'video'}")
+    lines.append(f"shards   {len(info.shards)} state + video: {paths.state_dir(c.path)}, {paths.video_dir(c.path)}")
     from terrain_scan.options import ScanOptions
 
     scanned = ScanOptions.stored(c.path)
     if scanned is None:
         lines.append("terrain  not scanned yet")
     else:
-        lines.append(f"terrain  scanned with {scanned.describe()} ({c.path / 'meta' / 'scan.json'})")
+        lines.append(f"terrain  scanned with {scanned.describe()} ({paths.meta(c.path, paths.SCAN)})")
     q = c.quarantine.to_pylist()
     lines.append(f"quarantine {len(q)}")
     for r in q:

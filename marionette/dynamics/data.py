@@ -121,7 +121,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from marionette import geometry as geo
-from marionette.corpus import RESAMPLE_VERSION, Corpus, fixed_rows, world_of_rows
+from marionette.corpus import RESAMPLE_VERSION, Corpus, fixed_rows, paths, world_of_rows
 from marionette.corpus.vocab import ActionTokens, entity_type_key  # noqa: F401 — the models' token tables
 from marionette.dynamics.config import N_CLEARANCES, PATCH_SIZE, TERRAIN_FEATURES
 from marionette.dynamics.model import PLAYED_OUT_SLACK, Frames
@@ -190,7 +190,7 @@ class Normaliser:
         if std_floor <= 0:
             raise ValueError(f"std_floor {std_floor} must be > 0")
         st = c.stats.get("state")
-        where = c.path / "meta" / "stats.json"
+        where = paths.meta(c.path, paths.STATS)
         if st is None:
             raise KeyError(f"{where}: no 'state' entry")
         mean, std = np.asarray(st["mean"], np.float64), np.asarray(st["std"], np.float64)
@@ -348,7 +348,7 @@ def terrain_feature_path(corpus: Corpus | Path | str, shard: int, fps: float = D
     geometry = json.dumps([PATCH_SIZE, PATCH_CELL_M, PATCH_AHEAD_M, N_CLEARANCES])
     terrain = json.dumps({st: stage_chunk_hashes(c, st) for st in stages}, sort_keys=True)
     key = text_sha256(_dynamics_key(c, shard, fps, method), terrain, FEATURE_VERSION, geometry)[:16]
-    return c.path / "derived" / TERRAIN_DIR / f"shard-{shard:06d}-{fps:g}fps-{method}-{key}.arrow"
+    return paths.derived(c.path, TERRAIN_DIR) / f"shard-{shard:06d}-{fps:g}fps-{method}-{key}.arrow"
 
 
 def _feature_schema(layout: Layout) -> pa.Schema:
@@ -440,7 +440,7 @@ def shard_windows_dir(
         WINDOWS_VERSION,
     ]
     reads = f"t{int(terrain)}r{int(relative)}"
-    return c.path / "derived" / WINDOWS_DIR / f"shard-{shard:06d}-{fps:g}fps-{method}-{reads}-{text_sha256(*parts)[:16]}"
+    return paths.derived(c.path, WINDOWS_DIR) / f"shard-{shard:06d}-{fps:g}fps-{method}-{reads}-{text_sha256(*parts)[:16]}"
 
 
 def shard_windows(

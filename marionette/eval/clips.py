@@ -153,9 +153,11 @@ def segment_chunks(c: Corpus, segment: str) -> list[dict[str, Any]]:
     vpath = c.video_path(c.segment_row(segment)["shard"])
     if not vpath.exists():
         return []
-    chunks = video_shards.read_chunks(vpath, segment, kinds=("json", "rgb.mp4"))
+    chunks = video_shards.read_chunks(vpath, segment, kinds=(video_shards.CHUNK_KIND, video_shards.RGB_KIND))
     recs = {k: video_shards.chunk_record(m["json"], k, str(vpath)) for k, m in chunks.items() if "json" in m}
-    return sorted(({**r, "key": k, "rgb": chunks[k].get("rgb.mp4")} for k, r in recs.items()), key=lambda r: r["frames"][0])
+    return sorted(
+        ({**r, "key": k, "rgb": chunks[k].get(video_shards.RGB_KIND)} for k, r in recs.items()), key=lambda r: r["frames"][0]
+    )
 
 
 def _horizon_times(table: pa.Table, seed_frames: int, seg_t: np.ndarray) -> tuple[int, int]:

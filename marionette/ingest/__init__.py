@@ -11,6 +11,7 @@ import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
+from marionette.corpus import paths
 from marionette.corpus.lock import corpus_lock
 from marionette.ingest.finalize import finalize, finish_pending
 from marionette.ingest.sample import (
@@ -25,7 +26,16 @@ from marionette.ingest.sample import (
     split_of,
 )
 from marionette.ingest.video import VideoSettings
-from marionette.recordings.wildworld import SampleError, SampleRef, discover, read_sample
+from marionette.recordings.wildworld import (
+    RGB_FILE,
+    SKELETON_FILE,
+    STAGES_FILE,
+    STATE_FILE,
+    SampleError,
+    SampleRef,
+    discover,
+    read_sample,
+)
 from marionette.schema import SchemaError
 
 __all__ = [
@@ -55,7 +65,7 @@ __all__ = [
 
 def load_stage_map(source: Path) -> dict[str, str]:
     """Optional ``stages.json`` in the source root: recording id (``part/id``) → stage id."""
-    p = Path(source) / "stages.json"
+    p = Path(source) / STAGES_FILE
     if not p.exists():
         return {}
     try:
@@ -67,7 +77,7 @@ def load_stage_map(source: Path) -> dict[str, str]:
 
 def check_corpus_options(corpus: Path, options: IngestOptions) -> None:
     """Refuse to add samples of one scene layout to a corpus built for another."""
-    info = Path(corpus) / "meta" / "info.json"
+    info = paths.meta(corpus, paths.INFO)
     if info.exists():
         d = json.loads(info.read_text())
         have_scene = d.get("ingest", {}).get("scene")
@@ -107,7 +117,7 @@ def check_source(source: Path, refs: list[SampleRef]) -> None:
         return
     source = Path(source)
     hint = ""
-    if any((source / f).exists() for f in ("state.csv", "rgb.mp4", "skeleton.npz")):
+    if any((source / f).exists() for f in (STATE_FILE, RGB_FILE, SKELETON_FILE)):
         hint = f": it is a sample directory itself; pass the directory above its part, e.g. {source.parent.parent}"
     elif source.is_dir() and not any(p.is_dir() and p.name.startswith("data_part") for p in source.iterdir()):
         hint = ": it holds no data_part*/ directory (a WildWorld tree is <root>/data_part<x>/<sample>/)"

@@ -115,9 +115,9 @@ def _load_records(d: Path) -> list[dict]:
 
 def _plan(corpus: Path, options_key: str | None) -> dict:
     """Shard numbers and renames for every staged record; paths relative to the corpus."""
-    committed = {r["key"]: r for r in _load_records(corpus / "meta" / "samples")}
+    committed = {r["key"]: r for r in _load_records(paths.samples_dir(corpus))}
     staged = []
-    for p in sorted((corpus / "staging").glob("*/record.json")):
+    for p in sorted(paths.staging_root(corpus).glob("*/record.json")):
         rec = _read_record(p)
         if options_key is not None and rec.get("options_key") != options_key:
             shutil.rmtree(p.parent, ignore_errors=True)  # staged by a build with other options: stale
@@ -213,8 +213,8 @@ def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[st
     Staged samples from a build with other ingest options are discarded, not committed.
     """
     corpus = Path(corpus)
-    (corpus / "state").mkdir(parents=True, exist_ok=True)
-    (corpus / "video").mkdir(parents=True, exist_ok=True)
+    paths.state_dir(corpus).mkdir(parents=True, exist_ok=True)
+    paths.video_dir(corpus).mkdir(parents=True, exist_ok=True)
     plan_path = paths.meta(corpus, "finalize-plan.json")
     finish_pending(corpus)
     plan = _plan(corpus, options.key() if options is not None else None)
@@ -227,8 +227,7 @@ def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[st
 
 def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:
     """Derive segments.parquet, samples.parquet, quarantine.parquet, vocab.json, stats.json and info.json."""
-    meta = corpus / "meta"
-    info_path = meta / "info.json"
+    info_path = paths.meta(corpus, paths.INFO)
     old_info = CorpusInfo.read(info_path) if info_path.exists() else None
     if options is None:
         if old_info is None:
@@ -238,7 +237,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     if old_info:
         stages = {**old_info.stages, **stages}
     placed = read_placements(corpus)  # the terrain scan's grouping (or a user's edit of it); the source's map wins
-    records = _load_records(meta / "samples")
+    records = _load_records(paths.samples_dir(corpus))
     ingested = [r for r in records if r["status"] == "ingested"]
     layouts = _layouts(options, ingested)
 
@@ -292,10 +291,10 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
         "shard": pa.int32(),
     }
     write_parquet(
-        meta / "segments.parquet", pa.table({k: pa.array(v, seg_types.get(k, pa.string())) for k, v in seg_rows.items()})
+        paths.meta(corpus, paths.SEGMENTS), pa.table({k: pa.array(v, seg_types.get(k, pa.string())) for k, v in seg_rows.items()})
     )
     write_parquet(
-        meta / "samples.parquet",
+        paths.meta(corpus, paths.SAMPLES),
         pa.table(
             {
                 "sample": pa.array([r["sample"] for r in records], pa.string()),
@@ -310,7 +309,7 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     )
     bad = [r for r in records if r["status"] == "quarantined"]
     write_parquet(
-        meta / "quarantine.parquet",
+        paths.meta(corpus, paths.QUARANTINE),
         pa.table(
             {
                 "sample": pa.array([r["sample"] for r in bad], pa.string()),
@@ -327,8 +326,8 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
         stats = {"scenes": {name: build_stats(recs) for name, recs in scenes.items()}}
     else:
         vocab, stats = build_vocab(ingested), build_stats(ingested)
-    write_json(meta / "vocab.json", vocab)
-    write_json(meta / "stats.json", stats)
+    write_json(paths.meta(corpus, paths.VOCAB), vocab)
+    write_json(paths.meta(corpus, paths.STATS), stats)
 
     only = next(iter(layouts.values())) if len(layouts) == 1 else None
     fps = sorted({r["fps"] for r in ingested}) or [30.0]

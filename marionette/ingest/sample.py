@@ -22,7 +22,11 @@ from marionette.corpus import paths, state_table
 from marionette.ingest.video import VideoSettings, write_video_shard
 from marionette.io import file_sha256, text_sha256, write_ipc, write_json
 from marionette.recordings.wildworld import (
+    DEPTH_FILE,
     MAX_MEMBER_BYTES,
+    RGB_FILE,
+    SKELETON_FILE,
+    STATE_FILE,
     RecordedSample,
     SampleError,
     SampleRef,
@@ -156,7 +160,7 @@ def file_digests(ref: SampleRef, known: dict | None = None) -> dict[str, list]:
     """[size, mtime_ns, sha256] of a sample's input files; a file whose size and mtime match ``known``
     reuses its recorded digest, so a rerun over hundreds of hours of video reads no video bytes."""
     out: dict[str, list] = {}
-    for name, p in [(f, ref.path / f) for f in ("state.csv", "skeleton.npz", "rgb.mp4", "depth.mkv")] + [
+    for name, p in [(f, ref.path / f) for f in (STATE_FILE, SKELETON_FILE, RGB_FILE, DEPTH_FILE)] + [
         ("skeleton_edges.json", ref.edges_path)
     ]:
         if not p.exists():
@@ -418,7 +422,7 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
         write_ipc(stage / "state.arrow", pa.concat_tables(tables), options.compression)
         video_records = write_video_shard(
             stage / "video.tar",
-            ref.path / "rgb.mp4",
+            ref.path / RGB_FILE,
             [(s["segment"], s["start"], s["stop"], sample.camera_K[s["start"] : s["stop"]]) for s in segs],
             sample.fps,
             options.video,

@@ -32,8 +32,12 @@ import pyarrow.compute as pc
 
 from marionette.io import write_json
 from marionette.recordings.wildworld import (
+    DEPTH_FILE,
     MAX_MEMBER_BYTES,
     REQUIRED_FILES,
+    RGB_FILE,
+    SKELETON_FILE,
+    STATE_FILE,
     SampleError,
     SampleRef,
     SkeletonArchive,
@@ -184,9 +188,9 @@ def _survey_sample(ref: SampleRef, out: Survey, max_member_bytes: int) -> dict:
     missing = [f for f in REQUIRED_FILES if not (ref.path / f).is_file()]
     if missing:
         raise SampleError(f"{ref.path}: missing {', '.join(missing)}")
-    n_video, fps, h, w = video_info(ref.path / "rgb.mp4")
-    video_info(ref.path / "depth.mkv")  # opens, or names the file
-    csv_path = ref.path / "state.csv"
+    n_video, fps, h, w = video_info(ref.path / RGB_FILE)
+    video_info(ref.path / DEPTH_FILE)  # opens, or names the file
+    csv_path = ref.path / STATE_FILE
     header = csv_header(csv_path)
     lists = {
         kind: sorted({int(m.group(1)) for c in header if (m := re.fullmatch(rf"{kind}\.list\.([0-9]+)\.type_id", c))})
@@ -212,7 +216,7 @@ def _survey_sample(ref: SampleRef, out: Survey, max_member_bytes: int) -> dict:
             any_monster |= np.isfinite(v)
     out.absent_monster_frames += int(n - any_monster.sum())
 
-    archive = SkeletonArchive(ref.path / "skeleton.npz", max_member_bytes)
+    archive = SkeletonArchive(ref.path / SKELETON_FILE, max_member_bytes)
     keys = []
     for key in archive.keys:
         m = SKELETON_KEY.fullmatch(key)
@@ -376,12 +380,12 @@ def _entity_frames(ref: SampleRef, key: str, limit: int, max_member_bytes: int) 
     owner = "n" if kind == "w" else kind
     prefix = _list_prefix(owner, index)
     cols = [prefix + ("weapon_id" if kind == "w" else "type_id")] + ([prefix + "rot"] if kind != "w" else [])
-    csv_path = ref.path / "state.csv"
+    csv_path = ref.path / STATE_FILE
     raw, n = read_state_csv(csv_path, cols)
     present = scalar_column(raw[cols[0]], csv_path, cols[0]) == type_id
-    arr = SkeletonArchive(ref.path / "skeleton.npz", max_member_bytes).read(key, max_frames=n + 64)
+    arr = SkeletonArchive(ref.path / SKELETON_FILE, max_member_bytes).read(key, max_frames=n + 64)
     if arr.shape[0] != n:
-        raise SampleError(f"{ref.path / 'skeleton.npz'}: {key!r} has {arr.shape[0]} frames, state.csv {n} rows")
+        raise SampleError(f"{ref.path / SKELETON_FILE}: {key!r} has {arr.shape[0]} frames, state.csv {n} rows")
     rot = None
     if kind != "w":
         rot = tuple_column(raw[cols[1]], 4, csv_path, cols[1])
@@ -495,7 +499,7 @@ def recording_layout(ref: SampleRef, rigs: Path | None = None, index: dict[str, 
 
     index = rig_index(rigs) if index is None else index
     cols = {"m": "monster.list.0.type_id", "n": "npc.list.0.type_id", "w": "npc.list.0.weapon_id"}
-    csv_path = ref.path / "state.csv"
+    csv_path = ref.path / STATE_FILE
     raw, _ = read_state_csv(csv_path, list(cols.values()))
     picked = {}
     for kind, col in cols.items():

@@ -251,7 +251,7 @@ def write_video_shard(
                             }
                             mp4 = encode_mp4(np.stack(buffers.pop(key)), fps, settings)
                             key = video_shards.chunk_key(seg, ci)
-                            video_shards.add_member(tar, video_shards.member_name(key, "rgb.mp4"), mp4)
+                            video_shards.add_member(tar, video_shards.member_name(key, video_shards.RGB_KIND), mp4)
                             video_shards.add_member(
                                 tar, video_shards.member_name(key, "json"), json.dumps(rec, sort_keys=True).encode()
                             )

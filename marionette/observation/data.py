@@ -37,9 +37,9 @@ import torch
 import webdataset as wds
 
 from marionette.bridge.gbuffer import CODE_MAX, iter_codes
-from marionette.corpus import Corpus
+from marionette.corpus import Corpus, paths
 from marionette.corpus.paths import SHARD_NAME, parse_chunk_key
-from marionette.corpus.video_shards import PoseShard, member_index, read_at
+from marionette.corpus.video_shards import POSE_KIND, RGB_KIND, PoseShard, member_index, read_at
 from marionette.ingest.video import decode_frames
 
 
@@ -93,8 +93,8 @@ def check_size(src_hw: tuple[int, int], size: tuple[int, int], where: str) -> in
 def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) -> Clip:
     """A webdataset sample {"__key__", "rgb.mp4", "pose.mkv", ...} → the clip of ``frames`` frames from ``start``."""
     key = sample["__key__"]
-    rgb = np.stack(decode_frames(sample["rgb.mp4"]))  # (n, H, W, 3) uint8
-    codes = np.stack(list(iter_codes(sample["pose.mkv"], name=f"{key}.pose.mkv")))  # (n, H, W, 3) uint16
+    rgb = np.stack(decode_frames(sample[RGB_KIND]))  # (n, H, W, 3) uint8
+    codes = np.stack(list(iter_codes(sample[POSE_KIND], name=f"{key}.{POSE_KIND}")))  # (n, H, W, 3) uint16
     if codes.shape[:3] != rgb.shape[:3]:
         raise ValueError(f"{key}: pose.mkv {codes.shape[:3]} and rgb.mp4 {rgb.shape[:3]} differ in frames or size")
     if start + frames > len(rgb):
@@ -143,7 +143,9 @@ class ClipSource:
             raise ValueError(f"a clip has 4k + 1 frames (Wan's VAE), not {frames}")
         self.split, self.frames, self.size = split, int(frames), (int(size[0]), int(size[1]))
         self.segments = set(self.corpus.segment_ids(split))
-        self.shards = sorted(str(p) for p in (self.corpus.path / "video").glob("shard-*.tar") if SHARD_NAME.fullmatch(p.stem))
+        self.shards = sorted(
+            str(p) for p in paths.video_dir(self.corpus.path).glob("shard-*.tar") if SHARD_NAME.fullmatch(p.stem)
+        )
         self.skipped: dict[str, str] = {}
         self.actions = actions
         self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # segment → (source frames, tokens (n, N))
@@ -208,7 +210,7 @@ class ClipSource:
         try:
             for sample in wds.WebDataset(self.shards, shardshuffle=False, empty_check=False, nodesplitter=every_shard):
                 key = sample["__key__"]
-                sample.pop("pose.mkv", None)  # a video shard written before pose shards: its targets are not joined
+                sample.pop(POSE_KIND, None)  # a video shard written before pose shards: its targets are not joined
                 try:
                     segment = parse_chunk_key(key, str(sample.get("__url__", "")))[0]
                 except ValueError as err:
@@ -223,7 +225,7 @@ class ClipSource:
                     pose = self._pose_shard(int(SHARD_NAME.fullmatch(Path(url).stem)["n"]))
                 use = self._usable(key, sample.get("json"), pose)
                 if use is not None:
-                    sample["pose.mkv"] = pose[0].read(use[0])
+                    sample[POSE_KIND] = pose[0].read(use[0])
                     yield sample, use[1]
         finally:
             if pose is not None:
@@ -249,7 +251,7 @@ class ClipSource:
             stamp = (*_stamp(vpath), *_stamp(ppath))
             with pose[0]:
                 for key, m in wanted.items():
-                    if "rgb.mp4" not in m:
+                    if RGB_KIND not in m:
                         self.skipped[key] = "no rgb.mp4 member"
                         continue
                     data = read_at(vpath, m["json"].offset_data, m["json"].size) if "json" in m else None
@@ -257,7 +259,7 @@ class ClipSource:
                     if use is None:
                         continue
                     mkv, frames, first = use
-                    rgb = m["rgb.mp4"]
+                    rgb = m[RGB_KIND]
                     at = ((rgb.offset_data, rgb.size), (mkv.offset_data, mkv.size))
                     refs.append(ChunkRef(key, str(vpath), str(ppath), *at, frames, first, stamp))
         return refs
@@ -269,8 +271,8 @@ class ClipSource:
             raise ValueError(f"{ref.video}: the video or pose shard of chunk {ref.key} changed since it was indexed")
         sample = {
             "__key__": ref.key,
-            "rgb.mp4": read_at(Path(ref.video), *ref.rgb_at),
-            "pose.mkv": read_at(Path(ref.pose), *ref.pose_at),
+            RGB_KIND: read_at(Path(ref.video), *ref.rgb_at),
+            POSE_KIND: read_at(Path(ref.pose), *ref.pose_at),
         }
         clip = decode_clip(sample, ref.frames, self.size, 0)
         return self._actions_from(ref.first_frame, clip) if self.actions else clip

@@ -56,7 +56,7 @@ from torch import Tensor, nn
 
 from marionette import training
 from marionette.checkpoint import full_state, load_checkpoint, write_checkpoint
-from marionette.corpus import Corpus
+from marionette.corpus import Corpus, paths
 from marionette.distributed import rank_world
 from marionette.io import atomic_path, file_sha256, read_tensors, write_json
 from marionette.observation.config import WanTrainConfig
@@ -65,7 +65,7 @@ from marionette.observation.generate import WAN_SETTINGS
 from marionette.observation.references import chunk_references, layout_bands, reference_sheet
 from marionette.observation.wan import WanFunControl, find_vae, forward_with_reference, ref_tokens, save_original
 
-CACHE_DIR = "derived/wan-latents"
+CACHE_DIR = "wan-latents"  # under the corpus's derived products
 LORA_TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "ffn.net.0.proj", "ffn.net.2")
 EVAL_DRAWS = 4
 HELD_OUT = "test"
@@ -118,7 +118,7 @@ class LatentCache:
     process ``encoded`` and what it found already there (``reused``)."""
 
     def __init__(self, corpus: Path, key: str, frames: int, size: tuple[int, int], references: bool = False) -> None:
-        self.dir = Path(corpus) / CACHE_DIR / f"{key}-{frames}x{size[0]}x{size[1]}{'-refs' if references else ''}"
+        self.dir = paths.derived(corpus, CACHE_DIR) / f"{key}-{frames}x{size[0]}x{size[1]}{'-refs' if references else ''}"
         self.encoded = self.reused = 0
 
     def path(self, rgb: Tensor, pose: Tensor, sheet: Tensor | None = None) -> Path:

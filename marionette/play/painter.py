@@ -38,12 +38,12 @@ def recorded_frame(corpus: Corpus, segment: str, frame: int) -> np.ndarray:
     """The recorded RGB frame (H, W, 3) uint8 of ``segment`` at source frame ``frame``, from a video chunk holding it."""
     row = corpus.segment_row(segment)
     path = corpus.video_path(row["shard"])
-    chunks = video_shards.read_chunks(path, segment, kinds=("json", "rgb.mp4"))
+    chunks = video_shards.read_chunks(path, segment, kinds=(video_shards.CHUNK_KIND, video_shards.RGB_KIND))
     for key, m in sorted(chunks.items()):
         rec = video_shards.chunk_record(m["json"], key, str(path))
         lo, hi = (int(x) for x in rec["frames"])
-        if lo <= frame < hi and "rgb.mp4" in m:
-            got = decode_frames(m["rgb.mp4"], {frame - lo}).get(frame - lo)
+        if lo <= frame < hi and video_shards.RGB_KIND in m:
+            got = decode_frames(m[video_shards.RGB_KIND], {frame - lo}).get(frame - lo)
             if got is not None:
                 return got
     raise ValueError(f"{path}: no video chunk of segment {segment!r} holds source frame {frame}")

@@ -32,7 +32,13 @@ import pyarrow.csv as pacsv
 
 from marionette.schema import Entity, Layout
 
-REQUIRED_FILES = ("rgb.mp4", "depth.mkv", "state.csv", "skeleton.npz")
+RGB_FILE = "rgb.mp4"  # a sample's files
+DEPTH_FILE = "depth.mkv"
+STATE_FILE = "state.csv"
+SKELETON_FILE = "skeleton.npz"
+EDGES_FILE = "skeleton_edges.json"  # beside the samples of a part
+STAGES_FILE = "stages.json"  # a tree's own stage map, at its root
+REQUIRED_FILES = (RGB_FILE, DEPTH_FILE, STATE_FILE, SKELETON_FILE)
 MAX_MEMBER_BYTES = 2 << 30  # default cap on one inflated skeleton.npz member (IngestOptions.max_member_bytes)
 MAX_JOINTS = 1024  # no rig comes near this; a member declaring more joints is refused unread
 MAX_EDGES_BYTES = 16 << 20  # a skeleton_edges.json (a few KiB for WildWorld's 38 types) larger than this is refused unread
@@ -67,10 +73,10 @@ class SampleRef:
 
     @property
     def edges_path(self) -> Path:
-        return self.root / self.part / "skeleton_edges.json"
+        return self.root / self.part / EDGES_FILE
 
 
-_KNOWN_FILES = {"stages.json", "skeleton_edges.json"}  # files of the layout that are not samples
+_KNOWN_FILES = {STAGES_FILE, EDGES_FILE}  # files of the layout that are not samples
 
 
 def discover(source: Path, skipped: list | None = None) -> list[SampleRef]:
@@ -477,8 +483,8 @@ def read_sample(
     per_entity = {e.name: _entity_columns(e, layout) for e in layout.entities}
     for m in per_entity.values():
         cols += list(m.values())
-    raw, n = read_state_csv(d / "state.csv", cols)
-    csv_path = d / "state.csv"
+    raw, n = read_state_csv(d / STATE_FILE, cols)
+    csv_path = d / STATE_FILE
 
     def tup(c: str, w: int) -> np.ndarray:
         return tuple_column(raw[c], w, csv_path, c)
@@ -486,11 +492,11 @@ def read_sample(
     def num(c: str) -> np.ndarray:
         return scalar_column(raw[c], csv_path, c)
 
-    npz = d / "skeleton.npz"
+    npz = d / SKELETON_FILE
     skel = SkeletonArchive(npz, max_member_bytes)
     edges = load_edges(ref.edges_path)
-    n_video, fps, vh, vw = video_info(d / "rgb.mp4")
-    n_depth = video_info(d / "depth.mkv")[0]
+    n_video, fps, vh, vw = video_info(d / RGB_FILE)
+    n_depth = video_info(d / DEPTH_FILE)[0]
 
     sample = RecordedSample(ref=ref, n_frames=n, fps=fps, video_size=(vh, vw))
     sample.camera_K = tup("camera.K", 4)

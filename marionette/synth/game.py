@@ -18,6 +18,7 @@ import av
 import numpy as np
 
 from marionette.geometry import matrix_to_quat, yaw_quat
+from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, SKELETON_FILE, STATE_FILE
 from marionette.schema import load_rig
 from terrain_scan.depth import SYNTHETIC_DEPTH_ENCODING
 
@@ -241,9 +242,9 @@ def write_recording(
     }
     # the recording's time in the container (scanners read it; never the wall clock of the run)
     created = datetime.fromtimestamp(RECORDING_EPOCH + 86400 * index, UTC).strftime("%Y-%m-%dT%H:%M:%S.000000Z")
-    _write_video(d / "rgb.mp4", rgb, fps, "libx264", "yuv420p", "mp4", x264, {"creation_time": created})
+    _write_video(d / RGB_FILE, rgb, fps, "libx264", "yuv420p", "mp4", x264, {"creation_time": created})
     _write_video(
-        d / "depth.mkv",
+        d / DEPTH_FILE,
         depth,
         fps,
         "libx265",
@@ -317,7 +318,7 @@ def write_recording(
             w.writerow(COLUMNS)
             w.writerows(rows)
 
-    _atomic(d / "state.csv", write_csv)
+    _atomic(d / STATE_FILE, write_csv)
 
     m = sk["monster"].astype(np.float32)
     m[~present] = np.nan
@@ -326,7 +327,7 @@ def write_recording(
         f"n1_{role.player.type_id}": sk["hunter"].astype(np.float32),
         f"w1_{role.weapon.type_id}": sk["weapon"].astype(np.float32),
     }
-    _atomic(d / "skeleton.npz", lambda tmp: _savez(tmp, arrays))
+    _atomic(d / SKELETON_FILE, lambda tmp: _savez(tmp, arrays))
 
     # Truth side file.
     tdir = Path(out_dir) / "truth" / part
