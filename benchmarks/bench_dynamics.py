@@ -65,8 +65,9 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 from marionette.checkpoint import save_checkpoint
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.config import DynamicsConfig, TrainConfig
-from marionette.dynamics.data import ActionTokens, Normaliser, WindowData, WindowSampler
+from marionette.dynamics.data import ActionTokens, WindowData, WindowSampler
 from marionette.dynamics.model import DynamicsModel, Frames, parameter_counts
+from marionette.dynamics.normalise import Normaliser
 from marionette.dynamics.rollout import ModelStream, Rollout, force_windows, open_terrain_field, rollout
 from marionette.dynamics.train import batches_from, losses, make_optimizer, train
 from marionette.eval.control import held_out_seeds, recorded_swingers, swing_rates

@@ -16,19 +16,12 @@ from marionette import geometry as geo
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.corpus.paths import stage_dir
 from marionette.dynamics.config import TERRAIN_FEATURES, DynamicsConfig
-from marionette.dynamics.data import (
-    ActionTokens,
-    HeldOutWindows,
-    Normaliser,
-    WindowData,
-    WindowSampler,
-    shard_windows_dir,
-    terrain_feature_path,
-    terrain_feature_shard,
-    vocab_sizes,
-)
+from marionette.dynamics.data import ActionTokens, HeldOutWindows, WindowData, WindowSampler, vocab_sizes
+from marionette.dynamics.features import terrain_feature_path, terrain_feature_shard
 from marionette.dynamics.model import DynamicsModel, action_training_pair, pose_training_pair
+from marionette.dynamics.normalise import Normaliser
 from marionette.dynamics.state import split_state
+from marionette.dynamics.windows import shard_windows_dir
 from terrain_scan.field import egocentric_patch, joint_clearances, open_stage
 
 HELD_OUT = "data_part1/rec0001"  # the recording the split tests move to "test"

@@ -315,7 +315,7 @@ def test_cli_trains_then_rolls_out_with_a_scripted_root_and_renders(scanned, seg
 
 def test_relative_feature_known_answer_far_from_the_origin():
     from marionette import geometry as geo
-    from marionette.dynamics.data import RELATIVE_SCALE_M, relative_roots
+    from marionette.dynamics.features import RELATIVE_SCALE_M, relative_roots
 
     a = np.array([1.0e4, 5.0, -1.0e4])
     roots = np.stack([a, a + [3.0, 0.0, 0.0], a + [-40.0, 0.0, 0.0]])  # the third is farther from both

@@ -95,7 +95,8 @@ def test_an_untrained_model_is_copy_last(split_corpus, tmp_path):
 def test_penetration_hinge_on_recorded_bodies(scanned_corpus):
     """On recorded bodies the hinge is mean ReLU(margin − clearance)² over known key joints (the
     clearances the terrain features hold), and its gradient lifts joints that sink."""
-    from marionette.dynamics.data import HeldOutWindows, Normaliser, WindowData
+    from marionette.dynamics.data import HeldOutWindows, WindowData
+    from marionette.dynamics.normalise import Normaliser
     from marionette.dynamics.train import N_PATCH, PenetrationHinge
 
     c = Corpus(scanned_corpus)

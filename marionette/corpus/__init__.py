@@ -19,6 +19,8 @@ from marionette.schema import Layout, SchemaError, check_layout, layout_from_jso
 
 RESAMPLE_VERSION = "1"
 
+MODEL_FPS = 20.0  # the rate the dynamics models step at: the dynamics view's default rate
+
 
 class Corpus:
     """A built corpus directory. ``expect`` (a Layout or scene name) makes every read check the layout.
@@ -180,10 +182,10 @@ class Corpus:
 
     # -- derived: the dynamics view ----------------------------------------------------------------
 
-    def dynamics_dir(self, fps: float = 20.0, method: str = "linear") -> Path:
+    def dynamics_dir(self, fps: float = MODEL_FPS, method: str = "linear") -> Path:
         return self.path / "derived" / f"dynamics-{fps:g}fps-{method}"
 
-    def dynamics_shard(self, shard: int, fps: float = 20.0, method: str = "linear") -> pa.Table:
+    def dynamics_shard(self, shard: int, fps: float = MODEL_FPS, method: str = "linear") -> pa.Table:
         """The shard resampled to ``fps`` (cached under derived/, recomputed when its source changes)."""
         key = text_sha256(self.shard_hash(shard), f"{fps:g}", method, RESAMPLE_VERSION, self.layout.hash)[:16]
         path = self.dynamics_dir(fps, method) / f"shard-{shard:06d}-{key}.arrow"
@@ -203,7 +205,7 @@ class Corpus:
                 old.unlink(missing_ok=True)
         return table
 
-    def dynamics_segment(self, segment: str, fps: float = 20.0, method: str = "linear") -> pa.Table:
+    def dynamics_segment(self, segment: str, fps: float = MODEL_FPS, method: str = "linear") -> pa.Table:
         t = self.dynamics_shard(self.segment_row(segment)["shard"], fps, method)
         return t.filter(pc.equal(t["segment"], segment))
 
@@ -283,3 +285,8 @@ def resample_segment(layout: Layout, seg: pa.Table, fps: float, method: str = "l
     cols["camera.pos"] = geo.resample_positions(t_src, fixed_rows(seg["camera.pos"], 3), t_dst, method)
     cols["camera.rot"] = geo.resample_quats(t_src, fixed_rows(seg["camera.rot"], 4), t_dst, method)
     return state_table(layout, cols)
+
+
+def as_corpus(corpus: Corpus | Path | str, scene: str | None = None) -> Corpus:
+    """``corpus`` itself, or the Corpus at that path (its scene ``scene``, in a corpus of several)."""
+    return corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus), scene=scene)

@@ -22,7 +22,7 @@ per predicted frame t = 0, 1, ... (counted from the first frame after the seed):
    corrected skeletons (``geometry.world_to_state``); that corrected frame is what ActionGPT reads next.
 
 Terrain features (for entities whose switch is on) are re-derived each frame with
-``data.compute_terrain_features`` from the corrected world state. PoseGPT reads the terrain of the frame
+``features.compute_terrain_features`` from the corrected world state. PoseGPT reads the terrain of the frame
 being animated before that frame's body exists, so its features there are computed from the predicted
 root with the previous frame's root-local body (an approximation; ActionGPT reads exact ones).
 The relative feature (``relative_position`` models) is re-derived the same way: from the corrected world
@@ -45,19 +45,13 @@ import torch
 from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
 from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_meta
-from marionette.corpus import Corpus, fixed_rows, state_table, world_of_rows
+from marionette.corpus import Corpus, as_corpus, fixed_rows, state_table, world_of_rows
 from marionette.dynamics.config import DynamicsConfig
 from marionette.dynamics.controls import Force, add_rollout_arguments
-from marionette.dynamics.data import (
-    ActionTokens,
-    Normaliser,
-    as_corpus,
-    compute_terrain_features,
-    relative_of_rows,
-    relative_roots,
-    terrain_features_of,
-)
+from marionette.dynamics.data import ActionTokens
+from marionette.dynamics.features import compute_terrain_features, relative_of_rows, relative_roots, terrain_features_of
 from marionette.dynamics.model import DynamicsModel, Frames
+from marionette.dynamics.normalise import Normaliser
 from marionette.dynamics.state import join_state, split_state
 from marionette.io import write_ipc
 from marionette.schema import state_schema

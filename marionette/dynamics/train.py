@@ -72,17 +72,9 @@ from marionette.checkpoint import save_checkpoint
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.dynamics.config import PATCH_SIZE, PRESETS, ROOT_PER_ENTITY, DynamicsConfig, TrainConfig
-from marionette.dynamics.data import (
-    ActionTokens,
-    Batch,
-    HeldOutWindows,
-    Normaliser,
-    WindowData,
-    WindowSampler,
-    ended_events,
-    train_batches,
-)
+from marionette.dynamics.data import ActionTokens, Batch, HeldOutWindows, WindowData, WindowSampler, ended_events, train_batches
 from marionette.dynamics.model import DynamicsModel, Frames, action_training_pair, parameter_counts, pose_training_pair
+from marionette.dynamics.normalise import Normaliser
 from marionette.dynamics.state import body_slices
 from marionette.schema import Layout
 

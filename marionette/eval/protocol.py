@@ -52,9 +52,8 @@ import pyarrow as pa
 
 from marionette.bridge.rules import RuleParams, enabled_rules
 from marionette.checkpoint import read_meta
-from marionette.corpus import Corpus, fixed_rows, world_of_rows
+from marionette.corpus import Corpus, as_corpus, fixed_rows, world_of_rows
 from marionette.corpus.vocab import ActionTokens, classify
-from marionette.dynamics.data import as_corpus
 from marionette.dynamics.rollout import (
     Force,
     Rollout,

@@ -36,8 +36,7 @@ from marionette.bridge.gbuffer import to_codes
 from marionette.bridge.rules import RULES
 from marionette.bridge.targets import TerrainScene, render_rows
 from marionette.checkpoint import read_meta
-from marionette.corpus import Corpus, fixed_rows
-from marionette.dynamics.data import as_corpus
+from marionette.corpus import Corpus, as_corpus, fixed_rows
 from marionette.dynamics.rollout import Rollout, checkpoint_dir, open_terrain_field, rollout_table
 from marionette.eval.control import tip_speeds
 from marionette.io import write_ipc
