@@ -438,7 +438,8 @@ def part_seeds(corpus: Path, steps: int, work: Path, seeds: list[int], sets: dic
     """The tests' tiny recipe (``TINY_DYNAMICS``, one torch thread) with ``sets`` overriding its knobs, trained at each
     seed: held-out one-step figures against the baselines, the forcing test's swing rate and the probe's counts."""
     from marionette.eval.config import PROTOCOLS
-    from marionette.eval.protocol import controllability_probe, select_windows
+    from marionette.eval.probe import controllability_probe
+    from marionette.eval.protocol import select_windows
 
     c = Corpus(corpus)
     paper = PROTOCOLS["paper"]

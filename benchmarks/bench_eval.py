@@ -82,16 +82,10 @@ def protocol(a: argparse.Namespace) -> None:
     """Minutes per table at the quick and paper protocols, and the probe's headline numbers against the window count."""
     import numpy as np
 
+    from marionette.eval.ablation import ablation_rollouts, rule_ablation
     from marionette.eval.config import PROTOCOLS
-    from marionette.eval.protocol import (
-        ablation_rollouts,
-        controllability_probe,
-        model_fps,
-        rule_ablation,
-        run_windows,
-        select_windows,
-        state_layer,
-    )
+    from marionette.eval.probe import controllability_probe
+    from marionette.eval.protocol import model_fps, run_windows, select_windows, state_layer
     from marionette.eval.report import long_windows, painted_rollouts
     from marionette.eval.video import long_horizon, paint_frames, score_videos, video_tables
 

@@ -21,19 +21,11 @@ from marionette.corpus import Corpus, world_of_rows
 from marionette.eval import clips as C
 from marionette.eval import metrics as M
 from marionette.eval import report as R
+from marionette.eval.ablation import rule_ablation
 from marionette.eval.clips import observation_fvd, rollout_clip, rollout_clips, rollout_fvd
 from marionette.eval.config import parse_protocol
-from marionette.eval.protocol import (
-    PROBE_CONDITIONS,
-    controllability_probe,
-    foot_joints,
-    recorded_rows,
-    rule_ablation,
-    run_windows,
-    select_windows,
-    state_layer,
-    window_metrics,
-)
+from marionette.eval.probe import PROBE_CONDITIONS, controllability_probe
+from marionette.eval.protocol import foot_joints, recorded_rows, run_windows, select_windows, state_layer, window_metrics
 from marionette.eval.report import evaluate
 from marionette.schema import load_scene, state_schema
 

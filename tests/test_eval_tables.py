@@ -11,17 +11,10 @@ import torch
 
 from marionette.corpus import Corpus
 from marionette.eval import video as V
+from marionette.eval.ablation import _ablation_row, recorded_window
 from marionette.eval.config import PROTOCOLS, EvalProtocol, parse_protocol
-from marionette.eval.protocol import (
-    _ablation_row,
-    controllability_probe,
-    pair_separation,
-    recorded_window,
-    select_windows,
-    shuffle_frames,
-    shuffle_runs,
-    token_runs,
-)
+from marionette.eval.probe import controllability_probe, shuffle_frames, shuffle_runs, token_runs
+from marionette.eval.protocol import pair_separation, select_windows
 
 PAPER = PROTOCOLS["paper"]
 GT_BEATS_SHUF_TARGET = 0.7  # the share of probe windows where Force-GT must beat Force-Shuf
@@ -223,7 +216,7 @@ def test_probe_gt_beats_shuf_on_most_windows(tiny_dynamics, dynamics_corpus):
 
 
 def test_class_ratios_pool_frames_by_the_recorded_class():
-    from marionette.eval.protocol import class_ratios
+    from marionette.eval.probe import class_ratios
 
     classes = [np.array(["attack", "attack", "none", "stationary"]), np.array(["stationary", "attack", "attack", "attack"])]
     gt = [np.array([0.1, 0.1, 9.0, 0.2]), np.array([0.2, 0.1, 0.1, 0.1])]

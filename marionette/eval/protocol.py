@@ -20,45 +20,27 @@ the controllability probe and the rule ablation. Definitions are DESIGN's "Evalu
   scanned terrain (NaN without one), the body's share of a follow-camera pose-control frame
   (``body_shares`` with the weapon counted for its owner; rendered at a small size), and the scene's
   root separation. Each generated number sits beside the same measurement on the recorded rows.
-- **Probe** (``controllability_probe``, Table 2): Free (no control), Force-GT (the recorded token stream of the
-  probe entity forced run by run, ``force_windows``), Force-Shuf (that stream permuted over frames with
-  ``default_rng([seed, window])``, ``shuffle_frames``) and the run-level shuffle (its runs of one token permuted as
-  wholes with ``default_rng([seed, window, 1])``, ``shuffle_runs``: progress runs on within each run, so its gap to
-  Force-GT is the token's effect alone, Force-Shuf's also the restarted progress): mean ± std of the entity's
-  RA-MPJPE, and the windows where Force-GT < Force-Shuf (and < the run-level shuffle). **Per-class ratios**
-  (``class_ratios``, the headline): every predicted frame belongs to the class (vocab.json) of its recorded token;
-  per class, the mean per-frame RA-MPJPE of each condition over its frames (all windows pooled) and its ratio to
-  Force-GT's. **Per-class compliance** (secondary): each run of one recorded token of class c is one instance; the
-  motion over its frames is classified with the corpus's own rule (``corpus.vocab.classify`` on mean horizontal
-  root speed, peak root-frame body speed incl. owned attachments, frames); compliance = share of instances whose
-  motion classifies as c, for Force-GT, Free and the recorded motion.
-- **Driving states** (``ablation_rollouts`` / ``rule_ablation``, Table 3): recorded / no rule / + collider /
-  + collider + cap on the same windows, seed and checkpoint: CFR (share of windows with a key joint below
-  H − 0.15 m), MMP, skate (``final_frame_skate``) and the root separation, all at the **final frame**, means over
-  windows and articulated entities; beside them the share of frames whose root is over scanned ground, and the
-  share of windows that end **beyond the cap**: a final horizontal separation above max(6 m, the separation at the
-  seed's last frame), the bound the cap holds (``beyond_cap``; 0 under the cap by construction).
+
+The probe (Table 2) is ``eval.probe``, the rule ablation (Table 3) ``eval.ablation``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
-from marionette.bridge.rules import RuleParams, enabled_rules
+from marionette.bridge.rules import enabled_rules
 from marionette.checkpoint import read_meta
 from marionette.corpus import Corpus, as_corpus, fixed_rows, world_of_rows
-from marionette.corpus.vocab import ActionTokens, classify
 from marionette.dynamics.rollout import (
     Force,
     Rollout,
     checkpoint_dir,
-    force_windows,
     forced_at,
     open_terrain_field,
     rollout_table,
@@ -73,8 +55,6 @@ ABLATION: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("+ collider", ("collider",)),
     ("+ collider + cap", ("collider", "cap")),
 )
-PROBE_CONDITIONS = ("free", "force_gt", "force_shuf", "force_shuf_runs")
-CLASSES = ("stationary", "locomotion", "attack", "other")
 Progress = Callable[[str, int, int], Any]  # progress(phase, done, total): told after each unit of a long loop
 
 
@@ -417,306 +397,7 @@ def terrain_scene(c: Corpus, segment: str) -> Any:
     return TerrainScene.of_stage(segment_terrain(c, segment))
 
 
-# -- the controllability probe -----------------------------------------------------------------------------
-
-
-def _motion_stats(layout: Layout, entity: str, rows: pa.Table, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per row (the first is the previous frame only): horizontal root speed and peak root-frame speed of any
-    joint or owned attachment point (m/s) — the statistics ``ingest.sample.action_stats`` classifies on."""
-    n = rows.num_rows
-    state = fixed_rows(rows["state"], layout.dim).astype(np.float64)
-    local = [state[:, layout.slice(f"{entity}.joints")].reshape(n, -1, 3)]
-    local += [state[:, layout.slice(f"{o.name}.points")].reshape(n, -1, 3) for o in layout.attachments if o.owner == entity]
-    p = np.concatenate(local, axis=1)
-    body = np.zeros(n)
-    body[1:] = np.linalg.norm(np.diff(p, axis=0), axis=-1).max(axis=1) * fps
-    root = fixed_rows(rows[f"{entity}.root_world"], 3)
-    speed = np.zeros(n)
-    speed[1:] = np.linalg.norm(np.diff(root[:, [0, 2]], axis=0), axis=-1) * fps
-    return speed, body
-
-
-def token_classes(corpus: Corpus, entity: str) -> tuple[list[str], list[str]]:
-    """Per entity token: its vocab class and kind ("none" for token 0)."""
-    tokens = ActionTokens.from_corpus(corpus)
-    i = tokens.entities.index(entity)
-    types = corpus.vocab["entity_types"]
-    cls, kind = [], []
-    for t in range(tokens.sizes[i]):
-        key, v = tokens.type_token(i, t)
-        a = next((a for a in types.get(key, {}).get("actions", []) if a["token"] == v), {}) if t else {}
-        cls.append(a.get("class", "none"))
-        kind.append(a.get("kind", "none"))
-    return cls, kind
-
-
-def _complies(
-    layout: Layout, entity: str, rows: pa.Table, runs: Sequence[Force], kinds: list[str], classes: list[str], fps: float
-) -> list[tuple[str, bool]]:
-    """(class, complies) per run; ``rows`` = last seed row + horizon rows."""
-    speed, body = _motion_stats(layout, entity, rows, fps)
-    out = []
-    for _, s, t, tok in runs:  # predicted frames [s, t) are rows s + 1 .. t
-        inst = [[float(speed[s + 1 : t + 1].mean()), float(body[s + 1 : t + 1].max()), int(t - s)]]
-        out.append((classes[tok], classify(kinds[tok], inst) == classes[tok]))
-    return out
-
-
-def token_runs(tokens: Sequence[int]) -> list[tuple[int, int]]:
-    """The runs [start, end) of equal consecutive tokens of a stream (one token per frame), in order."""
-    t = np.asarray(tokens)
-    cuts = np.flatnonzero(np.diff(t) != 0) + 1
-    edges = np.concatenate([[0], cuts, [len(t)]]).astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
-def shuffle_frames(entity: str, tokens: np.ndarray, rng: np.random.Generator) -> list[Force]:
-    """Force-Shuf: the stream permuted over frames, as force windows (one per run of the permuted stream)."""
-    return force_windows(entity, np.asarray(tokens)[rng.permutation(len(tokens))])
-
-
-def shuffle_runs(entity: str, tokens: np.ndarray, rng: np.random.Generator) -> list[Force]:
-    """The run-level shuffle: the stream's runs of one token permuted as wholes, one force window per run (so
-    progress runs on within each run and restarts at its first frame; token 0 runs left to the model)."""
-    runs = token_runs(tokens)
-    out, at = [], 0
-    for k in rng.permutation(len(runs)):
-        a, b = runs[k]
-        if tokens[a] != 0:
-            out.append((entity, at, at + b - a, int(tokens[a])))
-        at += b - a
-    return out
-
-
-def class_ratios(
-    errors: dict[str, Sequence[np.ndarray]], classes: Sequence[np.ndarray], base: str = "force_gt"
-) -> dict[str, dict[str, Any]]:
-    """Per class of the recorded token at each frame: frames, mean per-frame RA-MPJPE (m) of every condition over those
-    frames (all windows pooled) and each condition's ratio to ``base``'s. ``errors``: condition → per window (H,);
-    ``classes``: per window (H,) class names ("none", token 0's, left out)."""
-    cls = np.concatenate([np.asarray(c) for c in classes])
-    out: dict[str, dict[str, Any]] = {}
-    for c in [c for c in CLASSES if c in set(cls)] + sorted(set(cls) - set(CLASSES) - {"none"}):  # "none": token 0, no class
-        on = cls == c
-        row: dict[str, Any] = {"frames": int(on.sum())}
-        for cond, per in errors.items():
-            v = np.concatenate([np.asarray(e, np.float64) for e in per])[on]
-            row[cond] = _nanmean(v)
-        for cond in errors:
-            if cond != base:
-                row[f"{cond}/{base}"] = row[cond] / row[base] if row[base] and np.isfinite(row[base]) else float("nan")
-        out[c] = row
-    return out
-
-
-def controllability_probe(
-    ckpt: Path | str,
-    corpus: Corpus | Path | str,
-    windows: Sequence[Window],
-    *,
-    entity: str = "hunter",
-    temperature: float = 0.0,
-    seed: int = 0,
-    rules: str | Sequence[str] = "auto",
-    free: Sequence[pa.Table] | None = None,
-    progress: Progress | None = None,
-) -> dict[str, Any]:
-    """Free / Force-GT / Force-Shuf / run-level shuffle over ``windows`` (module doc); ``free`` reuses Free rollouts
-    already run with the same ``rules``. Returns RA-MPJPE (m) summaries and per-window values per condition, the
-    Force-GT < Force-Shuf count (and < run-shuffle), the per-class Shuf/GT ratios of per-frame RA-MPJPE and per-class
-    compliance. ``progress`` is told each condition's rollouts (``run_windows``)."""
-    c = as_corpus(corpus)
-    L = c.layout
-    names = [e.name for e in L.articulated]
-    if entity not in names:
-        raise ValueError(f"probe entity {entity!r} is not an articulated entity of scene {L.scene!r} ({names})")
-    fps = model_fps(ckpt)
-    tokens = ActionTokens.from_corpus(c)
-    i = tokens.entities.index(entity)
-    rec = [recorded_rows(c, w, fps) for w in windows]
-    gt_streams = [tokens.encode(L, r, where=str(c.path))[0][:, i] for r in rec]
-    gt = [force_windows(entity, s) for s in gt_streams]
-    shuf = [shuffle_frames(entity, s, np.random.default_rng([seed, k])) for k, s in enumerate(gt_streams)]
-    runs = [shuffle_runs(entity, s, np.random.default_rng([seed, k, 1])) for k, s in enumerate(gt_streams)]
-    run = dict(temperature=temperature, seed=seed, rules=rules, progress=progress)
-    phase = "probe: {} rollouts".format
-    tables = {
-        "free": list(free) if free is not None else run_windows(ckpt, c, windows, phase=phase("Free"), **run)[0],
-        "force_gt": run_windows(ckpt, c, windows, force=gt, phase=phase("Force-GT"), **run)[0],
-        "force_shuf": run_windows(ckpt, c, windows, force=shuf, phase=phase("Force-Shuf"), **run)[0],
-        "force_shuf_runs": run_windows(ckpt, c, windows, force=runs, phase=phase("run-shuffle"), **run)[0],
-    }
-    conditions, frames = {}, {}
-    for cond, tabs in tables.items():
-        frames[cond] = [
-            M.ra_mpjpe_frames(world_of_rows(L, predicted(t, w))[entity], world_of_rows(L, r)[entity])
-            for t, w, r in zip(tabs, windows, rec)
-        ]
-        vals = [_nanmean(f) for f in frames[cond]]
-        conditions[cond] = {**summarise(vals), "per_window": vals}
-    g = np.array(conditions["force_gt"]["per_window"])
-    s, sr = (np.array(conditions[k]["per_window"]) for k in ("force_shuf", "force_shuf_runs"))
-    classes, kinds = token_classes(c, entity)
-    frame_classes = [np.array([classes[t] for t in st]) for st in gt_streams]
-    ratios = class_ratios(frames, frame_classes)
-    counts: dict[str, dict[str, list[bool]]] = {}
-    for k, w in enumerate(windows):
-        last_seed = tables["free"][k].slice(w.seed_frames - 1, 1)
-        sources = {"recorded": pa.concat_tables([last_seed, rec[k].cast(last_seed.schema)])}
-        sources.update({cond: tables[cond][k].slice(w.seed_frames - 1, w.horizon + 1) for cond in ("free", "force_gt")})
-        for src, rows in sources.items():
-            for cls, ok in _complies(L, entity, rows, gt[k], kinds, classes, fps):
-                counts.setdefault(cls, {}).setdefault(src, []).append(ok)
-    per_class = {
-        cls: {"runs": len(v["recorded"]), **{src: float(np.mean(v[src])) for src in ("free", "force_gt", "recorded")}}
-        for cls, v in sorted(counts.items(), key=lambda kv: CLASSES.index(kv[0]) if kv[0] in CLASSES else len(CLASSES))
-    }
-    return {
-        "entity": entity,
-        "windows": [asdict(w) for w in windows],
-        "conditions": conditions,
-        "force_gt_beats_shuf": int((g < s).sum()),
-        "force_gt_beats_shuf_runs": int((g < sr).sum()),
-        "compared": int(len(g)),
-        "class_ratios": ratios,
-        "compliance": per_class,
-        "temperature": temperature,
-        "seed": seed,
-    }
-
-
-# -- the rule ablation -------------------------------------------------------------------------------------------
-
-
-def final_frame_skate(feet_world: np.ndarray, fps: float) -> float:
-    """Foot-skate (m/s) at the last frame: mean horizontal speed of the feet in contact there (contacts as
-    ``metrics.foot_contacts`` over the whole sequence (N, F, 3)); NaN when no foot is in contact."""
-    f = np.asarray(feet_world, np.float64)
-    contact = M.foot_contacts(f, fps)[-1]
-    d = f[-1] - f[-2]
-    speed = np.hypot(d[:, 0], d[:, 2]) * fps
-    return float(speed[contact].mean()) if contact.any() else float("nan")
-
-
-def on_ground_share(roots_world: np.ndarray, field: Any) -> float:
-    """Share of frames whose root (N, 3) stands over scanned ground (the field answers a height at its x, z); NaN without a field."""
-    if field is None:
-        return float("nan")
-    r = np.asarray(roots_world, np.float64)
-    return float(np.isfinite(field.query(r[:, 0], r[:, 2], r[:, 1])).mean())
-
-
-def _ablation_row(
-    layout: Layout, pairs: Sequence[tuple[pa.Table, Any]], fps: float, seed_seps: Sequence[float] | None = None
-) -> dict[str, Any]:
-    """At the final frame of each (rows, field) pair, window means: CFR (share of windows with a key joint below
-    H − 0.15 m), MMP (m), skate (m/s) per articulated entity and their means over entities, and the horizontal
-    (and 3-D) root separation (m); beside them the share of frames whose root is on scanned ground and, given each
-    window's separation at its seed's last frame (``seed_seps``, m), the share of windows ending beyond the cap's bound
-    max(cap, that separation)."""
-    keys = ("cfr", "mmp_m", "skate_mps", "on_ground")
-    per: dict[str, dict[str, list[float]]] = {e.name: {k: [] for k in keys} for e in layout.articulated}
-    sep, sep3 = [], []
-    cap = RuleParams().max_separation_m
-    for rows, field in pairs:
-        w = world_of_rows(layout, rows)
-        for e in layout.articulated:
-            j = w[e.name]
-            clear = M.key_joint_clearances(j[-1:], e.rig, field) if field is not None else np.full((1, 1), np.nan)
-            per[e.name]["cfr"].append(M.contact_failure_rate(clear))
-            per[e.name]["mmp_m"].append(M.mean_max_penetration(clear))
-            per[e.name]["skate_mps"].append(final_frame_skate(j[:, foot_joints(e.rig)], fps))
-            per[e.name]["on_ground"].append(on_ground_share(j[:, 0], field))
-        if len(layout.articulated) == 2:
-            a, b = (e.name for e in layout.articulated)
-            d3, dh = M.separation(w[a][-1, 0], w[b][-1, 0])
-            sep.append(float(dh))
-            sep3.append(float(d3))
-    entity = {n: {k: summarise(v)["mean"] for k, v in d.items()} for n, d in per.items()}
-    row = {k: _nanmean([entity[n][k] for n in entity]) for k in keys}
-    beyond = float("nan")
-    if sep and seed_seps is not None:
-        beyond = float(np.mean([d > max(cap, s0) + 1e-6 for d, s0 in zip(sep, seed_seps)]))
-    return {
-        **row,
-        "sep_m": summarise(sep)["mean"],
-        "sep_3d_m": summarise(sep3)["mean"],
-        "beyond_cap": beyond,
-        "per_entity": entity,
-    }
-
-
-def _nanmean(v: Sequence[float]) -> float:
+def finite_mean(v: Sequence[float]) -> float:
+    """The mean of the finite values of ``v`` (NaN when none is)."""
     a = np.asarray(v, np.float64)
     return float(a[np.isfinite(a)].mean()) if np.isfinite(a).any() else float("nan")
-
-
-def recorded_window(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table:
-    """The recorded dynamics rows of a whole window (seed + horizon): the "recorded" driving state, shaped like a rollout table."""
-    view = corpus.dynamics_segment(window.segment, fps)
-    M.check_window(view, window.start, window.length, where=f"{corpus.path}: window {window}")
-    return view.slice(window.start, window.length)
-
-
-def ablation_rollouts(
-    ckpt: Path | str,
-    corpus: Corpus | Path | str,
-    windows: Sequence[Window],
-    *,
-    temperature: float = 0.0,
-    seed: int = 0,
-    progress: Progress | None = None,
-) -> dict[str, dict[str, Any]]:
-    """The four driving states on the same windows: condition → {"tables" (seed + horizon rows per window), "rules",
-    "ran" (per stage), "note" (rules that could not run and why)}; "recorded" holds the recorded rows."""
-    c = as_corpus(corpus)
-    fps = model_fps(ckpt)
-    out = {"recorded": {"tables": [recorded_window(c, w, fps) for w in windows], "rules": None, "ran": {}, "note": ""}}
-    why = {"collider": "no terrain scan", "cap": "not two articulated entities"}
-    for name, rules in ABLATION:
-        tables, ran = run_windows(
-            ckpt,
-            c,
-            windows,
-            rules=rules or "none",
-            temperature=temperature,
-            seed=seed,
-            progress=progress,
-            phase=f"ablation: {name} rollouts",
-        )
-        missing = {st: [r for r in rules if r not in got] for st, got in ran.items()}
-        note = "; ".join(f"stage {st}: " + ", ".join(f"{r} inactive ({why[r]})" for r in m) for st, m in missing.items() if m)
-        out[name] = {"tables": tables, "rules": list(rules), "ran": {k: list(v) for k, v in ran.items()}, "note": note}
-    return out
-
-
-def rule_ablation(
-    ckpt: Path | str,
-    corpus: Corpus | Path | str,
-    windows: Sequence[Window],
-    *,
-    temperature: float = 0.0,
-    seed: int = 0,
-    progress: Progress | None = None,
-    rollouts: dict[str, dict[str, Any]] | None = None,
-) -> dict[str, Any]:
-    """Table 3's state columns: recorded / no rule / + collider / + collider + cap on the same windows, CFR, MMP, skate
-    and Sep at the final frame (``_ablation_row``), the rules that actually ran and a note where a rule could not.
-    ``rollouts``: ``ablation_rollouts`` already run on these windows (else they are run, ``progress`` told)."""
-    c = as_corpus(corpus)
-    fps = model_fps(ckpt)
-    if rollouts is None:
-        rollouts = ablation_rollouts(ckpt, c, windows, temperature=temperature, seed=seed, progress=progress)
-    fields = {w.stage: open_terrain_field(c, w.segment) for w in windows}
-    seed_seps = None
-    if len(c.layout.articulated) == 2:
-        seed_seps = [
-            float(pair_separation(c.layout, t.slice(w.seed_frames - 1, 1))[0])
-            for t, w in zip(rollouts["recorded"]["tables"], windows)
-        ]
-    rows = []
-    for name, r in rollouts.items():
-        pairs = [(predicted(t, w), fields[w.stage]) for t, w in zip(r["tables"], windows)]
-        row = _ablation_row(c.layout, pairs, fps, seed_seps)
-        rows.append({"condition": name, **{k: r[k] for k in ("rules", "ran", "note")}, **row})
-    return {"conditions": rows, "windows": [asdict(w) for w in windows], "at": "final frame"}

@@ -36,21 +36,12 @@ import pyarrow as pa
 from marionette.bridge.rules import RuleParams
 from marionette.corpus import Corpus
 from marionette.eval import fvd
+from marionette.eval.ablation import ablation_rollouts, rule_ablation
 from marionette.eval.config import EvalProtocol, parse_protocol
 from marionette.eval.markdown import render_markdown, training_against_baselines
 from marionette.eval.plots import plot_all
-from marionette.eval.protocol import (
-    Progress,
-    Window,
-    ablation_rollouts,
-    controllability_probe,
-    model_fps,
-    model_scene,
-    rule_ablation,
-    run_windows,
-    select_windows,
-    state_layer,
-)
+from marionette.eval.probe import controllability_probe
+from marionette.eval.protocol import Progress, Window, model_fps, model_scene, run_windows, select_windows, state_layer
 from marionette.eval.video import long_horizon, long_horizon_curves, video_tables
 from marionette.io import write_bytes, write_json
 

@@ -147,7 +147,7 @@ def video_tables(
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Table 1 and Table 3's FVD column (module doc) over long-rollout ``windows``; ``states``: driving state → rollout
-    tables per window (``protocol.ablation_rollouts``). Returns {"table1": {"marionette", "baseline"}, "table3": {state:
+    tables per window (``ablation.ablation_rollouts``). Returns {"table1": {"marionette", "baseline"}, "table3": {state:
     scores}, "skipped": [...], "sheet": the contact sheet's frames}; a model not given is "not run" with the reason."""
     from marionette.eval.clips import WindowSkipped, rollout_clip, segment_chunks
 
