@@ -33,7 +33,7 @@ class Corpus:
 
     def __init__(self, path: Path, expect: Layout | str | None = None, scene: str | None = None):
         self.path = Path(path)
-        info = paths.meta(self.path, "info.json")
+        info = paths.meta(self.path, paths.INFO)
         if not info.exists():
             raise FileNotFoundError(f"{info}: not a corpus (run `marionette ingest` first)")
         self.info = CorpusInfo.read(info)
@@ -78,7 +78,7 @@ class Corpus:
     @cached_property
     def all_segments(self) -> pa.Table:
         """Every segment of every scene."""
-        return pq.read_table(self.path / "meta" / "segments.parquet")
+        return pq.read_table(paths.meta(self.path, paths.SEGMENTS))
 
     @cached_property
     def segments(self) -> pa.Table:
@@ -100,25 +100,25 @@ class Corpus:
 
     @cached_property
     def samples(self) -> pa.Table:
-        return pq.read_table(self.path / "meta" / "samples.parquet")
+        return pq.read_table(paths.meta(self.path, paths.SAMPLES))
 
     @cached_property
     def quarantine(self) -> pa.Table:
-        return pq.read_table(self.path / "meta" / "quarantine.parquet")
+        return pq.read_table(paths.meta(self.path, paths.QUARANTINE))
 
     def _per_scene(self, name: str) -> dict:
-        d = json.loads((self.path / "meta" / name).read_text())
+        d = json.loads(paths.meta(self.path, name).read_text())
         if self.many:
             return d["scenes"][self.layout.scene]  # a corpus of several scenes keeps one per scene
         return d
 
     @cached_property
     def vocab(self) -> dict:
-        return self._per_scene("vocab.json")
+        return self._per_scene(paths.VOCAB)
 
     @cached_property
     def stats(self) -> dict:
-        return self._per_scene("stats.json")
+        return self._per_scene(paths.STATS)
 
     @property
     def fps(self) -> float:
@@ -183,7 +183,7 @@ class Corpus:
     # -- derived: the dynamics view ----------------------------------------------------------------
 
     def dynamics_dir(self, fps: float = MODEL_FPS, method: str = "linear") -> Path:
-        return self.path / "derived" / f"dynamics-{fps:g}fps-{method}"
+        return paths.derived(self.path, f"dynamics-{fps:g}fps-{method}")
 
     def dynamics_shard(self, shard: int, fps: float = MODEL_FPS, method: str = "linear") -> pa.Table:
         """The shard resampled to ``fps`` (cached under derived/, recomputed when its source changes)."""

@@ -17,6 +17,8 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
+from marionette.corpus.paths import meta
+
 _held: dict[str, list] = {}  # resolved lock path → [shared, depth] of this process's hold
 _guard = threading.Lock()
 
@@ -29,7 +31,7 @@ class CorpusLocked(RuntimeError):
 def corpus_lock(corpus: Path, what: str = "write", share: bool = False) -> Iterator[None]:
     """Hold ``<corpus>/meta/.lock`` exclusively while writing (``what`` names the writer to others); a
     second writer fails at once (CorpusLocked), unless this process holds it with ``share=True``."""
-    path = Path(corpus) / "meta" / ".lock"
+    path = meta(corpus, ".lock")
     path.parent.mkdir(parents=True, exist_ok=True)
     name = str(path.resolve())
     with _guard:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from marionette.corpus.paths import ID_PATTERN
+from marionette.corpus.paths import ID_PATTERN, meta
 from marionette.io import read_json, write_json
 
 STAGES_FILE = "stages.json"
@@ -47,7 +47,7 @@ def read_placements(corpus: Path) -> dict[str, str]:
 
 def read_stage_file(corpus: Path) -> tuple[dict[str, str], dict[str, dict]]:
     """``meta/stages.json``: (recording → stage, recording → what the grouping found {"stage", "scan"}), checked."""
-    path = Path(corpus) / "meta" / STAGES_FILE
+    path = meta(corpus, STAGES_FILE)
     if not path.exists():
         return {}, {}
     d = read_json(path, MAX_STAGES_BYTES)
@@ -61,6 +61,6 @@ def read_stage_file(corpus: Path) -> tuple[dict[str, str], dict[str, dict]]:
 
 def write_placements(corpus: Path, placements: dict[str, str], found: dict[str, dict] | None = None) -> Path:
     """Write ``meta/stages.json`` atomically (sorted), returning its path."""
-    path = Path(corpus) / "meta" / STAGES_FILE
+    path = meta(corpus, STAGES_FILE)
     write_json(path, {"recordings": dict(sorted(placements.items())), "found": dict(sorted((found or {}).items()))})
     return path
