@@ -29,8 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from marionette.corpus import paths
-from marionette.corpus.paths import CorpusPathError, inside
+from marionette.corpus.paths import CorpusPathError, inside, stage_dir
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT, MAX_LAYERS, Observations, drop_aliases, merge
@@ -534,7 +533,7 @@ def _to_chunks(layers: Observations, filled: np.ndarray, max_layers: int) -> dic
 
 def stage_terrain(corpus: Path | str, stage: str) -> Stage | None:
     """A corpus's scanned terrain of ``stage`` (its ``Stage``), or None when it was never scanned."""
-    d = paths.stage_dir(Path(corpus), stage)
+    d = stage_dir(Path(corpus), stage)
     if not (d / "manifest.json").is_file():
         return None
     scanned = Stage(d)

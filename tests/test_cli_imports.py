@@ -12,15 +12,15 @@ HEAVY = ("torch", "open3d", "prefect", "diffusers", "moderngl")
 # Runs each argv through ``marionette.cli.main`` in one fresh interpreter (SystemExit from --help caught, output
 # dropped) and prints the heavy modules then loaded, with the commands it ran.
 PROBE = """
-import contextlib, io, json, sys
+import argparse, contextlib, io, json, sys
 from marionette.cli import build_parser, main
 
 argvs = json.loads(sys.argv[1])
 if argvs == "every --help":
-    sub = next(a for a in build_parser()._actions if isinstance(a, __import__("argparse")._SubParsersAction))
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     argvs = [["--help"]]
     for name, parser in sub.choices.items():
-        inner = [a for a in parser._actions if isinstance(a, __import__("argparse")._SubParsersAction)]
+        inner = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
         argvs += [[name, n, "--help"] for n in inner[0].choices] if inner else [[name, "--help"]]
 for argv in argvs:
     with contextlib.redirect_stdout(io.StringIO()) as out:
