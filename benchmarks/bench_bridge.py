@@ -86,8 +86,8 @@ from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs
 from marionette.corpus import Corpus, fixed_rows  # noqa: E402
 from marionette.corpus.paths import stage_dir  # noqa: E402
 from marionette.ingest import IngestOptions, build_corpus  # noqa: E402
-from marionette.ingest.video import CropResize  # noqa: E402
 from marionette.schema import Layout  # noqa: E402
+from marionette.video import CropResize  # noqa: E402
 from terrain_scan.scan import scan_stages  # noqa: E402
 
 REF_THICKNESS = 2  # the WildWorld visualisation tool's skeleton lines

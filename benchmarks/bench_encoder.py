@@ -24,7 +24,7 @@ import av  # noqa: E402
 import numpy as np  # noqa: E402
 from common import preamble, table  # noqa: E402
 
-from marionette.ingest import video as V  # noqa: E402
+from marionette import video as V  # noqa: E402
 from marionette.synth import generate  # noqa: E402
 
 

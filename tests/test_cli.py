@@ -17,8 +17,8 @@ from marionette.cli import build_parser, error_message, main
 from marionette.corpus import Corpus
 from marionette.corpus.paths import chunk_key
 from marionette.corpus.video_shards import read_joined
-from marionette.ingest.video import decode_frames
 from marionette.observation.generate import load_inputs, read_image
+from marionette.video import decode_frames
 
 
 @pytest.fixture(scope="module")

@@ -225,7 +225,7 @@ def test_observation_fvd_on_a_small_model():
 def test_rollout_clips_start_from_the_recorded_view(corpus, windows, free):
     from marionette.corpus import fixed_rows
     from marionette.geometry import quat_to_matrix
-    from marionette.ingest.video import decode_frames
+    from marionette.video import decode_frames
 
     clips, skipped, T = rollout_clips(corpus, windows, free[0], 5, (36, 64))
     assert not skipped and [k for k, _ in clips] == list(range(N))

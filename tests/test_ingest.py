@@ -15,9 +15,9 @@ from marionette import geometry as geo
 from marionette.commands.summary import inspect_text
 from marionette.corpus import Corpus, world_of_rows
 from marionette.ingest import build_corpus
-from marionette.ingest.video import decode_frames
 from marionette.schema import SchemaError
 from marionette.synth import generate, load_truth, world_skeletons_at
+from marionette.video import decode_frames
 
 
 def fixed_rows(col, w):

@@ -17,8 +17,8 @@ from marionette.corpus.lock import corpus_lock
 from marionette.ingest import build_corpus, finalize
 from marionette.ingest import sample as sample_mod
 from marionette.ingest.sample import valid_runs
-from marionette.ingest.video import CropResize
 from marionette.synth import load_truth
+from marionette.video import CropResize
 
 
 def _copy_part(src: Path, dst: Path, names: dict[str, str]) -> None:
@@ -155,7 +155,7 @@ def test_dynamics_view_is_recomputed_when_its_shard_changes(synth_source, tmp_pa
         np.savez(src / "data_part1" / "rec0000" / name, **arrays)
     import av
 
-    from marionette.ingest.video import decode_frames, encode_mp4
+    from marionette.video import decode_frames, encode_mp4
 
     frames = np.stack(decode_frames(src / "data_part1" / "rec0000" / "rgb.mp4")[:-40])
     (src / "data_part1" / "rec0000" / "rgb.mp4").write_bytes(encode_mp4(frames, 30, TEST_OPTIONS.video))

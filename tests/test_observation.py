@@ -203,7 +203,7 @@ def test_bad_inputs_fail_before_compute():
 
 def test_train_and_generate_commands(obs_corpus, tmp_path):
     from marionette.cli import main as cli
-    from marionette.ingest.video import decode_frames
+    from marionette.video import decode_frames
 
     runs = tmp_path / "obs"
     assert (

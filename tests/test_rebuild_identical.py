@@ -9,7 +9,7 @@ import av
 import numpy as np
 
 from marionette.ingest import IngestOptions, build_corpus
-from marionette.ingest.video import CropResize, VideoSettings, chunk_spans, encode_mp4
+from marionette.video import CropResize, VideoSettings, chunk_spans, encode_mp4
 
 
 def _tree(root: Path) -> dict[str, bytes | None]:

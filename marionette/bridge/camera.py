@@ -96,7 +96,7 @@ def recorded_cameras(
 ) -> Cameras:
     """Cameras from recorded rows: K (N, 4) source pixels, pos (N, 3), rot (N, 4) xyzw camera-to-world.
 
-    ``crop`` (a ``marionette.ingest.video.CropResize``) maps the source intrinsics to the output the
+    ``crop`` (a ``marionette.video.CropResize``) maps the source intrinsics to the output the
     video chunk applied; its output size must be (height, width).
     """
     from marionette.geometry import quat_to_matrix

@@ -520,7 +520,7 @@ def render_rows(
     skeletons (``bridge.jitter``; drawn for the clip ``key``) before they are rendered; the camera stays.
     """
     from marionette.geometry import resample_positions, resample_quats
-    from marionette.ingest.video import CropResize
+    from marionette.video import CropResize
 
     settings = settings or RenderSettings()
     if rows.num_rows == 0:

@@ -223,9 +223,9 @@ def export_chunk(c, segment: str, chunk: int, out: Path) -> tuple[int, int]:
     """Write chunk ``chunk`` of ``segment`` as ``out``/pose.mkv (its pose target), first.png (its first RGB frame) and
     rgb.mp4 (the recorded RGB); returns the frame's (height, width). A chunk without a pose target says how to render one."""
     from marionette.corpus.paths import chunk_key
-    from marionette.ingest.video import decode_frames
     from marionette.io import write_bytes
     from marionette.observation.generate import write_image
+    from marionette.video import decode_frames
 
     shard, chunks = joined_chunks(c, segment, (RGB_KIND, POSE_KIND))
     if chunk not in chunks:

@@ -189,8 +189,8 @@ def rollout_clip(
     from marionette.bridge.camera import recorded_cameras
     from marionette.corpus import fixed_rows
     from marionette.eval.protocol import rollout_pose_codes
-    from marionette.ingest.video import decode_frames
     from marionette.observation.data import check_size, pose_frames, rgb_frames
+    from marionette.video import decode_frames
 
     seg_t, seg_f = seg_rows["t"].to_numpy(), seg_rows["frame"].to_numpy()
     i0, avail = _horizon_times(table, window.seed_frames, seg_t)

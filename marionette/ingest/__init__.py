@@ -25,7 +25,6 @@ from marionette.ingest.sample import (
     sample_key,
     split_of,
 )
-from marionette.ingest.video import VideoSettings
 from marionette.recordings.wildworld import (
     RGB_FILE,
     SKELETON_FILE,
@@ -37,6 +36,7 @@ from marionette.recordings.wildworld import (
     read_sample,
 )
 from marionette.schema import SchemaError
+from marionette.video import VideoSettings
 
 __all__ = [
     "IngestOptions",

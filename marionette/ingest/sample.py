@@ -19,7 +19,6 @@ import pyarrow as pa
 
 from marionette import geometry as geo
 from marionette.corpus import paths, state_table
-from marionette.ingest.video import VideoSettings, write_video_shard
 from marionette.io import file_sha256, text_sha256, write_ipc, write_json
 from marionette.recordings.wildworld import (
     DEPTH_FILE,
@@ -35,6 +34,7 @@ from marionette.recordings.wildworld import (
     read_sample,
 )
 from marionette.schema import Layout, SchemaError, load_scene
+from marionette.video import VideoSettings, write_video_shard
 
 INGEST_VERSION = "1"
 AUTO_SCENE = "auto"  # each recording ingested with the layout of what it holds

@@ -40,7 +40,7 @@ from marionette.bridge.gbuffer import CODE_MAX, iter_codes
 from marionette.corpus import Corpus, paths
 from marionette.corpus.paths import SHARD_NAME, parse_chunk_key
 from marionette.corpus.video_shards import POSE_KIND, RGB_KIND, PoseShard, member_index, read_at
-from marionette.ingest.video import decode_frames
+from marionette.video import decode_frames
 
 
 @dataclass

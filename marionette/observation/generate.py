@@ -17,11 +17,11 @@ import numpy as np
 import torch
 
 from marionette.bridge.gbuffer import iter_codes, read_meta
-from marionette.ingest.video import VideoSettings, encode_mp4
 from marionette.io import write_bytes
 from marionette.observation.data import check_size, pose_frames, rgb_frames
 from marionette.observation.model import generate
 from marionette.observation.train import load_model
+from marionette.video import VideoSettings, encode_mp4
 
 
 def read_image(path: Path) -> np.ndarray:

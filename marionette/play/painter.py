@@ -26,9 +26,9 @@ import torch
 
 from marionette.bridge.gbuffer import to_codes
 from marionette.corpus import Corpus, video_shards
-from marionette.ingest.video import decode_frames
 from marionette.observation.data import check_size, pose_frames, rgb_frames
 from marionette.observation.model import Relay
+from marionette.video import decode_frames
 
 MAX_BEHIND_CHUNKS = 2
 PAINT_NICE = 10  # the painting thread's niceness (Linux: per thread)

@@ -405,7 +405,7 @@ class LiveSession(Playable):
         what the recorded first RGB frame shows."""
         from marionette.bridge.camera import recorded_cameras
         from marionette.bridge.targets import source_size
-        from marionette.ingest.video import CropResize
+        from marionette.video import CropResize
 
         H, W = self.size
         src_h, src_w = source_size(self.corpus, segment)

@@ -1,4 +1,5 @@
-"""Video chunks for the webdataset shards: crop to the training aspect, resize, encode 81-frame clips.
+"""The project's video codec (PyAV): chunk spans, crop and resize to the training aspect, H.264 chunks for the
+webdataset shards (deterministic encoder settings), decoding, and the video shard writer.
 
 Image coordinates are continuous: pixel (i, j) covers [j, j+1) × [i, i+1), so a centred principal
 point is cx = W/2. Cropping x0 columns and scaling by s maps fx → s·fx and cx → s·(cx − x0).
