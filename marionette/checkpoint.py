@@ -24,11 +24,8 @@ whole checkpoint and keeps its own shard of each tensor (``shard_like``).
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +33,7 @@ import torch
 from safetensors.torch import save_file
 from torch import Tensor
 
-from marionette.io import read_json, read_tensors, write_bytes
+from marionette.io import atomic_dir, read_json, read_tensors, write_bytes
 
 CHECKPOINT_VERSION = 1
 STEP_DIR = re.compile(r"step-\d{8}")
@@ -118,8 +115,7 @@ def write_checkpoint(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     final = out / f"step-{step:08d}"
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=out))
-    try:
+    with atomic_dir(final) as tmp:
         save_file(weights, str(tmp / "model.safetensors"))
         info: dict[str, Any] = {"version": CHECKPOINT_VERSION, "step": int(step), **(meta or {})}
         tensors: dict[str, Tensor] = {"rng.torch": torch.get_rng_state()}
@@ -132,14 +128,6 @@ def write_checkpoint(
             info["scheduler"] = _json_safe(scheduler.state_dict())
         save_file(tensors, str(tmp / "optimizer.safetensors"))
         (tmp / "meta.json").write_text(json.dumps(info, indent=1, sort_keys=True))
-        for f in tmp.iterdir():
-            with open(f, "rb") as fh:
-                os.fsync(fh.fileno())
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     write_bytes(out / "latest", f"{final.name}\n".encode())
     return final
 

@@ -1,4 +1,4 @@
-"""Atomic writes and content hashes: a crash never leaves a half-written file under its final name."""
+"""Atomic writes and content hashes: a crash never leaves a half-written file or directory under its final name."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,17 +31,57 @@ def atomic_path(path: Path) -> Iterator[Path]:
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+        _fsync_dir(path.parent)
     except OSError as exc:
         if exc.filename is None:  # a failed write (disk full) names no file: name the one being written
             raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
         raise
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_dir(path: Path, exists: str = "replace") -> Iterator[Path]:
+    """Yield a fresh empty directory beside ``path`` (mode 0755) to fill; on success fsync its files, rename it to
+    ``path`` and fsync the parent. Where ``path`` is a directory already, ``exists`` says what wins: "replace" moves
+    the old one aside, renames the new one in and deletes the old one (readers see one or the other, never a mix);
+    "keep" keeps the one there (another process, a DDP rank, published the same content first) and discards the
+    new one. On an error the temp directory is deleted and ``path`` is as it was."""
+    if exists not in ("replace", "keep"):
+        raise ValueError(f"atomic_dir: exists must be 'replace' or 'keep', not {exists!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # a fresh name: writers on other machines sharing the directory may have this process's pid
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes 0700; what is published is read by other users and services
+    try:
+        yield tmp
+        for f in sorted(tmp.rglob("*")):
+            if f.is_file():
+                with open(f, "rb") as fh:
+                    os.fsync(fh.fileno())
+        if path.is_dir() and exists == "replace":
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+            os.replace(path, old / path.name)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        elif not path.is_dir():
+            try:
+                os.replace(tmp, path)
+            except OSError:  # another process renamed its copy in first
+                if exists == "replace" or not path.is_dir():
+                    raise
+        _fsync_dir(path.parent)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_bytes(path: Path, data: bytes) -> None:

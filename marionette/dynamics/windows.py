@@ -18,9 +18,7 @@ arrays under another key are removed after a write.
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +29,7 @@ from marionette.dynamics.config import TERRAIN_FEATURES
 from marionette.dynamics.features import _dynamics_key, relative_of_rows, terrain_feature_path, terrain_feature_shard
 from marionette.dynamics.normalise import Normaliser
 from marionette.dynamics.state import body_index, root_index
-from marionette.io import text_sha256, write_json
+from marionette.io import atomic_dir, text_sha256, write_json
 from marionette.schema import Layout, SchemaError
 
 WINDOWS_DIR = "windows"
@@ -153,19 +151,10 @@ def _write_windows(
         if idx[-1] - idx[0] + 1 != len(idx):
             raise SchemaError(f"{c.dynamics_dir(fps, method)}: shard {shard}'s rows of segment {s} are not contiguous")
         spans[str(s)] = [int(idx[0]), int(idx[-1]) + 1]
-    d.parent.mkdir(parents=True, exist_ok=True)
-    # a fresh name: ranks on other machines sharing the corpus may have this process's pid
-    tmp = Path(tempfile.mkdtemp(prefix=f".{d.name}.", suffix=".tmp", dir=d.parent))
-    os.chmod(tmp, 0o755)  # mkdtemp makes 0700; the cache is read by every user of the corpus
-    for k, a in out.items():
-        np.save(tmp / f"{k}.npy", np.ascontiguousarray(a), allow_pickle=False)
-    write_json(tmp / "segments.json", spans)
-    try:
-        os.replace(tmp, d)
-    except OSError:  # another process (a DDP rank) put the same arrays there first
-        shutil.rmtree(tmp, ignore_errors=True)
-        if not d.is_dir():
-            raise
+    with atomic_dir(d, exists="keep") as tmp:  # a DDP rank that put the same arrays there first wins
+        for k, a in out.items():
+            np.save(tmp / f"{k}.npy", np.ascontiguousarray(a), allow_pickle=False)
+        write_json(tmp / "segments.json", spans)
     prefix = d.name[: -len(d.name.rsplit("-", 1)[1])]  # the same shard, rate and arrays
     for old in d.parent.glob(prefix + "*"):  # under an older key
         if old != d and old.is_dir():

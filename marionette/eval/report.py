@@ -22,9 +22,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -43,7 +40,7 @@ from marionette.eval.plots import plot_all
 from marionette.eval.probe import controllability_probe
 from marionette.eval.protocol import Progress, Window, model_fps, model_scene, run_windows, select_windows, state_layer
 from marionette.eval.video import long_horizon, long_horizon_curves, video_tables
-from marionette.io import write_bytes, write_json
+from marionette.io import atomic_dir, write_bytes, write_json
 
 PLOTS = ("contact_sheet", "ablation", "class_ratios", "compliance", "drift", "fvd_per_chunk")
 
@@ -67,18 +64,6 @@ def _check_replaceable(out: Path) -> None:
     """Fail unless ``out`` is absent, empty, or a previous report directory."""
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "report.json").exists())):
         raise FileExistsError(f"{out}: exists and is not a previous report; refusing to replace it")
-
-
-def _swap_in(tmp: Path, out: Path) -> None:
-    """Rename the finished report directory ``tmp`` to ``out``, replacing a previous report there."""
-    _check_replaceable(out)
-    if out.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-        os.replace(out, old / out.name)
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
 
 
 def headline(report: dict) -> dict[str, float | int | None]:
@@ -256,19 +241,14 @@ def _long_tables(
 def _write_report(report: dict, sheet: dict | None, out: Path) -> dict:
     """Write the plots, report.json and report.md to a temp directory beside ``out`` and rename it into place;
     returns the report with its "plots" and "headline"."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    os.chmod(tmp, 0o755)  # mkdtemp makes 0700; reports are read by other users and services
-    try:
+    _check_replaceable(out)
+    with atomic_dir(out) as tmp:
         report["plots"] = plot_all(report, sheet, tmp)
         if sheet is not None:
             report["video"]["sheet"] = {k: v for k, v in sheet.items() if k != "rows"} | {"rows": list(sheet["rows"])}
         report["headline"] = headline(report)
         write_json(tmp / "report.json", report)
         write_bytes(tmp / "report.md", render_markdown(report).encode())
-        _swap_in(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return report
 
 

@@ -58,7 +58,7 @@ from marionette import training
 from marionette.checkpoint import full_state, load_checkpoint, write_checkpoint
 from marionette.corpus import Corpus, paths
 from marionette.distributed import rank_world
-from marionette.io import atomic_path, file_sha256, read_tensors, write_json
+from marionette.io import atomic_dir, atomic_path, file_sha256, read_tensors, write_json
 from marionette.observation.config import WanTrainConfig
 from marionette.observation.data import Clip, ClipSource, jittered_targets
 from marionette.observation.generate import WAN_SETTINGS
@@ -345,14 +345,10 @@ def export_model(
     """Write ``out`` as a loadable checkpoint: the transformer (LoRA merged) in the release's layout, the VAE, and
     the chunk length and shift it was trained with (``generate.WAN_SETTINGS``)."""
     base = transformer.merge_and_unload() if hasattr(transformer, "merge_and_unload") else transformer
-    tmp = out.with_name(f".{out.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    save_original(tmp, base, text_len=text_len, ref_conv=ref_conv)
-    shutil.copytree(find_vae(Path(backbone)), tmp / "vae")
-    write_json(tmp / WAN_SETTINGS, settings)
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)
+    with atomic_dir(out) as tmp:
+        save_original(tmp, base, text_len=text_len, ref_conv=ref_conv)
+        shutil.copytree(find_vae(Path(backbone)), tmp / "vae")
+        write_json(tmp / WAN_SETTINGS, settings)
     return out
 
 

@@ -1,0 +1,66 @@
+"""Directories published atomically (``io.atomic_dir``): a reader sees the old directory or the new one, never a
+mix; a failed write leaves the old one and no temp directory; a second writer of the same content keeps the first."""
+
+from __future__ import annotations
+
+import stat
+
+import pytest
+
+from marionette.io import atomic_dir
+
+
+def _tree(path) -> dict[str, bytes]:
+    return {str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()}
+
+
+def test_atomic_dir_publishes_a_new_directory_readable_by_others(tmp_path):
+    out = tmp_path / "a" / "report"
+    with atomic_dir(out) as tmp:
+        assert tmp.parent == out.parent and not out.exists()
+        (tmp / "sub").mkdir()
+        (tmp / "sub" / "x.bin").write_bytes(b"x")
+    assert _tree(out) == {"sub/x.bin": b"x"}
+    assert stat.S_IMODE(out.stat().st_mode) == 0o755
+    assert sorted(p.name for p in out.parent.iterdir()) == ["report"]
+
+
+def test_atomic_dir_replaces_the_whole_previous_directory(tmp_path):
+    out = tmp_path / "ckpt"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    with atomic_dir(out) as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert _tree(out) == {"new.txt": b"new"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt"]
+
+
+def test_atomic_dir_keep_leaves_what_another_writer_published(tmp_path):
+    out = tmp_path / "cache"
+    with atomic_dir(out, exists="keep") as tmp:
+        (tmp / "a.npy").write_bytes(b"first")
+    with atomic_dir(out, exists="keep") as tmp:
+        (tmp / "a.npy").write_bytes(b"second")
+    assert _tree(out) == {"a.npy": b"first"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
+
+
+def test_atomic_dir_failure_leaves_the_old_directory_and_no_temp(tmp_path):
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "report.json").write_text("{}")
+    with pytest.raises(RuntimeError, match="plot failed"), atomic_dir(out) as tmp:
+        (tmp / "report.json").write_text('{"half": true}')
+        raise RuntimeError("plot failed")
+    assert _tree(out) == {"report.json": b"{}"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
+
+
+def test_atomic_dir_refuses_a_file_in_the_way_and_an_unknown_mode(tmp_path):
+    out = tmp_path / "x"
+    out.write_text("a file")
+    with pytest.raises(OSError), atomic_dir(out) as tmp:
+        (tmp / "y").write_text("y")
+    assert out.read_text() == "a file" and sorted(p.name for p in tmp_path.iterdir()) == ["x"]
+    with pytest.raises(ValueError, match="exists must be"), atomic_dir(tmp_path / "z", exists="merge"):
+        pass
