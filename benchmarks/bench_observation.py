@@ -26,7 +26,7 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 
 from marionette.observation.config import ObservationTrainConfig
 from marionette.observation.data import ClipSource
-from marionette.observation.model import generate
+from marionette.observation.relay import generate
 from marionette.observation.train import load_model, train
 
 CONFIG = ObservationTrainConfig(preset="tiny", batch_size=4, frames=5, reduce=4, patch=2, lr=1e-3, warmup=20)

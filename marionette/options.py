@@ -9,6 +9,8 @@ import difflib
 from collections.abc import Callable
 from pathlib import Path
 
+from marionette.chunks import is_clip_length
+
 X264_CRF = (0, 51)  # libx264's constant-rate-factor range for 8-bit video
 
 
@@ -123,7 +125,7 @@ def x264_crf(s: str) -> int:
 def chunk_frames(s: str) -> int:
     """An argparse type: frames per video chunk, 4k + 1 and at least 5 (the video models' temporal stride is 4)."""
     v = _integer(s)
-    if v < 5 or (v - 1) % 4:
+    if not is_clip_length(v):
         raise argparse.ArgumentTypeError(f"chunk frames are 4k + 1 and at least 5 (e.g. 41, 81), not {v}")
     return v
 

@@ -20,7 +20,8 @@ from marionette.corpus.video_shards import read_joined
 from marionette.observation.config import ObservationConfig, ObservationTrainConfig
 from marionette.observation.data import ChunkStore, ClipSource, _clip_bytes, reduce_codes
 from marionette.observation.generate import write_image
-from marionette.observation.model import VideoDiT, check_inputs, generate
+from marionette.observation.model import VideoDiT, check_inputs
+from marionette.observation.relay import generate
 from marionette.observation.train import load_model, train
 
 # 18×32 clips of the session corpus (its 72×128 chunks reduced by 4), two a step: the relay test reads seams against

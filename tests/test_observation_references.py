@@ -8,7 +8,7 @@ import torch
 
 from marionette.bridge.gbuffer import CODE_MAX
 from marionette.observation.config import ObservationConfig
-from marionette.observation.model import VideoDiT, flow_loss, generate
+from marionette.observation.model import VideoDiT, flow_loss
 from marionette.observation.references import (
     EntityReferences,
     band_masks,
@@ -17,6 +17,7 @@ from marionette.observation.references import (
     merge_bands,
     paint,
 )
+from marionette.observation.relay import generate
 
 BANDS = ((60, 64), (105, 150), (195, 230))
 

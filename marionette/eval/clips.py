@@ -49,7 +49,7 @@ def _paint_and_score(
     """Paint each (rgb, pose, seed) clip's first 1 + chunks·(frames − 1) frames from its first RGB frame and score them
     against the recorded RGB: the whole clips and per chunk, with bootstrap intervals (proxy extractor by default;
     ``progress`` told per clip painted)."""
-    from marionette.observation.model import generate
+    from marionette.observation.relay import generate
 
     f = model.config.frames
     T = 1 + chunks * (f - 1)

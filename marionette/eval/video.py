@@ -32,6 +32,7 @@ import numpy as np
 import pyarrow as pa
 import torch
 
+from marionette.chunks import relay_frames, relay_step
 from marionette.corpus import Corpus, world_of_rows
 from marionette.eval import fvd
 from marionette.eval import metrics as M
@@ -44,8 +45,7 @@ SHEET_POINTS = 4  # time points of the contact sheet
 
 def paint_frames(T: int, model_frames: int) -> int:
     """Video frames the relay paints to cover T: 1 + n·(model_frames − 1), the fewest n with that ≥ T."""
-    step = model_frames - 1
-    return 1 + max(1, math.ceil((T - 1) / step)) * step
+    return relay_frames(max(1, math.ceil((T - 1) / relay_step(model_frames))), model_frames)
 
 
 def long_horizon(protocol: EvalProtocol, video_fps: float, model_fps: float, model_frames: Sequence[int] = ()) -> int:
@@ -114,7 +114,7 @@ def score_videos(
 
 def _paint(model: Any, control: torch.Tensor, first: torch.Tensor, frames: int, steps: int, seed: int) -> torch.Tensor:
     """``frames`` painted RGB frames (frames, 3, H, W) in [−1, 1]: the relay over as many model chunks as they take."""
-    from marionette.observation.model import generate
+    from marionette.observation.relay import generate
 
     chunks = (frames - 1) // (model.config.frames - 1)
     with torch.inference_mode():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+from marionette.chunks import is_clip_length
 from marionette.io import check_json_fields
 from marionette.knobs import check_knobs, knob
 
@@ -50,7 +51,7 @@ class ObservationConfig:
             raise ValueError(f"observation config: control {self.control!r} is not one of {CONTROLS}")
         if self.control == "actions" and not self.vocab_sizes:
             raise ValueError("observation config: an action-conditioned model needs vocab_sizes")
-        if self.frames < 2 or (self.frames - 1) % 4:
+        if not is_clip_length(self.frames):
             raise ValueError(f"observation config: frames {self.frames} must be 4k + 1 with k ≥ 1")
         if self.height % self.patch or self.width_px % self.patch:
             raise ValueError(
@@ -196,7 +197,7 @@ class ObservationTrainConfig:
 
     def __post_init__(self) -> None:
         check_knobs(self)
-        if self.frames is not None and (self.frames - 1) % 4:
+        if self.frames is not None and not is_clip_length(self.frames):
             raise ValueError(f"ObservationTrainConfig.frames: clips are 4k + 1 frames, not {self.frames}")
         if self.reference_swap and self.control != "pose":
             raise ValueError("reference_swap needs pose control: the baseline learns where bodies are from its first frame")
@@ -261,7 +262,7 @@ class WanTrainConfig:
 
     def __post_init__(self) -> None:
         check_knobs(self)
-        if (self.frames - 1) % 4:
+        if not is_clip_length(self.frames):
             raise ValueError(f"WanTrainConfig.frames: windows are 4k + 1 frames, not {self.frames}")
         if not self.backbone:
             raise ValueError("WanTrainConfig.backbone: the Wan checkpoint directory to fine-tune is required")

@@ -37,6 +37,7 @@ import torch
 import webdataset as wds
 
 from marionette.bridge.gbuffer import CODE_MAX, iter_codes
+from marionette.chunks import is_clip_length
 from marionette.corpus import Corpus, paths
 from marionette.corpus.paths import SHARD_NAME, parse_chunk_key
 from marionette.corpus.video_shards import POSE_KIND, RGB_KIND, PoseShard, member_index, read_at
@@ -139,7 +140,7 @@ class ClipSource:
     ) -> None:
         self.corpus = corpus if isinstance(corpus, Corpus) else Corpus(Path(corpus))
         self.jitter = jitter  # the key of a jitter whose pose targets to read (bridge.jitter), else the corpus's own
-        if frames < 1 or (frames - 1) % 4:
+        if not is_clip_length(frames, minimum=1):
             raise ValueError(f"a clip has 4k + 1 frames (Wan's VAE), not {frames}")
         self.split, self.frames, self.size = split, int(frames), (int(size[0]), int(size[1]))
         self.segments = set(self.corpus.segment_ids(split))

@@ -17,9 +17,10 @@ import numpy as np
 import torch
 
 from marionette.bridge.gbuffer import iter_codes, read_meta
+from marionette.chunks import is_clip_length
 from marionette.io import write_bytes
 from marionette.observation.data import check_size, pose_frames, rgb_frames
-from marionette.observation.model import generate
+from marionette.observation.relay import generate
 from marionette.observation.train import load_model
 from marionette.video import VideoSettings, encode_mp4
 
@@ -74,7 +75,7 @@ def wan_settings(path: Path) -> dict:
 
     d = read_json(path / WAN_SETTINGS) if (path / WAN_SETTINGS).is_file() else {}
     frames, shift = d.get("frames", 81), d.get("shift", 5.0)
-    if not isinstance(frames, int) or isinstance(frames, bool) or frames < 5 or (frames - 1) % 4:
+    if not isinstance(frames, int) or isinstance(frames, bool) or not is_clip_length(frames):
         raise ValueError(f"{path / WAN_SETTINGS}: frames {frames!r} is not 4k + 1 ≥ 5")
     if not isinstance(shift, int | float) or isinstance(shift, bool) or not shift > 0:
         raise ValueError(f"{path / WAN_SETTINGS}: shift {shift!r} is not a positive number")

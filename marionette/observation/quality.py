@@ -30,9 +30,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from marionette.bridge.gbuffer import CODE_MAX
+from marionette.chunks import relay_chunks, relay_frames, relay_step
 from marionette.observation.data import Clip
-from marionette.observation.model import VideoDiT, generate, sample_chunk
+from marionette.observation.model import VideoDiT, sample_chunk
 from marionette.observation.references import EntityReferences, band_masks
+from marionette.observation.relay import generate
 from marionette.observation.train import control_of
 
 
@@ -85,7 +87,7 @@ def forced_chunks(
     started from the recorded frame at its start, and a model with reference slots given each entity's crop from the
     recorded frames up to that start (as a relay takes it): the relay's error without its hand-offs."""
     c = model.config
-    step = c.frames - 1
+    step = relay_step(c.frames)
     g = torch.Generator().manual_seed(int(seed))
     seen = EntityReferences(c.reference_bands, c.reference_size) if c.references and references else None
     out, upto = [recorded[:1]], 0
@@ -203,7 +205,7 @@ def copy_error(chunks: list[Clip], frames: int) -> float:
     """``relay_error`` of repeating the first frame (over the same frames)."""
     errs = []
     for ch in chunks:
-        n = 1 + (len(ch.rgb) - 1) // (frames - 1) * (frames - 1)
+        n = relay_frames(relay_chunks(len(ch.rgb), frames), frames)
         errs.append(float((ch.rgb[1:n] - ch.rgb[0]).abs().mean()))
     return float(np.mean(errs))
 

@@ -46,6 +46,7 @@ import torch
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
+from marionette.chunks import relay_chunks, relay_frames, relay_step
 from marionette.corpus.paths import inside
 from marionette.io import atomic_path, read_json, read_tensors, write_json
 from marionette.observation.references import EntityReferences, reference_sheet
@@ -567,10 +568,10 @@ class WanFunControl:
             H, W = first.shape[1:]
             seen = EntityReferences(references, min(H, W // len(references)))
             seen.see(first[None].float().cpu(), control[:1])
-        step = self.frames - 1
-        n = (len(control) - 1) // step if chunks is None else int(chunks)
-        if n < 1 or 1 + n * step > len(control):
-            raise ValueError(f"{n} chunks need {1 + n * step} pose frames; the pose video has {len(control)}")
+        step = relay_step(self.frames)
+        n = relay_chunks(len(control), self.frames) if chunks is None else int(chunks)
+        if n < 1 or relay_frames(n, self.frames) > len(control):
+            raise ValueError(f"{n} chunks need {relay_frames(n, self.frames)} pose frames; the pose video has {len(control)}")
         if steps < 1:
             raise ValueError(f"steps {steps}: at least one sampling step")
         g = torch.Generator().manual_seed(int(seed))

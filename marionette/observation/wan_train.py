@@ -56,6 +56,7 @@ from torch import Tensor, nn
 
 from marionette import training
 from marionette.checkpoint import full_state, load_checkpoint, write_checkpoint
+from marionette.chunks import relay_starts
 from marionette.corpus import Corpus, paths
 from marionette.distributed import rank_world
 from marionette.io import atomic_dir, atomic_path, file_sha256, read_tensors, write_json
@@ -93,7 +94,7 @@ def windows(clip: Clip, frames: int, box: tuple[int, int, int, int]) -> list[tup
     """The relay-aligned windows of a chunk: (RGB, pose) of frames k(T − 1) … k(T − 1) + T − 1, cropped to ``box``."""
     top, left, h, w = box
     rgb, pose = clip.rgb[:, :, top : top + h, left : left + w], clip.pose[:, :, top : top + h, left : left + w]
-    return [(rgb[s : s + frames], pose[s : s + frames]) for s in range(0, len(rgb) - frames + 1, frames - 1)]
+    return [(rgb[s : s + frames], pose[s : s + frames]) for s in relay_starts(len(rgb), frames)]
 
 
 def window_sheets(clip: Clip, frames: int, box: tuple[int, int, int, int], bands: Sequence[tuple[int, int]]) -> list[Tensor]:
@@ -102,7 +103,7 @@ def window_sheets(clip: Clip, frames: int, box: tuple[int, int, int, int], bands
     top, left, h, w = box
     rgb, pose = clip.rgb[:, :, top : top + h, left : left + w], clip.pose[:, :, top : top + h, left : left + w]
     seen = chunk_references(rgb, pose, bands, min(h, w // len(bands)))
-    return [reference_sheet(seen.tensor(upto=s), h, w) for s in range(0, len(rgb) - frames + 1, frames - 1)]
+    return [reference_sheet(seen.tensor(upto=s), h, w) for s in relay_starts(len(rgb), frames)]
 
 
 def window_digest(rgb: Tensor, pose: Tensor, sheet: Tensor | None = None) -> str:

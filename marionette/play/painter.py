@@ -25,9 +25,10 @@ import numpy as np
 import torch
 
 from marionette.bridge.gbuffer import to_codes
+from marionette.chunks import relay_step
 from marionette.corpus import Corpus, video_shards
 from marionette.observation.data import check_size, pose_frames, rgb_frames
-from marionette.observation.model import Relay
+from marionette.observation.relay import Relay
 from marionette.video import decode_frames
 
 MAX_BEHIND_CHUNKS = 2
@@ -113,7 +114,7 @@ class Painter:
 
     def _paint(self) -> None:
         scene, relay, at, skipped = 0, None, 0, 0
-        step = self.T - 1
+        step = relay_step(self.T)
         while True:
             with self._cond:
                 while (
