@@ -65,7 +65,7 @@ def attack(corpus, tiny_dynamics):
     """(token, segment, start) of a hunter attack that swings the weapon within 10 frames when a key forces it from
     the first played frame of that seed, as a live session plays it (the press replays the action from its start;
     the rules the session switches on)."""
-    from marionette.play.session import action_table
+    from marionette.play.bindings import action_table
 
     ckpt = tiny_dynamics[0]
     tokens = recorded_swingers(corpus, "hunter", 10, 4)

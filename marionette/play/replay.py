@@ -20,12 +20,15 @@ import pyarrow.compute as pc
 from marionette.bridge.kinematics import world_skeletons
 from marionette.bridge.targets import TerrainScene, chunk_inputs, follow_view
 from marionette.corpus import Corpus
+from marionette.corpus.vocab import ActionTokens
 from marionette.eval.control import tip_speeds
 from marionette.io import read_ipc
 from marionette.schema import layout_of_schema
 from terrain_scan.store import stage_terrain
 
-from .session import Playable, _int_field
+from .bindings import action_table
+from .messages import int_field
+from .playable import Playable
 from .view import FrameView, stage_map
 
 
@@ -113,10 +116,6 @@ class ReplaySession(Playable):
         """Per articulated entity, per row: (token or composite action id, name, class)."""
         out = {}
         if self.corpus is not None:
-            from marionette.corpus.vocab import ActionTokens
-
-            from .session import action_table
-
             tokens = ActionTokens.from_corpus(self.corpus)
             toks = tokens.encode(self.layout, rows, where=str(self.source))[0]
             table = action_table(self.corpus, tokens, self.fps)
@@ -133,7 +132,7 @@ class ReplaySession(Playable):
 
     def seek(self, frame: Any) -> dict:
         """Show ``frame`` (0 … n − 1) next."""
-        k = _int_field({"frame": frame}, "frame", 0, self.n - 1)
+        k = int_field({"frame": frame}, "frame", 0, self.n - 1)
         with self.lock:
             self._seek = k
         return {"frame": k, "frames": self.n}

@@ -33,7 +33,7 @@ from starlette.responses import HTMLResponse, JSONResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from .session import Playable
+from .playable import Playable
 
 QUEUE_FRAMES = 1
 QUICK = {"control", "move"}  # handled on the event loop itself: they only take the controls' lock, briefly

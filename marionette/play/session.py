@@ -12,19 +12,16 @@
 A fresh key press on the token an entity already plays replays it from its start (the rollout's ``restart``); a
 press while a window of the same token is still forced extends it. Everything a frame used is kept (up to
 ``MAX_HISTORY`` frames since the last reset), so ``record`` can write the frames since recording started as a
-corpus-schema ``STATES.arrow`` (``rollout.rollout_table``) and a G-buffer ``.mkv`` of them through the follow
-camera (``bridge.targets.render_rows``) — what ``marionette render`` and ``marionette play --replay`` read.
-Recordings go under the session's recording directory with names the session makes or checks (``NAME_RE``).
+corpus-schema ``STATES.arrow`` and a G-buffer ``.mkv`` of them (``recording``). Recordings go under the session's
+recording directory with names the session makes or checks (``messages.checked_name``). The key bindings are
+``bindings``'s; the page's other messages (pause, steps, camera) are ``playable.Playable``'s.
 """
 
 from __future__ import annotations
 
-import re
 import threading
 import time
-from abc import ABC, abstractmethod
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,90 +31,18 @@ import pyarrow as pa
 from marionette import geometry as geo
 from marionette.bridge.gbuffer import to_codes
 from marionette.bridge.rules import RULES
-from marionette.bridge.targets import TerrainScene, render_rows
+from marionette.bridge.targets import TerrainScene
 from marionette.checkpoint import read_meta
 from marionette.corpus import Corpus, as_corpus, fixed_rows
 from marionette.dynamics.rollout import Rollout, checkpoint_dir, open_terrain_field, rollout_table
 from marionette.eval.control import tip_speeds
-from marionette.io import write_ipc
 from terrain_scan.store import segment_terrain
 
-from .view import FrameView, Orbit, stage_map
-
-MAX_HISTORY = 72_000  # frames kept since the last reset (an hour at 20 fps)
-MAX_CONTROL_FRAMES = 100_000
-MAX_SPEED_MPS = 50.0
-MAX_TURN_DPS = 720.0
-NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
-KEYS = "1234567890JKLUIOHYTGBNMZXCVF"  # bindable keys: W A S D move, Q E turn, P pause, R restart are the page's own
-CLASS_ORDER = ("attack", "other", "locomotion", "stationary")
-
-
-@dataclass(frozen=True)
-class Action:
-    """One entity token as the page lists it: its name, class and kind from the corpus vocab, how long its clip
-    plays (model frames) and how often the corpus plays it (source frames)."""
-
-    entity: str
-    token: int
-    name: str
-    cls: str
-    kind: str
-    clip_frames: int
-    plays: int
-
-    def to_json(self) -> dict:
-        return {
-            "entity": self.entity,
-            "token": self.token,
-            "name": self.name,
-            "class": self.cls,
-            "kind": self.kind,
-            "clip_frames": self.clip_frames,
-            "plays": self.plays,
-        }
-
-
-def action_table(corpus: Corpus, tokens, model_fps: float) -> dict[str, list[Action]]:
-    """Per articulated entity, its tokens 1… with their vocab names and classes (token 0, "no valid action", is never
-    forced)."""
-    out: dict[str, list[Action]] = {}
-    fields = {f: tokens.token_field(corpus.vocab, f) for f in ("name", "class", "kind", "frames", "bank", "motion")}
-    ratio = corpus.fps / model_fps
-    for i, e in enumerate(tokens.entities):
-        rows = []
-        for t in range(1, tokens.sizes[i]):
-            type_key = tokens.type_keys[i][t]
-            bank, motion = fields["bank"][i][t], fields["motion"][i][t]
-            named = fields["name"][i][t] or (
-                f"bank {bank} motion {motion}" if bank is not None else f"action {tokens.composites[i][t]}"
-            )
-            if len({k for k in tokens.type_keys[i][1:]}) > 1:
-                named = f"{type_key} {named}"
-            clip = int(np.ceil(tokens.clip_lengths[i][t] / ratio))
-            rows.append(
-                Action(
-                    e,
-                    t,
-                    str(named),
-                    str(fields["class"][i][t] or "other"),
-                    str(fields["kind"][i][t] or ""),
-                    max(clip, 1),
-                    int(fields["frames"][i][t] or 0),
-                )
-            )
-        out[e] = rows
-    return out
-
-
-def default_bindings(actions: list[Action]) -> dict[str, int]:
-    """Key → token for one entity: its most played tokens (as many as ``KEYS``), attacks first, then other events,
-    locomotion, stationary; most played first within a class."""
-    best = sorted(actions, key=lambda a: (-a.plays, a.token))[: len(KEYS)]
-    order = sorted(
-        best, key=lambda a: (CLASS_ORDER.index(a.cls) if a.cls in CLASS_ORDER else len(CLASS_ORDER), -a.plays, a.token)
-    )
-    return {k: a.token for k, a in zip(KEYS, order)}
+from .bindings import KEYS, action_table, default_bindings
+from .messages import MAX_CONTROL_FRAMES, checked_name, checked_root, checked_turn, int_field
+from .playable import Playable
+from .recording import MAX_HISTORY, History, free_name, write_recording
+from .view import FrameView, stage_map
 
 
 @dataclass
@@ -134,139 +59,6 @@ class _Move:
     turn: float  # degrees/s about the vertical
     frames: float  # frames left (inf: until the next move)
     seq: int
-
-
-@dataclass
-class _History:
-    """Everything a session's frames were: state rows, world roots and rotations, tokens and progress."""
-
-    states: deque = field(default_factory=lambda: deque(maxlen=MAX_HISTORY))
-    roots: deque = field(default_factory=lambda: deque(maxlen=MAX_HISTORY))
-    quats: deque = field(default_factory=lambda: deque(maxlen=MAX_HISTORY))
-    tokens: deque = field(default_factory=lambda: deque(maxlen=MAX_HISTORY))
-    progress: deque = field(default_factory=lambda: deque(maxlen=MAX_HISTORY))
-
-    def add(self, ro: Rollout, state: np.ndarray) -> None:
-        self.states.append(np.asarray(state, np.float32))
-        self.roots.append(ro.roots_world.copy())
-        self.quats.append(ro.quats.copy())
-        self.tokens.append(ro.tok.copy())
-        self.progress.append(ro.progress.copy())
-
-    def __len__(self) -> int:
-        return len(self.states)
-
-
-def checked_name(name: Any) -> str:
-    """A recording name: letters, digits, ``_ . -``, at most 64 characters, not starting with a dot (never a path)."""
-    if not isinstance(name, str) or not NAME_RE.fullmatch(name) or ".." in name:
-        raise ValueError(f"recording name {name!r}: 1–64 letters, digits, '_', '.' or '-', starting with a letter or digit")
-    return name
-
-
-def _int_field(msg: dict, key: str, lo: int, hi: int, default: int | None = None) -> int | None:
-    v = msg.get(key, default)
-    if v is None:
-        return None
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-        raise ValueError(f"{key} {v!r} is not an integer in {lo}..{hi}")
-    return int(v)
-
-
-class Playable(ABC):
-    """What the page drives, live or replayed: frames one at a time (``advance``), pause and single steps, the camera,
-    the stage map, and one dispatcher for the page's messages (``handle``)."""
-
-    kind = ""
-    fps = 20.0
-
-    def __init__(self) -> None:
-        self.lock = threading.RLock()
-        self.paused = False
-        self._steps = 0
-        self.camera_mode, self.orbit = "follow", Orbit()
-        self.view: FrameView | None = None
-        self._last: dict | None = None
-        self._pixels: np.ndarray | None = None
-        self._map: dict = {}
-
-    @abstractmethod
-    def advance(self) -> tuple[dict, np.ndarray] | None:
-        """The next frame (meta, pixels), or None when none is due."""
-
-    @abstractmethod
-    def status(self) -> dict:
-        """What the page and ``GET /api/status`` show."""
-
-    def _may_step(self) -> bool:
-        """Whether a frame is due: playing, or a single step queued (which it takes)."""
-        if not self.paused:
-            return True
-        if self._steps > 0:
-            self._steps -= 1
-            return True
-        return False
-
-    def pause(self, paused: bool) -> dict:
-        if not isinstance(paused, bool):
-            raise ValueError(f"paused is true or false, not {paused!r}")
-        with self.lock:
-            self.paused = paused
-        return {"paused": paused}
-
-    def single_step(self, frames: int = 1) -> dict:
-        """Advance ``frames`` frames while paused."""
-        n = _int_field({"frames": frames}, "frames", 1, 1000)
-        with self.lock:
-            self._steps += n
-        return {"paused": self.paused, "queued": self._steps}
-
-    def current(self) -> tuple[dict, np.ndarray] | None:
-        """The newest frame (meta, pixels), e.g. for a page that connects while paused; None before the first."""
-        with self.lock:
-            return None if self._last is None else (self._last, self._pixels)
-
-    def set_camera(self, msg: dict) -> dict:
-        """{"mode": "follow" | "orbit"[, "yaw", "pitch", "distance"]}."""
-        mode = msg.get("mode", self.camera_mode)
-        if mode not in ("follow", "orbit"):
-            raise ValueError(f"camera mode {mode!r} is not 'follow' or 'orbit'")
-        vals = {k: msg.get(k, getattr(self.orbit, k)) for k in ("yaw", "pitch", "distance")}
-        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in vals.values()):
-            raise ValueError(f"camera: yaw, pitch and distance are numbers, not {vals}")
-        with self.lock:
-            self.orbit, self.camera_mode = Orbit(**vals).checked(), mode
-            return {"mode": mode, **vars(self.orbit)}
-
-    def stage_map(self) -> dict:
-        return self._map
-
-    def close(self) -> None:
-        with self.lock:
-            if self.view is not None:
-                self.view.release()
-                self.view = None
-
-    HANDLERS = ("pause", "step", "camera")
-
-    def handle(self, msg: Any) -> dict:
-        """One message of the page's websocket ({"type": ..., ...}); a bad one is a ValueError naming what is wrong."""
-        if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
-            raise ValueError('a message is a JSON object with a "type"')
-        kind = msg["type"]
-        if kind not in self.HANDLERS:
-            raise ValueError(f"unknown message type {kind!r}; a {self.kind} session takes {list(self.HANDLERS)}")
-        body = {k: v for k, v in msg.items() if k not in ("type", "seq")}
-        return getattr(self, f"_on_{kind}")(body)
-
-    def _on_pause(self, m: dict) -> dict:
-        return self.pause(m.get("paused", not self.paused))
-
-    def _on_step(self, m: dict) -> dict:
-        return self.single_step(m.get("frames", 1))
-
-    def _on_camera(self, m: dict) -> dict:
-        return self.set_camera(m)
 
 
 class LiveSession(Playable):
@@ -379,7 +171,7 @@ class LiveSession(Playable):
             self.view = FrameView(self.layout, self.terrain, self.size, self.fps, roots_y)
         last = self.seed_rows.slice(self.seed_rows.num_rows - 1, 1)
         self.view.reset_camera(self._recorded_camera(segment, last) if self.painter is not None else None)
-        self.history = _History()
+        self.history = History()
         with self.controls_lock:
             self._forced, self._moves = {}, {}
             self._ack = self._seq
@@ -480,28 +272,16 @@ class LiveSession(Playable):
                 if isinstance(tok, bool) or not isinstance(tok, int) or not 1 <= tok < size:
                     raise ValueError(f"token {tok!r} is not one of {entity}'s tokens 1..{size - 1} (0 is 'no valid action')")
                 clip = self.actions[entity][tok - 1].clip_frames
-                frames = _int_field(msg, "frames", 1, MAX_CONTROL_FRAMES, clip)
+                frames = int_field(msg, "frames", 1, MAX_CONTROL_FRAMES, clip)
                 held = self._forced.get(i)
                 if held is not None and held.token == tok and held.frames > 0:
                     held.frames, held.seq = max(held.frames, frames), seq  # still playing: it goes on
                 else:
                     self._forced[i] = _Forced(tok, frames, True, seq)
             if "root" in msg:
-                v = msg["root"]
-                if (
-                    not isinstance(v, list)
-                    or len(v) != 3
-                    or not all(x is None or (isinstance(x, int | float) and not isinstance(x, bool)) for x in v)
-                ):
-                    raise ValueError(f"root {v!r} is not [vx, vy, vz] (numbers in m/s, or null for the model's)")
-                vel = np.array([np.nan if x is None else float(x) for x in v])
-                if not np.all(np.isnan(vel) | (np.abs(np.nan_to_num(vel)) <= MAX_SPEED_MPS)):
-                    raise ValueError(f"root {v!r}: speeds are finite and at most {MAX_SPEED_MPS:g} m/s")
-                turn = msg.get("turn", 0.0)
-                if isinstance(turn, bool) or not isinstance(turn, int | float) or not abs(turn) <= MAX_TURN_DPS:
-                    raise ValueError(f"turn {turn!r} is not a number of degrees/s within ±{MAX_TURN_DPS:g}")
-                frames = _int_field(msg, "frames", 0, MAX_CONTROL_FRAMES, 20)
-                self._moves[i] = _Move(vel, float(turn), np.inf if frames == 0 else frames, seq)
+                vel, turn = checked_root(msg["root"]), checked_turn(msg.get("turn", 0.0))
+                frames = int_field(msg, "frames", 0, MAX_CONTROL_FRAMES, 20)
+                self._moves[i] = _Move(vel, turn, np.inf if frames == 0 else frames, seq)
             return {"entity": entity, "seq": seq, "from_frame": self.frame + 1}
 
     def move(self, entity: str, forward: float, right: float, turn: float) -> dict:
@@ -714,7 +494,7 @@ class LiveSession(Playable):
             if action == "start":
                 if self.recording is not None:
                     raise ValueError(f"already recording {self.recording['name']!r}")
-                name = checked_name(msg.get("name") or self._free_name())
+                name = checked_name(msg.get("name") or free_name(self.record_dir, self.written))
                 self.recording = {"name": name, "from": self.frame}
                 return {"recording": name, "from_frame": self.frame}
             if action == "stop":
@@ -735,15 +515,10 @@ class LiveSession(Playable):
                     "done": False,
                 }
                 self.written.append(out)
-                threading.Thread(target=self._write, args=(table, out), daemon=True).start()
+                args = (table, out, self.record_dir, self.layout, self.terrain, self.size, self.log)
+                threading.Thread(target=write_recording, args=args, daemon=True).start()
                 return out
         raise ValueError(f"record: action {action!r} is not 'start' or 'stop'")
-
-    def _free_name(self) -> str:
-        k = 1
-        while (self.record_dir / f"session-{k:03d}.arrow").exists() or any(w["name"] == f"session-{k:03d}" for w in self.written):
-            k += 1
-        return f"session-{k:03d}"
 
     def _table(self, first: int, name: str) -> pa.Table:
         """The kept frames from ``first`` on as a corpus-schema table: the frame before ``first`` (a seed row, or a
@@ -765,14 +540,3 @@ class LiveSession(Playable):
             sl(h.progress),
             name=f"{self.segment}-play-{name}",
         )
-
-    def _write(self, table: pa.Table, out: dict) -> None:
-        try:
-            self.record_dir.mkdir(parents=True, exist_ok=True)
-            write_ipc(Path(out["arrow"]), table)
-            render_rows(self.layout, table, Path(out["mkv"]), self.terrain, camera="follow", size=self.size)
-            out["done"] = True
-            self.log(f"play: wrote {out['arrow']} and {out['mkv']} ({out['frames']} frames)")
-        except Exception as err:  # noqa: BLE001 - reported to the page, the session goes on
-            out["error"] = f"{type(err).__name__}: {err}"
-            self.log(f"play: recording {out['name']} failed: {out['error']}")
