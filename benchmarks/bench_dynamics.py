@@ -65,10 +65,12 @@ from common import preamble, table  # noqa: I001  (benchmarks/ on sys.path)
 from marionette.checkpoint import save_checkpoint
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.dynamics.config import DynamicsConfig, TrainConfig
+from marionette.dynamics.controls import force_windows
 from marionette.dynamics.data import ActionTokens, WindowData, WindowSampler
+from marionette.dynamics.engine import ModelStream, Rollout, open_terrain_field
 from marionette.dynamics.model import DynamicsModel, Frames, parameter_counts
 from marionette.dynamics.normalise import Normaliser
-from marionette.dynamics.rollout import ModelStream, Rollout, force_windows, open_terrain_field, rollout
+from marionette.dynamics.rollout import rollout
 from marionette.dynamics.train import batches_from, losses, make_optimizer, train
 from marionette.eval.control import held_out_seeds, recorded_swingers, swing_rates
 from marionette.ingest import IngestOptions, VideoSettings, build_corpus

@@ -13,8 +13,10 @@ import torch
 
 from marionette import geometry as geo
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
+from marionette.dynamics.controls import force_windows
 from marionette.dynamics.data import ActionTokens
-from marionette.dynamics.rollout import Rollout, force_windows, rollout
+from marionette.dynamics.engine import Rollout
+from marionette.dynamics.rollout import rollout
 from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swingers, swing_rates
 from marionette.eval.protocol import Window, run_windows
 

@@ -11,8 +11,10 @@ from marionette.bridge.targets import TerrainScene, render_rows
 from marionette.corpus import Corpus, fixed_rows, world_of_rows
 from marionette.corpus.paths import stage_dir
 from marionette.dynamics.config import TrainConfig
+from marionette.dynamics.controls import force_windows, forced_at
 from marionette.dynamics.data import ActionTokens
-from marionette.dynamics.rollout import Rollout, force_windows, forced_at, main, open_terrain_field, rollout
+from marionette.dynamics.engine import Rollout, open_terrain_field
+from marionette.dynamics.rollout import main, rollout
 from marionette.dynamics.train import train
 from marionette.io import read_ipc
 from marionette.schema import check_layout
@@ -357,7 +359,7 @@ def test_a_batch_of_streams_equals_the_streams_run_alone(ckpt, scanned):
     with pytest.raises(ValueError, match="equal lengths"):
         batched.start_batch([seeds[0], seeds[1].slice(0, 4)])
     # sampling: stream b draws from its own generator, _stream_seed(seed, b)
-    from marionette.dynamics.rollout import _stream_seed
+    from marionette.dynamics.engine import _stream_seed
 
     hot = Rollout(ckpt, c, rules="none", terrain_field=field, temperature=2.0, seed=5)
     hot.start_batch(seeds)
@@ -399,6 +401,6 @@ def test_the_optional_action_heads_train_and_roll_out_cached_as_recomputed(scann
     seen.clear()
     ro.step()
     assert seen[-1].skip is not None and seen[-1].changed is not None and seen[-1].changed.shape == (1, 1, 2)
-    other = next(k for k in events if k != int(ro.scenes[0].tok[0]))
+    other = next(k for k in events if k != int(ro.streams[0].tok[0]))
     ro.step(force_tokens={0: other})
     assert posed[-1].progress[0, 0, 0] == 0 and int(posed[-1].tokens[0, 0, 0]) == other  # a forced token starts at 0

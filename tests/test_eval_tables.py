@@ -163,7 +163,8 @@ def test_run_level_shuffle_permutes_whole_runs_the_per_frame_one_does_not():
 
 def test_run_level_shuffle_keeps_progress_within_each_run(tiny_dynamics, dynamics_corpus):
     from marionette.corpus.vocab import ActionTokens
-    from marionette.dynamics.rollout import Rollout, forced_at
+    from marionette.dynamics.controls import forced_at
+    from marionette.dynamics.engine import Rollout
 
     ckpt, c = tiny_dynamics[0], Corpus(dynamics_corpus)
     w = select_windows(c, 1, 16, 60, seed=2)[0]

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from marionette.corpus import Corpus, fixed_rows
-from marionette.dynamics.rollout import Rollout
+from marionette.dynamics.engine import Rollout
 from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swingers, tip_speeds
 
 pytestmark = pytest.mark.exclusive  # frame rates and key latency are measured with the machine to itself

@@ -1,10 +1,12 @@
 """The controls a rollout takes from a command line, parsed and checked as they are read: forced tokens
 (``ENTITY:START:END:TOKEN``), scripted roots (``ENTITY:START:END:VX,VY,VZ`` or ``ENTITY:FILE.npy``), the rules, and
-the rollout command's options. Importable without torch: ``marionette rollout --help`` and ``play`` read it."""
+the rollout command's options; and their form per predicted frame (``forced_at``, ``force_windows``,
+``script_roots``). Importable without torch: ``marionette rollout --help`` and ``play`` read it."""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -91,3 +93,78 @@ def add_rollout_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", type=Path, required=True, help="STATES.arrow (the corpus state schema)")
     ap.add_argument("--render", type=Path, default=None, help="also render the rollout (follow camera) to this .mkv")
     ap.add_argument("--size", type=size_hxw, default=(352, 640), metavar="HxW", help="render size, HxW")
+
+
+def forced_at(force: Sequence[Force], t: int, names: Sequence[str]) -> tuple[dict[int, int], list[int]]:
+    """At predicted frame ``t``: the forced token per entity index, and the entities whose action replays from
+    progress 0 although its token is unchanged: a window that starts where a window of the same entity and
+    token ends (back-to-back windows play the action twice). A lone window forcing the token already playing
+    continues it; one forcing another token restarts at 0 because the token changed."""
+    forced, restart = {}, []
+    for name, first, end, token in force:
+        if int(first) <= t < int(end):
+            forced[names.index(name)] = int(token)
+            if t == int(first) and any(n == name and int(e) == t and int(k) == int(token) for n, _, e, k in force):
+                restart.append(names.index(name))
+    return forced, restart
+
+
+def force_windows(entity: str, tokens: Sequence[int]) -> list[Force]:
+    """A token stream (one per predicted frame) as force windows, one per run of equal tokens; token 0
+    ("no valid action") is left to the model. Forcing the recorded stream this way is Force-GT."""
+    out, k = [], 0
+    while k < len(tokens):
+        end = k + 1
+        while end < len(tokens) and tokens[end] == tokens[k]:
+            end += 1
+        if tokens[k] != 0:
+            out.append((entity, k, end, int(tokens[k])))
+        k = end
+    return out
+
+
+def script_roots(script_root: Any, horizon: int, layout, root_dim: int) -> np.ndarray | None:
+    """A (horizon, root_dim) override with NaN = no override, from an array or a dict entity → (horizon, 9)."""
+    if script_root is None:
+        return None
+    if isinstance(script_root, dict):
+        out = np.full((horizon, root_dim), np.nan)
+        unknown = sorted(set(script_root) - {e.name for e in layout.articulated})
+        if unknown:
+            raise ValueError(f"script_root: unknown entities {unknown}")
+        for i, e in enumerate(layout.articulated):
+            if e.name in script_root:
+                a = np.asarray(script_root[e.name], np.float64)
+                if a.ndim != 2 or a.shape[1] != 9 or len(a) < horizon:
+                    raise ValueError(f"script_root[{e.name!r}] has shape {a.shape}; expected ({horizon}, 9) or longer")
+                out[:, 9 * i : 9 * i + 9] = a[:horizon]
+        return out
+    a = np.asarray(script_root, np.float64)
+    if a.shape != (horizon, root_dim):
+        raise ValueError(f"script_root has shape {a.shape}; expected ({horizon}, {root_dim})")
+    return a
+
+
+def script_from_args(scripts: Sequence[tuple[str, Any]], horizon: int, fps: float, layout) -> dict[str, np.ndarray] | None:
+    """Parsed ``--script-root`` values → the dict form of ``rollout``'s ``script_root`` (entity → (horizon, 9))."""
+    if not scripts:
+        return None
+    names = [e.name for e in layout.articulated]
+    out: dict[str, np.ndarray] = {}
+    for name, spec in scripts:
+        if name not in names:
+            raise ValueError(f"--script-root: unknown entity {name!r}; the scene has {names}")
+        arr = out.setdefault(name, np.full((horizon, 9), np.nan))
+        if isinstance(spec, Path):
+            a = np.load(spec, allow_pickle=False)
+            if a.ndim != 2 or a.shape[1] != 9 or len(a) < horizon:
+                raise ValueError(f"{spec}: a root script is ({horizon}, 9) or longer (E.root then E.rot6d), not {a.shape}")
+            arr[:] = np.where(np.isfinite(a[:horizon]), a[:horizon], arr)
+        else:
+            start, end, velocity = spec
+            if not 0 <= start < end or start >= horizon:
+                raise ValueError(
+                    f"--script-root {name}: frames [{start}, {end}) are empty, negative or past the horizon {horizon}"
+                )
+            arr[start : min(end, horizon), 0:3] = np.asarray(velocity) / fps  # metres per model frame
+    return out

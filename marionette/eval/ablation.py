@@ -20,9 +20,7 @@ import pyarrow as pa
 
 from marionette.bridge.rules import RuleParams
 from marionette.corpus import Corpus, as_corpus, world_of_rows
-from marionette.dynamics.rollout import (
-    open_terrain_field,
-)
+from marionette.dynamics.engine import open_terrain_field
 from marionette.eval import metrics as M
 from marionette.eval.protocol import (
     ABLATION,

@@ -26,10 +26,7 @@ import pyarrow as pa
 
 from marionette.corpus import Corpus, as_corpus, fixed_rows, world_of_rows
 from marionette.corpus.vocab import ActionTokens, classify
-from marionette.dynamics.rollout import (
-    Force,
-    force_windows,
-)
+from marionette.dynamics.controls import Force, force_windows
 from marionette.eval import metrics as M
 from marionette.eval.protocol import Progress, Window, finite_mean, model_fps, predicted, recorded_rows, run_windows, summarise
 from marionette.schema import Layout

@@ -37,14 +37,9 @@ import pyarrow as pa
 from marionette.bridge.rules import enabled_rules
 from marionette.checkpoint import read_meta
 from marionette.corpus import Corpus, as_corpus, fixed_rows, world_of_rows
-from marionette.dynamics.rollout import (
-    Force,
-    Rollout,
-    checkpoint_dir,
-    forced_at,
-    open_terrain_field,
-    rollout_table,
-)
+from marionette.dynamics.controls import Force, forced_at
+from marionette.dynamics.engine import Rollout, checkpoint_dir, open_terrain_field
+from marionette.dynamics.rollout import rollout_table
 from marionette.eval import metrics as M
 from marionette.schema import Layout
 from terrain_scan.store import segment_terrain
@@ -207,7 +202,7 @@ def run_windows(
             for t in range(H):
                 forced, restart = zip(*(forced_at(force[i], t, names) for i in part))
                 states = ro.step_batch(list(forced), None, list(restart))
-                for b, sc in enumerate(ro.scenes):
+                for b, sc in enumerate(ro.streams):
                     for k, v in (
                         ("state", states[b]),
                         ("roots", ro.roots_of(sc)),

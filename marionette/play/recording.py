@@ -14,7 +14,7 @@ import numpy as np
 import pyarrow as pa
 
 from marionette.bridge.targets import TerrainScene, render_rows
-from marionette.dynamics.rollout import Rollout
+from marionette.dynamics.engine import Rollout
 from marionette.io import write_ipc
 from marionette.schema import Layout
 

@@ -34,7 +34,8 @@ from marionette.bridge.rules import RULES
 from marionette.bridge.targets import TerrainScene
 from marionette.checkpoint import read_meta
 from marionette.corpus import Corpus, as_corpus, fixed_rows
-from marionette.dynamics.rollout import Rollout, checkpoint_dir, open_terrain_field, rollout_table
+from marionette.dynamics.engine import Rollout, checkpoint_dir, open_terrain_field
+from marionette.dynamics.rollout import rollout_table
 from marionette.eval.control import tip_speeds
 from terrain_scan.store import segment_terrain
 
