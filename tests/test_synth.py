@@ -16,11 +16,12 @@ from marionette.corpus.play_stats import play_stats
 from marionette.geometry import quat_to_matrix
 from marionette.schema import load_rig
 from marionette.synth import generate, load_truth, terrain, world_skeletons_at
+from marionette.synth.behaviour import MIN_SEP
 from marionette.synth.clips import CLIPS
 from marionette.synth.game import COLUMNS
 from marionette.synth.poses import hunter_controls, hunter_skeleton, monster_controls, monster_skeleton
 from marionette.synth.render import decode_depth
-from marionette.synth.sim import BLEND_FRAMES, MIN_SEP
+from marionette.synth.sim import BLEND_FRAMES
 
 pytestmark = pytest.mark.corpus  # generates its own recordings
 

@@ -281,7 +281,7 @@ def _hunter() -> dict[str, Clip]:
     t.add("taunt_beckon", 4, 66, "event", "other", "taunt", params={"kind": 2})
     t.add("heal", 4, 75, "event", "other", "taunt", params={"kind": 3})
     t.add("shoulder_roll", 4, 45, "event", "other", "taunt", params={"kind": 4})
-    # the weapon-drawn stance every event settles into before the next decision (sim.RECOVER)
+    # the weapon-drawn stance every event settles into before the next decision (behaviour.RECOVER)
     t.add("recover", 4, 9, "event", "other", "guard", params={"y": 0.22, "z": 0.18, "el": 0.95, "lean": 0.12})
     return t.clips
 
@@ -381,7 +381,7 @@ def _monster() -> dict[str, Clip]:
         t.add(f"hop_{side}", 4, 30, "event", "other", "hop", speed=v, move_dir=d, move=(0.15, 0.75), params={"dir": d})
     t.add("shake_head", 4, 45, "event", "other", "shake")
     t.add("sniff", 4, 60, "event", "other", "sniff")
-    # the stance every event settles into before the next decision (sim.RECOVER)
+    # the stance every event settles into before the next decision (behaviour.RECOVER)
     t.add("recover", 4, 9, "event", "other", "idle", params={"amp": 0.01, "tail": 0.01, "look": 0.0, "low": 0.1})
     return t.clips
 

@@ -22,7 +22,7 @@ from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, SKELETON_FILE,
 from marionette.schema import load_rig
 from terrain_scan.depth import SYNTHETIC_DEPTH_ENCODING
 
-from . import sim
+from . import behaviour, sim
 from .cast import GREATSWORD, Cast, make_cast, rig_edges
 from .clips import CLIPS, clip_table
 from .render import Renderer, camera_pans, encode_depth, follow_camera, intrinsics
@@ -96,7 +96,7 @@ def _hp(plan: sim.Plan, roots: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
             if c.cls != "attack":
                 continue
             f = seg.start + int(c.hit_at * c.length)
-            if f < N and np.linalg.norm(roots[ent][f] - roots[other][f]) < sim.REACH[ent]:
+            if f < N and np.linalg.norm(roots[ent][f] - roots[other][f]) < behaviour.REACH[ent]:
                 hp[other][f:] -= c.damage * (3.0 if other == "monster" else 0.3)  # the hunter's armour takes 70 %
     hp["hunter"] = np.maximum(hp["hunter"], 1.0)
     hp["monster"] = np.maximum(hp["monster"], 1.0)
