@@ -18,10 +18,11 @@ from marionette.schema import load_rig
 from marionette.synth import generate, load_truth, terrain, world_skeletons_at
 from marionette.synth.behaviour import MIN_SEP
 from marionette.synth.clips import CLIPS
+from marionette.synth.controls import hunter_controls, monster_controls
 from marionette.synth.game import COLUMNS
-from marionette.synth.poses import hunter_controls, hunter_skeleton, monster_controls, monster_skeleton
 from marionette.synth.render import decode_depth
 from marionette.synth.sim import BLEND_FRAMES
+from marionette.synth.skeletons import hunter_skeleton, monster_skeleton
 
 pytestmark = pytest.mark.corpus  # generates its own recordings
 

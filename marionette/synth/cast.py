@@ -29,7 +29,7 @@ import numpy as np
 
 from marionette.schema import load_rig
 
-from .poses import HUNTER_PELVIS_H, MONSTER_PELVIS_H
+from .skeletons import HUNTER_PELVIS_H, MONSTER_PELVIS_H
 from .terrain import ARENA_CENTER
 
 DRAKE_TYPE, PLAYER_TYPE, GREATSWORD_TYPE = 25, 0, 3

@@ -2,7 +2,7 @@
 
 Composite id = bank × 1000 + motion + 1 (0 = no valid action). "state" clips loop (their
 ``motion_frame`` wraps to 0), "event" clips play once. Each clip is a variant of a pose ``family``
-(``poses.py`` draws it from the clip's ``params``), and carries its root motion: loops move at
+(``controls.py`` draws it from the clip's ``params``), and carries its root motion: loops move at
 ``speed`` m/s in the direction ``move_dir`` (radians from the facing, + = to the character's left)
 and turn at ``turn`` rad/s (+ = left); events move at up to ``speed`` m/s during the phase window
 ``move`` (fractions of the clip). ``duty`` is the stance fraction of a gait cycle. An attack's hit
@@ -32,7 +32,7 @@ class Clip:
     length: int  # frames at 30 fps
     kind: str  # "state" (loops) or "event" (plays once)
     cls: str  # "stationary" | "locomotion" | "attack" | "other" (what ingest's class rule should find)
-    family: str  # the pose family poses.py draws
+    family: str  # the pose family controls.py draws
     speed: float = 0.0  # m/s: horizontal root speed (loops) or its plateau (events)
     move_dir: float = 0.0  # rad from the facing, + = left
     turn: float = 0.0  # rad/s, + = left (turn-in-place loops)

@@ -34,7 +34,8 @@ from .behaviour import (
     step,
 )
 from .clips import CLIPS
-from .poses import HUNTER_PELVIS_H, MONSTER_PELVIS_H, hunter_controls, hunter_skeleton, monster_controls, monster_skeleton
+from .controls import hunter_controls, monster_controls
+from .skeletons import HUNTER_PELVIS_H, MONSTER_PELVIS_H, hunter_skeleton, monster_skeleton
 
 SUBSTEPS = 4
 BLEND_FRAMES = 12.0
