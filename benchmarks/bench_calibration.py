@@ -7,7 +7,7 @@ against the calibration's.
 For each seed, a synthetic source whose game hides its depth mapping (``marionette synth --hidden-depth``: the
 seed draws the kind, log or inverse, and the planes), made in a temp dir and not timed. Its (code, joint) pairs are
 gathered once at every frame; each row keeps every ``stride``-th frame, drops a share ``invalid`` of the frames
-(seeded) as if their cameras were invalid, fits (``terrain_scan.calibrate.fit``) and reports the largest relative
+(seeded) as if their cameras were invalid, fits (``terrain_scan.depth_fit.fit``) and reports the largest relative
 depth error of the fitted mapping against the hidden one over 2–20 m (what the scan reads: its ``max_depth_m`` is 20)
 and over 2–100 m, its seconds, and the terrain RMSE (away from steps, one recording scanned at frame stride 2) that
 scanning with it gives, beside the RMSE with the true mapping; then the same two after the contact scale
@@ -31,7 +31,7 @@ from marionette.recordings.wildworld import discover  # noqa: E402
 from marionette.schema import load_scene  # noqa: E402
 from marionette.synth import generate, load_truth  # noqa: E402
 from marionette.synth import terrain as synth_terrain  # noqa: E402
-from terrain_scan import calibrate  # noqa: E402
+from terrain_scan import calibrate, contact_scale, depth_fit  # noqa: E402
 from terrain_scan.accumulate import scan_recording  # noqa: E402
 from terrain_scan.depth import DepthDecoder  # noqa: E402
 from terrain_scan.options import ScanOptions
@@ -70,7 +70,7 @@ def main() -> None:
             generate(root, args.recordings, args.seconds, seed, int(w), int(h), hidden_depth=True, workers=2)
             refs = discover(root)
             truth = DepthDecoder.from_json(load_truth(root, refs[0].part, refs[0].sample_id)["depth_encoding"])
-            every = calibrate.Pairs.concat(list(calibrate.iter_pairs(refs, layout, 1)))
+            every = depth_fit.Pairs.concat(list(calibrate.iter_pairs(refs, layout, 1)))
             true_rmse = terrain_rmse(refs[0], layout, truth)
             label = f"{truth.kind}, near {truth.z_near:g} m, far {truth.z_far:g} m"
             rows.append([str(seed), label, "true mapping", "", "", "", "", "", f"{true_rmse:.4f}", "", ""])
@@ -85,7 +85,7 @@ def main() -> None:
                     head = [str(seed), label, str(stride), f"{share:.0%}", str(len(kept)), f"{len(pairs):,}"]
                     t = time.perf_counter()
                     try:
-                        cal = calibrate.fit(pairs)
+                        cal = depth_fit.fit(pairs)
                     except ValueError as exc:
                         rows.append([*head, str(exc)[:40], "", "", "", ""])
                         continue
@@ -93,7 +93,7 @@ def main() -> None:
                     errors = [100 * max_error(cal.chosen, truth, 2, hi) for hi in (20, 100)]
                     rmse = terrain_rmse(refs[0], layout, cal.chosen)
                     points = calibrate.iter_contact_points(refs, layout, cal.chosen, stride, ScanOptions().scan_kwargs())
-                    cs = calibrate.fit_contact_scale([p for p in points if not isinstance(p, str)])
+                    cs = contact_scale.fit_contact_scale([p for p in points if not isinstance(p, str)])
                     scaled = cal.with_contact_scale(cs).chosen
                     after = [100 * max_error(scaled, truth, 2, hi) for hi in (20, 100)]
                     rows.append(

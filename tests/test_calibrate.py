@@ -16,7 +16,7 @@ from marionette.recordings.wildworld import discover
 from marionette.schema import load_scene
 from marionette.synth import generate, load_truth
 from marionette.synth import terrain as synth_terrain
-from terrain_scan import calibrate
+from terrain_scan import calibrate, contact_scale, depth_fit
 from terrain_scan.accumulate import scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.options import ScanOptions
@@ -64,7 +64,7 @@ def test_calibration_recovers_the_hidden_mapping_and_the_corpus_scans_with_it(hi
     assert cli(["calibrate-depth", str(root), "--frame-stride", "10", "--no-contact-scale", "--out", str(out), "--quiet"]) == 0
     assert "contact scale" not in capsys.readouterr().out and "contact_scale" not in json.loads(out.read_text())["report"]
     # the table, made monotone from each code's median, agrees with the truth where the characters were seen
-    cal = calibrate.fit(calibrate.Pairs.concat(list(calibrate.iter_pairs(discover(root), load_scene("duel"), 3))), "table")
+    cal = depth_fit.fit(depth_fit.Pairs.concat(list(calibrate.iter_pairs(discover(root), load_scene("duel"), 3))), "table")
     assert cal.chosen.kind == "table" and _max_error(cal.chosen, truth, 6.0, 30.0) < 0.05
 
 
@@ -89,12 +89,12 @@ def test_terrain_scanned_with_the_calibrated_mapping_is_as_good_as_with_the_trut
 
 def test_too_few_pairs_and_a_family_that_does_not_fit_are_clear_errors(hidden):
     root, _ = hidden
-    pairs = calibrate.Pairs.concat(list(calibrate.iter_pairs(discover(root)[:1], load_scene("duel"), 3)))
-    few = calibrate.Pairs(pairs.code[:20], pairs.zj[:20], pairs.dist[:20], pairs.joint[:20], pairs.names, pairs.offset)
+    pairs = depth_fit.Pairs.concat(list(calibrate.iter_pairs(discover(root)[:1], load_scene("duel"), 3)))
+    few = depth_fit.Pairs(pairs.code[:20], pairs.zj[:20], pairs.dist[:20], pairs.joint[:20], pairs.names, pairs.offset)
     with pytest.raises(ValueError, match="20 \\(code, joint\\) pairs: too few"):
-        calibrate.fit(few)
+        depth_fit.fit(few)
     with pytest.raises(ValueError, match="family 'linear': its planes are not a depth range"):
-        calibrate.fit(pairs, "linear")
+        depth_fit.fit(pairs, "linear")
 
 
 def test_a_scaled_decoder_scales_every_depth():
@@ -111,7 +111,7 @@ def test_a_scaled_decoder_scales_every_depth():
 
 def _flat_ground(
     read_scale: float, height: float = 0.0, cells: int = 60, seed: int = 0, aside_m: float = 8.0
-) -> calibrate.ContactPoints:
+) -> contact_scale.ContactPoints:
     """Depth points of flat ground at ``height`` seen from cameras 3–6 m above it and up to ``aside_m`` to the side,
     read with every depth multiplied by ``read_scale`` (a mapping that far off), around contacts at ``height``:
     one cell each, far from the origin and on both sides of it."""
@@ -123,28 +123,28 @@ def _flat_ground(
         cam = f + np.array([rng.uniform(-aside_m, aside_m), rng.uniform(3, 6), rng.uniform(-aside_m, aside_m)])
         cams.append(np.broadcast_to(cam, (40, 3)))
         offs.append(read_scale * (ground - cam))
-    from terrain_scan.calibrate import _cell_key
+    from terrain_scan.contact_scale import _cell_key
 
     keys = _cell_key(feet[:, 0], feet[:, 2])
     order = np.argsort(keys)
     cam, off = np.concatenate(cams), np.concatenate(offs)
-    return calibrate.ContactPoints(cam, off, np.zeros(len(cam), np.int64), [(keys[order], feet[order, 1])], frames=cells)
+    return contact_scale.ContactPoints(cam, off, np.zeros(len(cam), np.int64), [(keys[order], feet[order, 1])], frames=cells)
 
 
 def test_the_contact_scale_puts_the_ground_where_the_feet_stood():
     """Ground read 2 % too far (the depth below the camera too long) comes back × 1/1.02, on cells thousands of
     metres from the origin on either side; too few points or a scale out of range are not applied, and say why."""
-    cs = calibrate.fit_contact_scale([_flat_ground(1.02), _flat_ground(1.02, height=-250.0, seed=1)])
+    cs = contact_scale.fit_contact_scale([_flat_ground(1.02), _flat_ground(1.02, height=-250.0, seed=1)])
     assert cs.applied and cs.scale == pytest.approx(1 / 1.02, rel=1e-6) and cs.recordings == 2
     assert cs.before_m < -0.05 and abs(cs.after_m) < 1e-6 and "× 0.98039" in cs.line()
-    assert calibrate.fit_contact_scale([_flat_ground(1.0)]).scale == pytest.approx(1.0, abs=1e-9)
-    few = calibrate.fit_contact_scale([_flat_ground(1.02, cells=4)])
+    assert contact_scale.fit_contact_scale([_flat_ground(1.0)]).scale == pytest.approx(1.0, abs=1e-9)
+    few = contact_scale.fit_contact_scale([_flat_ground(1.02, cells=4)])
     assert not few.applied and few.scale == 1.0 and re.search(r"\d+ depth points on contact cells, fewer than 200", few.line())
-    far = calibrate.fit_contact_scale([_flat_ground(1.5, aside_m=0.0)])  # straight down: the points stay on their cells
+    far = contact_scale.fit_contact_scale([_flat_ground(1.5, aside_m=0.0)])  # straight down: the points stay on their cells
     assert not far.applied and "outside 0.8–1.25" in far.note
-    assert not calibrate.fit_contact_scale([]).applied
+    assert not contact_scale.fit_contact_scale([]).applied
     # applied to a calibration: the chosen decoder and the table, not the joints' fits; the report says so
-    cal = calibrate.Calibration(
+    cal = depth_fit.Calibration(
         {}, DepthDecoder("log", 2.5, 400.0), DepthDecoder("table", table=tuple(np.geomspace(2, 300, 255))), None, "log"
     )
     scaled = cal.with_contact_scale(cs)
@@ -152,4 +152,4 @@ def test_the_contact_scale_puts_the_ground_where_the_feet_stood():
         300 * cs.scale
     )
     assert cal.with_contact_scale(few).chosen == cal.chosen and cal.with_contact_scale(few).contact.note
-    assert calibrate.weighted_median(np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 5.0])) == 3.0
+    assert contact_scale.weighted_median(np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 5.0])) == 3.0

@@ -121,7 +121,7 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     else:
         layout = checked_scene(a)
     knobs = None
-    if a.contact_scale:  # where the characters stood, the depth must show ground (terrain_scan.calibrate)
+    if a.contact_scale:  # where the characters stood, the depth must show ground (terrain_scan.contact_scale)
         from terrain_scan.options import ScanOptions
 
         knobs = (ScanOptions.of_corpus(a.corpus) if a.corpus is not None else ScanOptions()).scan_kwargs()
