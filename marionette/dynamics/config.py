@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from marionette.corpus import MODEL_FPS
 from marionette.dynamics.state import body_index, root_index, weapon_range
 from marionette.io import check_json_fields
 from marionette.knobs import check_knobs, knob
@@ -90,7 +91,7 @@ class DynamicsConfig:
     # source frames left, (1 − progress) · L ≤ that, the next token is another (its logit is dropped); per entity, per
     # token, the lengths this rule uses: clip_frames, 0 where the train split saw the token run on (``ended_events``)
     events_end: tuple[tuple[float, ...], ...] = ()
-    model_fps: float = 20.0  # the rate the model steps at (the corpus's dynamics view)
+    model_fps: float = MODEL_FPS  # the rate the model steps at (the corpus's dynamics view)
 
     def __post_init__(self) -> None:
         n = len(self.entities)
@@ -272,7 +273,7 @@ class TrainConfig:
     eval_batch_size: int = knob(64, "held-out windows per evaluation batch", min=1)
     checkpoint_every: int = knob(0, "checkpoint every N steps; 0: only at the end", min=0)
     bf16: bool | None = knob(None, "bf16 autocast; default: where the hardware has it (CUDA with bf16)")
-    fps: float = knob(20.0, "frame rate the model runs at (the dynamics view's, resampled from the corpus)", above=0.0)
+    fps: float = knob(MODEL_FPS, "frame rate the model runs at (the dynamics view's, resampled from the corpus)", above=0.0)
 
     def __post_init__(self) -> None:
         check_knobs(self)

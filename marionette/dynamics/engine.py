@@ -44,7 +44,7 @@ import torch
 from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
 from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_meta
-from marionette.corpus import Corpus, as_corpus, fixed_rows, world_of_rows
+from marionette.corpus import MODEL_FPS, Corpus, as_corpus, fixed_rows, world_of_rows
 from marionette.dynamics.config import DynamicsConfig
 from marionette.dynamics.data import ActionTokens
 from marionette.dynamics.features import compute_terrain_features, relative_of_rows, relative_roots, terrain_features_of
@@ -163,7 +163,7 @@ class Rollout:
         self.tokens = ActionTokens.from_corpus(self.corpus)
         if meta["vocab"]["hash"] != self.tokens.vocab_hash or tuple(meta["vocab"]["sizes"]) != self.tokens.sizes:
             raise ValueError(f"{self.ckpt}: trained on vocab {meta['vocab']['hash']}, the corpus has {self.tokens.vocab_hash}")
-        self.fps = float(meta["train_config"].get("fps", 20.0))
+        self.fps = float(meta["train_config"].get("fps", MODEL_FPS))
         self.model = DynamicsModel(self.config)
         load_checkpoint(self.ckpt, self.model, restore_rng=False)
         self.model.eval().to(dtype)

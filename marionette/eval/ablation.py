@@ -19,7 +19,7 @@ import numpy as np
 import pyarrow as pa
 
 from marionette.bridge.rules import RuleParams
-from marionette.corpus import Corpus, as_corpus, world_of_rows
+from marionette.corpus import MODEL_FPS, Corpus, as_corpus, world_of_rows
 from marionette.dynamics.engine import open_terrain_field
 from marionette.eval import metrics as M
 from marionette.eval.protocol import (
@@ -95,7 +95,7 @@ def _ablation_row(
     }
 
 
-def recorded_window(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table:
+def recorded_window(corpus: Corpus, window: Window, fps: float = MODEL_FPS) -> pa.Table:
     """The recorded dynamics rows of a whole window (seed + horizon): the "recorded" driving state, shaped like a rollout table."""
     view = corpus.dynamics_segment(window.segment, fps)
     M.check_window(view, window.start, window.length, where=f"{corpus.path}: window {window}")

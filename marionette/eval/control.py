@@ -20,14 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from marionette.corpus import Corpus, fixed_rows
+from marionette.corpus import MODEL_FPS, Corpus, fixed_rows
 from marionette.corpus.vocab import ActionTokens
 from marionette.eval.protocol import Window, run_windows
 
 FAST_TIP_MPS = 5.0  # the tests' train split: non-attack frames never move the weapon tip faster than 3.1 m/s
 
 
-def held_out_seeds(c: Corpus, seed_frames: int, horizon: int, stride: int = 16, fps: float = 20.0) -> list[tuple[str, int]]:
+def held_out_seeds(c: Corpus, seed_frames: int, horizon: int, stride: int = 16, fps: float = MODEL_FPS) -> list[tuple[str, int]]:
     """(segment, first seed frame) every ``stride`` frames of every held-out ("test") segment that holds
     ``seed_frames`` + ``horizon`` dynamics frames from there."""
     out = []
@@ -43,14 +43,14 @@ def tip_speeds(layout, state: np.ndarray, fps: float, attachment: str = "weapon"
     return np.linalg.norm(np.diff(tip, axis=0), axis=1) * fps
 
 
-def tip_speed(c: Corpus, table, seed_frames: int, fps: float = 20.0) -> np.ndarray:
+def tip_speed(c: Corpus, table, seed_frames: int, fps: float = MODEL_FPS) -> np.ndarray:
     """Weapon-tip speed (m/s) in its owner's root frame of each predicted frame of a rollout table (from the last seed
     row on; the weapon's last point is its tip)."""
     return tip_speeds(c.layout, fixed_rows(table["state"], c.layout.dim)[seed_frames - 1 :], fps)
 
 
 def recorded_swingers(
-    c: Corpus, entity: str, frames: int, k: int, fast_mps: float = FAST_TIP_MPS, fps: float = 20.0
+    c: Corpus, entity: str, frames: int, k: int, fast_mps: float = FAST_TIP_MPS, fps: float = MODEL_FPS
 ) -> list[int]:
     """Up to ``k`` attack tokens of ``entity`` whose train-split plays (runs of one token, ≥ 3 of them) bring the
     weapon tip above ``fast_mps`` within ``frames`` frames of their start on ≥ 80 % of plays, most played first."""

@@ -36,7 +36,7 @@ import pyarrow as pa
 
 from marionette.bridge.rules import enabled_rules
 from marionette.checkpoint import read_meta
-from marionette.corpus import Corpus, as_corpus, fixed_rows, world_of_rows
+from marionette.corpus import MODEL_FPS, Corpus, as_corpus, fixed_rows, world_of_rows
 from marionette.dynamics.controls import Force, forced_at
 from marionette.dynamics.engine import Rollout, checkpoint_dir, open_terrain_field
 from marionette.dynamics.rollout import rollout_table
@@ -80,7 +80,7 @@ def model_scene(ckpt: Path | str) -> str | None:
 
 def model_fps(ckpt: Path | str) -> float:
     """The frame rate (frames/s) a dynamics checkpoint (or training directory) was trained at."""
-    return float(read_meta(checkpoint_dir(ckpt))["train_config"].get("fps", 20.0))
+    return float(read_meta(checkpoint_dir(ckpt))["train_config"].get("fps", MODEL_FPS))
 
 
 def select_windows(
@@ -91,7 +91,7 @@ def select_windows(
     seed: int = 0,
     split: str = "test",
     segments: Sequence[str] | None = None,
-    fps: float = 20.0,
+    fps: float = MODEL_FPS,
     engaged: float | None = None,
 ) -> list[Window]:
     """``n`` windows (module doc), deterministic in ``seed``; ``segments`` names them instead of a split; ``engaged``
@@ -141,7 +141,7 @@ def pair_separation(layout: Layout, rows: pa.Table) -> np.ndarray:
     return M.separation(a, b)[1]
 
 
-def recorded_rows(corpus: Corpus, window: Window, fps: float = 20.0) -> pa.Table:
+def recorded_rows(corpus: Corpus, window: Window, fps: float = MODEL_FPS) -> pa.Table:
     """The recorded dynamics rows of a window's horizon (what the prediction is compared with)."""
     view = corpus.dynamics_segment(window.segment, fps)
     M.check_window(view, window.start, window.length, where=f"{corpus.path}: window {window}")
@@ -248,7 +248,7 @@ def _follow_codes(
     state, anchors, valid, t = chunk_inputs(layout, rows)
     times = t if times is None else np.asarray(times, np.float64)
     skel = world_skeletons(layout, state, anchors, valid, t, times)
-    fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 20.0
+    fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else MODEL_FPS
     H, W = size
     cams = follow_view(layout, skel, fps, W, H, start=start)
     h = height_range(terrain, np.concatenate([skel.joints[e.name][:, 0, 1] for e in layout.articulated]), settings)

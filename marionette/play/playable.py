@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from marionette.corpus import MODEL_FPS
+
 from .messages import int_field
 from .view import FrameView, Orbit
 
@@ -18,7 +20,7 @@ class Playable(ABC):
     the stage map, and one dispatcher for the page's messages (``handle``)."""
 
     kind = ""
-    fps = 20.0
+    fps = MODEL_FPS
 
     def __init__(self) -> None:
         self.lock = threading.RLock()

@@ -19,7 +19,7 @@ import pyarrow.compute as pc
 
 from marionette.bridge.kinematics import world_skeletons
 from marionette.bridge.targets import TerrainScene, chunk_inputs, follow_view
-from marionette.corpus import Corpus
+from marionette.corpus import MODEL_FPS, Corpus
 from marionette.corpus.vocab import ActionTokens
 from marionette.eval.control import tip_speeds
 from marionette.io import read_ipc
@@ -84,7 +84,7 @@ class ReplaySession(Playable):
         state, anchors, valid, t = chunk_inputs(self.layout, rows)
         if len(t) > 1 and not np.all(np.diff(t) > 0):
             raise ValueError(f"{source}: segment {self.segment}'s times are not increasing")
-        self.fps = float(round(1.0 / float(np.median(np.diff(t))), 6)) if len(t) > 1 else 20.0
+        self.fps = float(round(1.0 / float(np.median(np.diff(t))), 6)) if len(t) > 1 else MODEL_FPS
         self.skel = world_skeletons(self.layout, state, anchors, valid, t)
         self.times = t
         self.n = rows.num_rows
