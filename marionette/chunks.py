@@ -30,3 +30,8 @@ def relay_chunks(n_frames: int, T: int) -> int:
 def relay_starts(n_frames: int, T: int) -> range:
     """The first frame of every relay chunk of T frames that fits in ``n_frames`` frames."""
     return range(0, n_frames - T + 1, relay_step(T))
+
+
+def relay_spans(n_frames: int, T: int) -> list[tuple[int, int]]:
+    """Frame spans [a, b) of every relay chunk of T frames inside ``n_frames`` frames (consecutive ones share a frame)."""
+    return [(s, s + T) for s in range(0, max(0, relay_chunks(n_frames, T)) * relay_step(T), relay_step(T))]

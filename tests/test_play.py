@@ -226,7 +226,7 @@ def test_bad_requests_are_400s_naming_what_was_wrong(live):
 
 
 def test_a_recorded_session_reloads(live, corpus, tmp_path):
-    from marionette.bridge.gbuffer import iter_codes, read_meta
+    from marionette.bridge.gbuffer import iter_codes, read_gbuffer_meta
     from marionette.cli import main
     from marionette.corpus import world_of_rows
     from marionette.eval.metrics import bone_length_cv, check_rollout_table
@@ -263,7 +263,7 @@ def test_a_recorded_session_reloads(live, corpus, tmp_path):
     t = table["t"].to_numpy()
     np.testing.assert_allclose(np.diff(t), 1 / 20, atol=1e-9)
     assert np.isfinite(fixed_rows(table["state"], corpus.layout.dim)).all()
-    meta = read_meta(Path(done["mkv"]))
+    meta = read_gbuffer_meta(Path(done["mkv"]))
     assert (meta.width, meta.height) == (320, 176) and len(list(iter_codes(Path(done["mkv"])))) == table.num_rows
     # marionette render reads the session (the follow camera over its rows) …
     assert main(["render", done["arrow"], "--out", str(tmp_path / "again.mkv"), "--size", "176x320"]) == 0

@@ -215,7 +215,7 @@ def _source(data: Path | bytes, name: str | None) -> tuple[Any, Any]:
     return str(data), name or data
 
 
-def read_meta(path: Path | bytes, name: str | None = None) -> GBufferMeta:
+def read_gbuffer_meta(path: Path | bytes, name: str | None = None) -> GBufferMeta:
     """The metadata of a G-buffer file (a path, or its bytes, called ``name`` in errors); a clear error if it is not one."""
     src, where = _source(path, name)
     try:
@@ -244,5 +244,5 @@ def iter_codes(path: Path | bytes, name: str | None = None) -> Iterator[np.ndarr
 
 def decode_gbuffer(path: Path) -> tuple[list[GBufferFrame], GBufferMeta]:
     """Decode a G-buffer video: per frame height, id, inv_depth (and depth), and its metadata."""
-    meta = read_meta(path)
+    meta = read_gbuffer_meta(path)
     return [decode_codes(c, meta) for c in iter_codes(path)], meta

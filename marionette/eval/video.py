@@ -12,7 +12,7 @@ the recorded RGB of the same frames:
   Fréchet distance of all rollouts' clips, with clip-bootstrap intervals both bias-corrected and raw percentile
   (the paper's; ``fvd.fvd_with_interval``).
 - **Final chunk**: the last ``final_frames`` frames [T − final_frames, T) of each rollout, one clip per rollout.
-- **Per chunk index** (``chunk_spans``): chunk k = frames [k·(F − 1), k·(F − 1) + F), F = final_frames, while it
+- **Per chunk index** (``chunks.relay_spans``): chunk k = frames [k·(F − 1), k·(F − 1) + F), F = final_frames, while it
   fits in T — the relay's chunks at the paper's 81 frames.
 
 Table 1 sets the Marionette column (the "+ collider" driving state painted by the observation model) beside the
@@ -32,7 +32,7 @@ import numpy as np
 import pyarrow as pa
 import torch
 
-from marionette.chunks import relay_frames, relay_step
+from marionette.chunks import relay_frames, relay_spans, relay_step
 from marionette.corpus import Corpus, world_of_rows
 from marionette.eval import fvd
 from marionette.eval import metrics as M
@@ -72,12 +72,6 @@ def final_chunk(videos: torch.Tensor, T: int, frames: int) -> torch.Tensor:
     return videos[:, T - frames : T]
 
 
-def chunk_spans(T: int, frames: int) -> list[tuple[int, int]]:
-    """Video-frame spans [a, b) of the relay's chunks of ``frames`` frames (consecutive ones share a frame) inside T."""
-    step = frames - 1
-    return [(k * step, k * step + frames) for k in range(max(0, (T - 1) // step))]
-
-
 def _interval(a: np.ndarray, b: np.ndarray, resamples: int, seed: int) -> dict[str, Any]:
     """Fréchet distance of features a, b with the bias-corrected interval and, beside it, the raw percentile one."""
     r = fvd.fvd_with_interval(a, b, resamples=resamples, seed=seed)
@@ -107,7 +101,7 @@ def score_videos(
     out["final_chunk"] = {"frames": [T - protocol.final_frames, T], **_interval(ex(fr), ex(fg), protocol.resamples, seed)}
     out["per_chunk"] = [
         {"chunk": k, "frames": [a, b], **_interval(ex(real[:, a:b]), ex(generated[:, a:b]), protocol.resamples, seed)}
-        for k, (a, b) in enumerate(chunk_spans(T, protocol.final_frames))
+        for k, (a, b) in enumerate(relay_spans(T, protocol.final_frames))
     ]
     return out
 

@@ -16,7 +16,7 @@ import av
 import numpy as np
 import torch
 
-from marionette.bridge.gbuffer import iter_codes, read_meta
+from marionette.bridge.gbuffer import iter_codes, read_gbuffer_meta
 from marionette.chunks import is_clip_length
 from marionette.io import write_bytes
 from marionette.observation.data import check_size, pose_frames, rgb_frames
@@ -50,7 +50,7 @@ def write_image(path: Path, rgb: np.ndarray) -> None:
 
 def load_inputs(pose_path: Path, first_path: Path, size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Pose frames (T, 3, h, w) in [0, 1] and the first frame (3, h, w) in [−1, 1] at the model's ``size``."""
-    meta = read_meta(pose_path)
+    meta = read_gbuffer_meta(pose_path)
     first = read_image(first_path)
     if first.shape[:2] != (meta.height, meta.width):
         raise ValueError(
@@ -111,7 +111,7 @@ def paint_video(
 
         settings = wan_settings(Path(ckpt))
         wan = WanFunControl.from_pretrained(Path(ckpt), frames=settings["frames"], shift=settings["shift"])
-        m = read_meta(pose)
+        m = read_gbuffer_meta(pose)
         pose_t, first_t = load_inputs(pose, first_frame, (m.height, m.width))
         t0 = time.perf_counter()
         bands = settings["reference_bands"] if references else ()
