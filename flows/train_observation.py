@@ -16,6 +16,7 @@ from prefect.artifacts import create_markdown_artifact
 from prefect.cache_policies import NO_CACHE
 
 from flows.fanout import dask_mapper
+from marionette.bridge.targets import render_pose_targets
 from marionette.observation.config import ObservationTrainConfig
 from marionette.observation.train import run
 
@@ -81,7 +82,6 @@ def train_observation(
         checkpoint_every=checkpoint_every,
         reference_swap=reference_swap,
     )
-    from marionette.bridge.targets import render_pose_targets
 
     r = render_pose_targets(Path(corpus), mapper=dask_mapper("render-pose-targets", dask_address, n_workers))
     get_run_logger().info("pose targets: %d of %d chunks rendered, %d failed", len(r.rendered), r.chunks, len(r.failed))

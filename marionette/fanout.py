@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 import socket
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
 from typing import Any
 
 Mapper = Callable[[Callable[..., Any], list, dict[str, Any]], Iterable[Any]]
@@ -42,8 +44,6 @@ def pool_mapper(workers: int, start_method: str = "fork") -> Mapper:
         if workers == 1 or len(jobs) <= 1:
             yield from serial_mapper(fn, jobs, static)
             return
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-        from multiprocessing import get_context
 
         with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=get_context(start_method)) as pool:
             for fut in as_completed([pool.submit(fn, job, **static) for job in jobs]):

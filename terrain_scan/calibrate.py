@@ -15,6 +15,7 @@ from typing import TypeVar
 
 import numpy as np
 
+from marionette.io import atomic_path
 from marionette.recordings.wildworld import SampleError, SampleRef, SampleSkipped
 from marionette.schema import Layout
 from terrain_scan.contact_scale import ContactPoints, contact_points, fit_contact_scale
@@ -80,8 +81,6 @@ def plot(cal: Calibration, path: Path, max_points: int = 20000) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from marionette.io import atomic_path
 
     p = cal.pairs
     rng = np.random.default_rng(0)

@@ -14,8 +14,11 @@ import itertools
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from marionette.corpus import paths
+from marionette.corpus import Corpus, paths
+from marionette.corpus.lock import corpus_lock
+from marionette.corpus.stages import UNPLACED, read_stage_file, write_placements
 from marionette.fanout import Mapper, pool_mapper, worker_identity
+from marionette.ingest.finalize import write_metadata
 from marionette.io import file_sha256, text_sha256
 from marionette.recordings.wildworld import DEPTH_FILE, SampleError, SampleRef
 from terrain_scan.accumulate import ScanResult, scan_recording
@@ -117,7 +120,6 @@ def scan_stages(
     error) is listed under ``failed`` with the reason and the other recordings are scanned. ``progress``
     shows a bar over the recordings.
     """
-    from marionette.corpus.lock import corpus_lock
 
     with corpus_lock(corpus, "terrain scan"):
         run = mapper or pool_mapper(workers)
@@ -129,7 +131,6 @@ def scan_stages(
 
 
 def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: ScanOptions, log, progress: bool, mapper) -> dict:
-    from marionette.corpus import Corpus
 
     DepthDecoder.from_json(options.decoder)  # a bad decoder is one error here, not one per recording
     c = Corpus(corpus)
@@ -233,8 +234,6 @@ def _place_recordings(
 
     Returns the placements and the scan outcomes of the recordings scanned to place them (for the scan to commit).
     A recording whose scan fails stays unplaced (stage ``default``) and fails again, reported, in the scan."""
-    from marionette.corpus.stages import UNPLACED, read_stage_file, write_placements
-    from marionette.ingest.finalize import write_metadata
 
     given = dict(c.info.stages)  # the source tree's stages.json: the user's word
     placed, found = read_stage_file(corpus)

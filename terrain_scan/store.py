@@ -33,7 +33,7 @@ from marionette.corpus.paths import CorpusPathError, inside, stage_dir
 from marionette.io import atomic_path, write_bytes, write_json
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT, MAX_LAYERS, Observations, drop_aliases, merge
-from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, split_cell
+from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, find_chunks, read_chunk, split_cell
 
 MANIFEST_FORMAT = "marionette-terrain-stage"
 MANIFEST_VERSION = 1
@@ -477,7 +477,6 @@ def import_chunks(stage: Stage, src: Path, name: str | None = None, mode: str = 
     contribution of ``stage``, called ``import:<name>`` (default: the directory's name), then rebuild the stage.
     The chunks' measured layers are taken with their hit counts and times; hole-filled ones are left out (the
     rebuild fills holes from every contribution). Importing the same files again changes nothing."""
-    from terrain_scan.trn2 import find_chunks, read_chunk
 
     src = Path(src)
     files = find_chunks(src)

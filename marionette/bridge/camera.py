@@ -45,6 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from marionette.geometry import quat_to_matrix
+
 FOLLOW_TAU_S = 0.4
 FOLLOW_VFOV_DEG = 60.0
 
@@ -99,7 +101,6 @@ def recorded_cameras(
     ``crop`` (a ``marionette.video.CropResize``) maps the source intrinsics to the output the
     video chunk applied; its output size must be (height, width).
     """
-    from marionette.geometry import quat_to_matrix
 
     K = np.asarray(K, np.float64)
     if crop is not None:

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import io
 import json
+import queue
+import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass
 from fractions import Fraction
@@ -170,8 +172,6 @@ QUEUED_FRAMES = 4  # frames in flight between the producer and the encoder threa
 def _encode_overlapped(frames: Iterable[np.ndarray], encode) -> int:
     """``_encode_serially`` with ``encode`` on a thread of its own; an error on either side stops both and is
     raised here (the producer's first)."""
-    import queue
-    import threading
 
     q: queue.Queue = queue.Queue(maxsize=QUEUED_FRAMES)
     failed: list[BaseException] = []

@@ -26,10 +26,16 @@ import pyarrow as pa
 
 from marionette.corpus import Corpus, fixed_rows, paths, video_shards
 from marionette.corpus.lock import corpus_lock
+from marionette.fanout import pool_mapper, worker_identity
+from marionette.geometry import resample_positions, resample_quats
 from marionette.io import file_sha256, text_sha256
 from marionette.recordings.wildworld import RGB_FILE
 from marionette.schema import Entity, Layout
-from terrain_scan.store import stage_terrain
+from marionette.video import CropResize
+from terrain_scan.layers import Observations
+from terrain_scan.mesh import tessellate
+from terrain_scan.store import Stage, chunk_observations, parse_chunk_name, stage_terrain
+from terrain_scan.trn2 import CELLS, find_chunks, read_chunk
 
 from .camera import Cameras, follow_cameras, recorded_cameras
 from .gbuffer import GBufferMeta, write_gbuffer
@@ -76,10 +82,6 @@ class TerrainScene:
         ``terrain_scan.store.Stage`` (``Corpus.terrain``), a stage directory (with a manifest, or the upstream
         release's ``c_<cx>_<cz>.bin`` chunks: ``trn2.find_chunks``, which names a directory holding neither), or
         None (no terrain)."""
-        from terrain_scan.layers import Observations
-        from terrain_scan.mesh import tessellate
-        from terrain_scan.store import Stage, chunk_observations, parse_chunk_name
-        from terrain_scan.trn2 import CELLS, find_chunks, read_chunk
 
         if stage is None:
             return TerrainScene.empty()
@@ -322,7 +324,6 @@ def render_shard(
     """Bring one shard's pose targets up to date in a pass of its own (its own rasterizer and terrain). With
     ``gl_threads``, a worker that has no ``LP_NUM_THREADS`` of its own gives Mesa's llvmpipe that many threads
     (read when the process's first GL context is made: k workers on one machine share its cores)."""
-    from marionette.fanout import worker_identity
 
     if gl_threads is not None:
         os.environ.setdefault("LP_NUM_THREADS", str(int(gl_threads)))
@@ -381,7 +382,6 @@ def render_pose_targets(
     ``jitter`` (active): the targets of jittered state instead (``bridge.jitter``; each chunk's drawn for its
     key), a product of their own under ``corpus.paths.jitter_dir``; the corpus's own targets are not touched.
     """
-    from marionette.fanout import pool_mapper
 
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
@@ -426,7 +426,6 @@ def _remove_orphan_pose_shards(corpus: Corpus, jitter_key: str | None = None) ->
 
 
 def _render_serial(corpus: Corpus, settings: RenderSettings, report: TargetsReport, bar, jitter: Jitter | None) -> set[str]:
-    from marionette.fanout import worker_identity
 
     report.workers = [worker_identity()]
     run = _Pass(corpus, settings, report, jitter)
@@ -519,8 +518,6 @@ def render_rows(
     skeletons and the recorded camera are interpolated in time (slerp for rotations). ``jitter`` moves the
     skeletons (``bridge.jitter``; drawn for the clip ``key``) before they are rendered; the camera stays.
     """
-    from marionette.geometry import resample_positions, resample_quats
-    from marionette.video import CropResize
 
     settings = settings or RenderSettings()
     if rows.num_rows == 0:

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from marionette.options import near_ids
+from terrain_scan.knobs import KNOBS, knob_ok
 
 
 def scene_name(s: str) -> str:
@@ -64,7 +65,6 @@ def checked_scene(a: argparse.Namespace):
 
 def scan_option(s: str) -> tuple[str, float | int]:
     """An argparse type: ``KNOB=VALUE`` for one of ``terrain_scan.scan.KNOBS``, the value checked as the knob needs."""
-    from terrain_scan.knobs import KNOBS, knob_ok
 
     name, eq, raw = s.partition("=")
     if not eq or name not in KNOBS:

@@ -10,7 +10,10 @@ from pathlib import Path
 from marionette.commands import command, strict_status
 from marionette.commands.args import checked_scene, scene_arguments, scene_name
 from marionette.commands.summary import inspect_text, segment_row, segment_rows, segments_text
-from marionette.corpus.video_shards import CHUNK_KIND, POSE_KIND, RGB_KIND
+from marionette.corpus import Corpus
+from marionette.corpus.paths import chunk_key, parse_chunk_key
+from marionette.corpus.video_shards import CHUNK_KIND, POSE_KIND, RGB_KIND, chunk_record, read_joined
+from marionette.io import write_bytes, write_json
 from marionette.options import (
     chunk_frames,
     even_int,
@@ -24,6 +27,7 @@ from marionette.options import (
     positive_int,
     x264_crf,
 )
+from marionette.pipeline import build
 from marionette.progress import ProgressBars, progress_items
 
 
@@ -66,7 +70,6 @@ def cmd_synth(a: argparse.Namespace) -> int:
 def cmd_survey(a: argparse.Namespace) -> int:
     """Report what a recording tree holds (``marionette.ingest.survey``) and, with --rigs-out, draft its rigs and scenes."""
     from marionette.ingest.survey import DraftRules, draft_rigs, survey, write_drafts
-    from marionette.io import write_json
 
     bars = None if a.quiet else ProgressBars()
     report = survey(a.source, progress=bars)
@@ -105,7 +108,6 @@ def cmd_survey(a: argparse.Namespace) -> int:
 def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     """Fit the 8-bit depth mapping from a recording tree's skeletons and depth (``terrain_scan.calibrate``); write
     it as JSON, plot it, and make it the scan decoder of a corpus."""
-    from marionette.io import write_json
     from marionette.recordings.wildworld import discover
     from terrain_scan import calibrate
 
@@ -170,7 +172,6 @@ def ingest_options(a: argparse.Namespace):
 
 def cmd_ingest(a: argparse.Namespace) -> int:
     """Ingest, then scan the terrain and render the pose targets (``marionette.pipeline.build``); 1 with --strict when anything failed."""
-    from marionette.pipeline import build
 
     t0 = time.time()
     report = build(a.src, a.corpus, ingest_options(a), workers=a.workers, terrain=a.terrain, pose=a.pose, progress=not a.quiet)
@@ -207,8 +208,6 @@ def cmd_inspect(a: argparse.Namespace) -> int:
 def joined_chunks(c, segment: str, kinds: tuple[str, ...]) -> tuple[Path, dict[int, dict[str, bytes]]]:
     """The video shard holding ``segment`` and the segment's chunks there, joined with their current pose targets
     (``video_shards.read_joined``): chunk number → {kind → bytes} of ``kinds``."""
-    from marionette.corpus.paths import parse_chunk_key
-    from marionette.corpus.video_shards import read_joined
 
     n = segment_row(c, segment)["shard"]
     shard = c.video_path(n)
@@ -222,8 +221,6 @@ def joined_chunks(c, segment: str, kinds: tuple[str, ...]) -> tuple[Path, dict[i
 def export_chunk(c, segment: str, chunk: int, out: Path) -> tuple[int, int]:
     """Write chunk ``chunk`` of ``segment`` as ``out``/pose.mkv (its pose target), first.png (its first RGB frame) and
     rgb.mp4 (the recorded RGB); returns the frame's (height, width). A chunk without a pose target says how to render one."""
-    from marionette.corpus.paths import chunk_key
-    from marionette.io import write_bytes
     from marionette.observation.generate import write_image
     from marionette.video import decode_frames
 
@@ -252,9 +249,6 @@ def export_chunk(c, segment: str, chunk: int, out: Path) -> tuple[int, int]:
 def cmd_export_chunk(a: argparse.Namespace) -> int:
     """Take one video chunk's pose target and first RGB frame out of a corpus (the inputs of ``marionette generate``), or
     list the segment's chunks."""
-    from marionette.corpus import Corpus
-    from marionette.corpus.paths import chunk_key
-    from marionette.corpus.video_shards import chunk_record
 
     c = Corpus(a.corpus)
     if a.chunk is None:

@@ -4,16 +4,23 @@ from __future__ import annotations
 
 import argparse
 import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 from marionette.commands import command
 from marionette.commands.corpus import export_chunk, joined_chunks, synthetic_arguments
 from marionette.commands.render import render_source
 from marionette.commands.summary import inspect_text
+from marionette.corpus import Corpus
 from marionette.corpus.video_shards import POSE_KIND
+from marionette.corpus.vocab import ActionTokens
+from marionette.dynamics.config import TrainConfig
+from marionette.observation.config import ObservationTrainConfig
 from marionette.options import (
     positive_int,
 )
+from marionette.pipeline import build
 from marionette.progress import ProgressBars
 
 # The demo's video chunks: half the default size, so its ten minutes of play ingest and render their pose targets in
@@ -24,10 +31,8 @@ DEMO_VIDEO_SIZE = (88, 160)  # (height, width)
 def cmd_demo(a: argparse.Namespace) -> int:
     """Synthetic recordings → corpus → 20 fps view → terrain → pose targets → dynamics → a rollout → observation model →
     evaluation report, end to end."""
-    from marionette.corpus import Corpus
     from marionette.eval.report import evaluate
     from marionette.ingest import IngestOptions, VideoSettings
-    from marionette.pipeline import build
     from marionette.synth import generate
     from terrain_scan.options import ScanOptions
 
@@ -81,8 +86,6 @@ def cmd_demo(a: argparse.Namespace) -> int:
 
 def _demo_dynamics(c, out: Path, steps: int) -> None:
     """The demo's dynamics stages: train the tiny preset, then roll it out with an attack forced and render it."""
-    from marionette.corpus.vocab import ActionTokens
-    from marionette.dynamics.config import TrainConfig
     from marionette.dynamics.rollout import write_rollout
     from marionette.dynamics.train import train
 
@@ -126,12 +129,9 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     """The demo's observation stage: train the tiny video model and its pixel-AR baseline side by side (one torch
     thread each, the baseline in a child process: the tiny models are overhead-bound, so two at once finish in about
     the time one takes on two threads), then paint a held-out chunk's pose video from its first frame."""
-    from concurrent.futures import ProcessPoolExecutor
-    from multiprocessing import get_context
 
     import torch
 
-    from marionette.observation.config import ObservationTrainConfig
     from marionette.observation.generate import paint_video
     from marionette.observation.train import train
 
@@ -184,7 +184,6 @@ def _train_quietly(corpus: str, out: str, config: dict) -> list[str]:
     its log lines but the per-step ones."""
     import torch
 
-    from marionette.observation.config import ObservationTrainConfig
     from marionette.observation.train import train
 
     torch.set_num_threads(1)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 
 from marionette.commands import command
+from marionette.play import ARGUMENTS, serve
 from marionette.play import add_arguments as play_arguments
 
 
 def cmd_play(a: argparse.Namespace) -> int:
     """Serve the play page (live or replay) on 127.0.0.1 until interrupted."""
-    from marionette.play import ARGUMENTS, serve
 
     serve(**{k: getattr(a, k) for k in ARGUMENTS})
     return 0

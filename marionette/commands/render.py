@@ -6,8 +6,11 @@ import argparse
 import time
 from pathlib import Path
 
+from marionette.bridge.jitter import Jitter
 from marionette.commands import command
 from marionette.commands.summary import segment_row
+from marionette.corpus import Corpus
+from marionette.io import read_ipc
 from marionette.options import (
     near_ids,
     non_negative_float,
@@ -15,6 +18,8 @@ from marionette.options import (
     positive_float,
     size_hxw,
 )
+from marionette.schema import layout_of_schema
+from terrain_scan.store import segment_terrain
 
 
 def render_source(
@@ -29,12 +34,7 @@ def render_source(
 ) -> None:
     """Render one corpus segment, or a rollout table, to a G-buffer video at ``out`` (``camera``: recorded for a
     corpus, follow for a rollout by default; ``jitter``: root metres, joint degrees, time seconds, seed)."""
-    from marionette.bridge.jitter import Jitter
     from marionette.bridge.targets import TerrainScene, render_rows, source_size
-    from marionette.corpus import Corpus
-    from marionette.io import read_ipc
-    from marionette.schema import layout_of_schema
-    from terrain_scan.store import segment_terrain
 
     src = Path(source)
     t0 = time.time()

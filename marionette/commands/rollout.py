@@ -6,12 +6,12 @@ import argparse
 
 from marionette.commands import command
 from marionette.commands.summary import segment_row
+from marionette.corpus import Corpus
 from marionette.dynamics.controls import add_rollout_arguments
 
 
 def cmd_rollout(a: argparse.Namespace) -> int:
     """Roll a trained dynamics model out from a recorded segment's first frames."""
-    from marionette.corpus import Corpus
     from marionette.dynamics.rollout import ARGUMENTS, write_rollout
 
     segment_row(Corpus(a.corpus), a.segment)

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from marionette.corpus import paths
+from marionette.corpus import Corpus, paths
+from marionette.corpus.play_stats import play_stats, play_stats_lines
 from marionette.options import near_ids
 
 
@@ -13,8 +14,6 @@ def inspect_text(corpus_path: Path, play_shards: int = 64, scene: str | None = N
     """A human summary of a corpus: segments, frames, hours, splits, vocab, recorded play statistics (separation,
     class mix, tokens played; read from the first ``play_shards`` state shards), layout, shards, quarantine. In a
     corpus of several scenes: the scenes, and with ``scene`` that scene's layout, vocab and play."""
-    from marionette.corpus import Corpus
-    from marionette.corpus.play_stats import play_stats, play_stats_lines
 
     c = Corpus(corpus_path, scene=scene)
     info, seg = c.info, c.segments
@@ -76,7 +75,6 @@ SEGMENT_COLUMNS = ("segment", "split", "frames", "stage", "chunks")
 
 def segment_rows(corpus_path: Path, split: str | None = None) -> list[dict]:
     """The corpus's segments (id, split, frames, stage, video chunks), of one split when given; an unknown split is a ValueError."""
-    from marionette.corpus import Corpus
 
     c = Corpus(corpus_path)
     rows = [{k: r[k] for k in SEGMENT_COLUMNS} for r in c.segments.select(list(SEGMENT_COLUMNS)).to_pylist()]
@@ -113,7 +111,6 @@ def segment_row(c, segment: str) -> dict:
 
 def check_stage(corpus_path: Path, stage: str) -> None:
     """A ValueError naming the corpus's stages (the nearest first) when ``stage`` is none of them."""
-    from marionette.corpus import Corpus
 
     c = Corpus(corpus_path)
     stages = sorted(set(c.segments["stage"].to_pylist()))

@@ -8,14 +8,18 @@ from pathlib import Path
 from marionette.commands import command, strict_status
 from marionette.commands.args import id_string, scan_option
 from marionette.commands.summary import check_stage
+from marionette.corpus import Corpus, paths
+from marionette.corpus.lock import corpus_lock
+from marionette.io import read_json
 from marionette.options import mesh_path, positive_float, positive_int
+from marionette.pipeline import refresh
 from terrain_scan.knobs import KNOBS
+from terrain_scan.mesh import export
+from terrain_scan.store import Stage, import_chunks, stage_terrain
 
 
 def cmd_terrain_scan(a: argparse.Namespace) -> int:
     """Scan the corpus's stages, then bring the pose targets up to date (``marionette.pipeline.refresh``)."""
-    from marionette.io import read_json
-    from marionette.pipeline import refresh
     from terrain_scan.depth import DepthDecoder
     from terrain_scan.options import ScanOptions
 
@@ -40,11 +44,7 @@ def cmd_terrain_scan(a: argparse.Namespace) -> int:
 def cmd_terrain_import(a: argparse.Namespace) -> int:
     """Make a directory of TRN2 chunks (the upstream release's ``c_<cx>_<cz>.bin``, or a stage's) a contribution
     of one of the corpus's stages, rebuild the stage, then bring the pose targets up to date."""
-    from marionette.corpus import paths
-    from marionette.corpus.lock import corpus_lock
-    from marionette.pipeline import refresh
     from terrain_scan.options import ScanOptions
-    from terrain_scan.store import Stage, import_chunks
 
     check_stage(a.corpus, a.stage)
     alias = ScanOptions.of_corpus(a.corpus).alias()  # the stage's derivation as its scans set it
@@ -65,10 +65,6 @@ def cmd_terrain_import(a: argparse.Namespace) -> int:
 def cmd_terrain_export(a: argparse.Namespace) -> int:
     """Export a stage's scanned terrain as a mesh, its vertices relative to the terrain's middle."""
     import numpy as np
-
-    from marionette.corpus import Corpus
-    from terrain_scan.mesh import export
-    from terrain_scan.store import stage_terrain
 
     check_stage(a.corpus, a.stage)
     c = Corpus(a.corpus)

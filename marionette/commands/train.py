@@ -7,7 +7,7 @@ import json
 
 from marionette.commands import command
 from marionette.dynamics.config import TrainConfig
-from marionette.knobs import add_training_arguments
+from marionette.knobs import add_training_arguments, config_from_args, nodes_from_args
 from marionette.observation.config import ObservationTrainConfig, WanTrainConfig
 
 
@@ -15,7 +15,6 @@ def cmd_train_dynamics(a: argparse.Namespace) -> int:
     """Train ActionGPT + PoseGPT on a corpus (resuming from --out when it holds a checkpoint)."""
     from marionette.dynamics.config import TrainConfig
     from marionette.dynamics.train import run
-    from marionette.knobs import config_from_args, nodes_from_args
 
     config = config_from_args(TrainConfig, a)
     summary = run(a.corpus, a.out, config, nproc=a.nproc, nodes=nodes_from_args(a), progress=a.progress)
@@ -25,7 +24,6 @@ def cmd_train_dynamics(a: argparse.Namespace) -> int:
 
 def cmd_train_observation(a: argparse.Namespace) -> int:
     """Train the observation model on a corpus's video shards (resuming from --out)."""
-    from marionette.knobs import config_from_args, nodes_from_args
     from marionette.observation.config import ObservationTrainConfig
     from marionette.observation.train import run
 
@@ -37,7 +35,6 @@ def cmd_train_observation(a: argparse.Namespace) -> int:
 
 def cmd_train_wan(a: argparse.Namespace) -> int:
     """Fine-tune Wan2.2-Fun-Control on a corpus's pose-control chunks (resuming from --out)."""
-    from marionette.knobs import config_from_args, nodes_from_args
     from marionette.observation.config import WanTrainConfig
     from marionette.observation.wan_train import run
 

@@ -51,6 +51,7 @@ from marionette.dynamics.features import compute_terrain_features, relative_of_r
 from marionette.dynamics.model import DynamicsModel, Frames
 from marionette.dynamics.normalise import Normaliser
 from marionette.dynamics.state import join_state, split_state
+from terrain_scan.field import open_stage
 from terrain_scan.store import segment_terrain
 
 
@@ -67,7 +68,6 @@ def checkpoint_dir(ckpt: Path | str) -> Path:
 
 def open_terrain_field(corpus: Corpus, segment: str):
     """The segment's stage as a ``LayeredField``, or None when the stage was never scanned."""
-    from terrain_scan.field import open_stage
 
     stage = segment_terrain(corpus, segment)
     return open_stage(stage.dir) if stage is not None else None

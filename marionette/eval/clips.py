@@ -17,17 +17,20 @@ import numpy as np
 import pyarrow as pa
 import torch
 
-from marionette.corpus import Corpus
+from marionette.bridge.camera import recorded_cameras
+from marionette.corpus import Corpus, fixed_rows, video_shards
 from marionette.eval import fvd
+from marionette.eval.i3d import MIN_FRAMES
 from marionette.eval.protocol import (
     Progress,
     Window,
+    rollout_pose_codes,
+    terrain_scene,
 )
 
 
 def _chunk_frames(frames: int, extractor: Any, length: int) -> int:
     """Frames of the per-chunk pieces: the model's chunk, or for I3D (which needs 9) whole model chunks enough for it."""
-    from marionette.eval.i3d import MIN_FRAMES
 
     if not extractor.is_fvd or frames >= MIN_FRAMES:
         return frames
@@ -148,7 +151,6 @@ class RolloutClip:
 def segment_chunks(c: Corpus, segment: str) -> list[dict[str, Any]]:
     """The video chunks of a segment in frame order: each chunk json's record with "key" and "rgb" (the
     rgb.mp4 bytes, None if the shard lacks it)."""
-    from marionette.corpus import video_shards
 
     vpath = c.video_path(c.segment_row(segment)["shard"])
     if not vpath.exists():
@@ -186,9 +188,6 @@ def rollout_clip(
     intrinsics), then follows the generated characters (``follow_cameras`` seeded at it). Rendered at the
     chunk's size and reduced to ``size`` like the training clips (``reduce_codes``, area-averaged RGB). Raises
     ``WindowSkipped`` when the frames are not all in the segment's video chunks (or lack RGB, or a camera)."""
-    from marionette.bridge.camera import recorded_cameras
-    from marionette.corpus import fixed_rows
-    from marionette.eval.protocol import rollout_pose_codes
     from marionette.observation.data import check_size, pose_frames, rgb_frames
     from marionette.video import decode_frames
 
@@ -254,7 +253,6 @@ def rollout_clips(
     """(window index, clip) of every window whose clip can be made, the skipped ones with their reasons, and
     the clip length T = 1 + n·(model_frames − 1) (the most model chunks every window's horizon holds; 0: none);
     ``progress`` told per window."""
-    from marionette.eval.protocol import terrain_scene
 
     rows = {s: c.read_segment(s) for s in {w.segment for w in windows}}
     avail = [_horizon_times(t, w.seed_frames, rows[w.segment]["t"].to_numpy())[1] for w, t in zip(windows, tables)]

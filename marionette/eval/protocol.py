@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from marionette.bridge.kinematics import world_skeletons
 from marionette.bridge.rules import enabled_rules
 from marionette.checkpoint import read_meta
 from marionette.corpus import MODEL_FPS, Corpus, as_corpus, fixed_rows, world_of_rows
@@ -239,7 +240,6 @@ def _follow_codes(
     """G-buffer codes (T, H, W, 3) uint16 (R, G, B) of ``rows`` at ``times`` (s; None: the rows' own) through the follow
     camera (``start``-seeded when given), with the cameras and the ``GBufferMeta`` to decode them."""
     from marionette.bridge.gbuffer import GBufferMeta
-    from marionette.bridge.kinematics import world_skeletons
     from marionette.bridge.render import Rasterizer
     from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, follow_view, height_range, render_frames
 

@@ -34,8 +34,10 @@ import torch
 
 from marionette.chunks import relay_frames, relay_spans, relay_step
 from marionette.corpus import Corpus, world_of_rows
+from marionette.corpus.vocab import ActionTokens
 from marionette.eval import fvd
 from marionette.eval import metrics as M
+from marionette.eval.clips import WindowSkipped, rollout_clip, segment_chunks
 from marionette.eval.config import EvalProtocol
 from marionette.eval.protocol import Progress, Window, body_share_frames, predicted, terrain_scene
 
@@ -117,7 +119,6 @@ def _paint(model: Any, control: torch.Tensor, first: torch.Tensor, frames: int, 
 
 def recorded_actions(c: Corpus, rows: pa.Table, source_frames: tuple[int, int]) -> torch.Tensor:
     """The recorded action tokens (T, N) int64 of the segment's source frames [a, b) (``rows``: its source rows): the baseline's control."""
-    from marionette.corpus.vocab import ActionTokens
 
     tokens, _ = ActionTokens.from_corpus(c).encode(c.layout, rows, where=str(c.path))
     f = rows["frame"].to_numpy()
@@ -143,7 +144,6 @@ def video_tables(
     """Table 1 and Table 3's FVD column (module doc) over long-rollout ``windows``; ``states``: driving state → rollout
     tables per window (``ablation.ablation_rollouts``). Returns {"table1": {"marionette", "baseline"}, "table3": {state:
     scores}, "skipped": [...], "sheet": the contact sheet's frames}; a model not given is "not run" with the reason."""
-    from marionette.eval.clips import WindowSkipped, rollout_clip, segment_chunks
 
     video_fps = float(c.fps)
     T = protocol.video_frames(video_fps)

@@ -19,6 +19,7 @@ import pyarrow as pa
 
 from marionette import geometry as geo
 from marionette.corpus import paths, state_table
+from marionette.ingest.survey import recording_layout
 from marionette.io import file_sha256, text_sha256, write_ipc, write_json
 from marionette.recordings.wildworld import (
     DEPTH_FILE,
@@ -73,7 +74,6 @@ class IngestOptions:
         """The layout a recording is ingested with: the scene's, or with ``auto`` the one of what it holds."""
         if not self.auto:
             return self.layout
-        from marionette.ingest.survey import recording_layout
 
         return recording_layout(ref, self.rigs_dir)
 

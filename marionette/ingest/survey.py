@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.compute as pc
 
+from marionette.geometry import quat_to_matrix
 from marionette.io import write_json
 from marionette.recordings.wildworld import (
     DEPTH_FILE,
@@ -51,7 +52,19 @@ from marionette.recordings.wildworld import (
     tuple_column,
     video_info,
 )
-from marionette.schema import Layout, Rig, SchemaError, rig_from_json
+from marionette.schema import (
+    NAME_PATTERN,
+    SCHEMA_DIR,
+    Entity,
+    Layout,
+    Rig,
+    SchemaError,
+    build_layout,
+    load_rig,
+    load_scene,
+    rig_from_json,
+    scene_names,
+)
 
 Progress = Callable[[str, int, int], None]
 SKELETON_KEY = re.compile(r"([mnw])([1-9][0-9]{0,2})_([0-9]{1,6})")
@@ -302,7 +315,6 @@ def draft_rig(
     ``rot`` (F, 4) the recorded rotation (x, y, z, w) of an articulated entity; a row of nan separates recordings.
     Returns (rig JSON, what was
     measured: forward agreement, contact shares, bone lengths)."""
-    from marionette.geometry import quat_to_matrix
 
     rules = rules or DraftRules()
     J = joints.shape[1]
@@ -479,7 +491,6 @@ def write_drafts(out: Path, rigs: dict[str, dict], scenes: dict[str, dict]) -> l
 
 def rig_index(rigs: Path | None = None) -> dict[str, Rig]:
     """Every rig there is by its edges key: a user's (``<rigs>/rigs/*.json``) over the built-in ones."""
-    from marionette.schema import NAME_PATTERN, SCHEMA_DIR, load_rig
 
     out: dict[str, Rig] = {}
     for d in [SCHEMA_DIR] + ([Path(rigs)] if rigs is not None else []):
@@ -495,7 +506,6 @@ def recording_layout(ref: SampleRef, rigs: Path | None = None, index: dict[str, 
     recorded most often; ``rig_index``), in the duel's order. A built-in scene of the same rigs keeps its name
     (``duel``); another is named ``<monster rig>_<weapon rig>``, as survey names its drafts. A type no rig
     declares is a SampleError naming it."""
-    from marionette.schema import Entity, build_layout, load_scene, scene_names
 
     index = rig_index(rigs) if index is None else index
     cols = {"m": "monster.list.0.type_id", "n": "npc.list.0.type_id", "w": "npc.list.0.weapon_id"}

@@ -37,10 +37,13 @@ import torch
 import webdataset as wds
 
 from marionette.bridge.gbuffer import CODE_MAX, iter_codes
+from marionette.bridge.jitter import Jitter
 from marionette.chunks import is_clip_length
 from marionette.corpus import Corpus, paths
 from marionette.corpus.paths import SHARD_NAME, parse_chunk_key
 from marionette.corpus.video_shards import POSE_KIND, RGB_KIND, PoseShard, member_index, read_at
+from marionette.corpus.vocab import ActionTokens
+from marionette.distributed import rank_world
 from marionette.video import decode_frames
 
 
@@ -109,8 +112,6 @@ def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) ->
 def jittered_targets(corpus: Corpus, root_m: float, joint_deg: float, time_s: float, seed: int, log=print) -> str | None:
     """The key of the pose targets of state jittered by these amounts (``bridge.jitter``), rendered first where
     missing (rank 0, the other ranks waiting); None when every amount is 0 (the corpus's own targets)."""
-    from marionette.bridge.jitter import Jitter
-    from marionette.distributed import rank_world
 
     jitter = Jitter(root_m, joint_deg, time_s, seed)
     if not jitter.active:
@@ -157,7 +158,6 @@ class ClipSource:
 
     def _actions_from(self, first_frame: int, clip: Clip) -> Clip:
         """The clip with the entity tokens of its frames, its chunk starting at source frame ``first_frame``."""
-        from marionette.corpus.vocab import ActionTokens
 
         seg = parse_chunk_key(clip.key)[0]
         if seg not in self._tokens:

@@ -9,6 +9,7 @@ model made, first frame included), at ``fps``.
 
 from __future__ import annotations
 
+import io
 import time
 from pathlib import Path
 
@@ -18,7 +19,7 @@ import torch
 
 from marionette.bridge.gbuffer import iter_codes, read_gbuffer_meta
 from marionette.chunks import is_clip_length
-from marionette.io import write_bytes
+from marionette.io import read_json, write_bytes
 from marionette.observation.data import check_size, pose_frames, rgb_frames
 from marionette.observation.relay import generate
 from marionette.observation.train import load_model
@@ -37,7 +38,6 @@ def read_image(path: Path) -> np.ndarray:
 
 def write_image(path: Path, rgb: np.ndarray) -> None:
     """(H, W, 3) uint8 RGB → a PNG file (PyAV), written atomically."""
-    import io
 
     buf = io.BytesIO()
     with av.open(buf, "w", format="image2pipe") as c:
@@ -71,7 +71,6 @@ def wan_directory(path: Path) -> bool:
 def wan_settings(path: Path) -> dict:
     """The chunk length and timestep shift a Wan model directory was fine-tuned with (``WAN_SETTINGS``), else the
     release's (81 frames, shift 5)."""
-    from marionette.io import read_json
 
     d = read_json(path / WAN_SETTINGS) if (path / WAN_SETTINGS).is_file() else {}
     frames, shift = d.get("frames", 81), d.get("shift", 5.0)

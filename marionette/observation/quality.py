@@ -31,6 +31,7 @@ from torch import Tensor, nn
 
 from marionette.bridge.gbuffer import CODE_MAX
 from marionette.chunks import relay_chunks, relay_frames, relay_step
+from marionette.corpus.paths import parse_chunk_key
 from marionette.observation.data import Clip
 from marionette.observation.model import VideoDiT, sample_chunk
 from marionette.observation.references import EntityReferences, band_masks
@@ -166,7 +167,6 @@ def relay_videos(source, frames: int, every: int | None = None) -> list[Clip]:
     """Videos of ``frames`` frames for long relays: the runs of consecutive chunks of each segment of a
     ``ClipSource`` (chunks whose source frames follow on) joined, cut from their starts every ``every`` frames
     (default ``frames``), in the index's order."""
-    from marionette.corpus.paths import parse_chunk_key
 
     runs: dict[str, list[list]] = {}
     for ref in source.index():

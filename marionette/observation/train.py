@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from marionette import training
-from marionette.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_meta, save_checkpoint
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.observation.config import OBS_PRESETS, ObservationConfig, ObservationTrainConfig
@@ -293,7 +293,6 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
     ckpt = p if (p / "meta.json").exists() else latest_checkpoint(p)
     if ckpt is None:
         raise FileNotFoundError(f"{p}: neither an observation checkpoint nor a training directory with a 'latest' one")
-    from marionette.checkpoint import read_meta
 
     meta = read_meta(ckpt)
     if meta.get("kind") != "observation":

@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from marionette.options import int_in, non_negative_float, non_negative_int, positive_int, size_hxw
+
 ARGUMENTS = (
     "run",
     "corpus",
@@ -33,7 +35,6 @@ ARGUMENTS = (
 
 
 def port_number(s: str) -> int:
-    from marionette.options import int_in
 
     return int_in(0, 65535)(s)
 
@@ -41,7 +42,6 @@ def port_number(s: str) -> int:
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The play command's arguments, each checked as it is parsed."""
     from marionette.dynamics.controls import parse_rules
-    from marionette.options import non_negative_float, non_negative_int, positive_int, size_hxw
 
     ap.add_argument("run", type=Path, nargs="?", help="a dynamics checkpoint or training directory (live play)")
     ap.add_argument("corpus", type=Path, nargs="?", help="the corpus whose segment seeds the rollout (live play)")

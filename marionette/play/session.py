@@ -29,14 +29,16 @@ import numpy as np
 import pyarrow as pa
 
 from marionette import geometry as geo
+from marionette.bridge.camera import recorded_cameras
 from marionette.bridge.gbuffer import to_codes
-from marionette.bridge.rules import RULES
-from marionette.bridge.targets import TerrainScene
+from marionette.bridge.rules import RULES, enabled_rules
+from marionette.bridge.targets import TerrainScene, source_size
 from marionette.checkpoint import read_meta
 from marionette.corpus import Corpus, as_corpus, fixed_rows
 from marionette.dynamics.engine import Rollout, checkpoint_dir, open_terrain_field
 from marionette.dynamics.rollout import rollout_table
 from marionette.eval.control import tip_speeds
+from marionette.video import CropResize
 from terrain_scan.store import segment_terrain
 
 from .bindings import KEYS, action_table, default_bindings
@@ -196,9 +198,6 @@ class LiveSession(Playable):
         """The recorded camera of one corpus row at the view's size (the video chunks' centred crop), or None if the
         row's camera is not valid: where a painted session's follow camera starts, so that its first pose frame shows
         what the recorded first RGB frame shows."""
-        from marionette.bridge.camera import recorded_cameras
-        from marionette.bridge.targets import source_size
-        from marionette.video import CropResize
 
         H, W = self.size
         src_h, src_w = source_size(self.corpus, segment)
@@ -214,7 +213,6 @@ class LiveSession(Playable):
         return cams if cams.valid[0] else None
 
     def _rules_from(self, asked) -> tuple[str, ...]:
-        from marionette.bridge.rules import enabled_rules
 
         possible = enabled_rules(self.layout, self.ro.field)
         if asked == "auto":
@@ -236,7 +234,6 @@ class LiveSession(Playable):
             return self.rules()
 
     def rules(self) -> dict:
-        from marionette.bridge.rules import enabled_rules
 
         possible = enabled_rules(self.layout, self.ro.field)
         return {r: {"on": r in self.ro.enabled, "available": r in possible} for r in RULES}

@@ -30,6 +30,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
+from marionette.io import read_json
 from marionette.schema import Entity, Layout
 
 RGB_FILE = "rgb.mp4"  # a sample's files
@@ -405,7 +406,6 @@ def load_skeletons(
 
 def load_edges(path: Path) -> dict[str, list[list[int]]]:
     """skeleton_edges.json: skeleton type key → [[parent, child], ...] (its size checked before it is read)."""
-    from marionette.io import read_json
 
     try:
         d = read_json(Path(path), MAX_EDGES_BYTES)

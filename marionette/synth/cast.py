@@ -23,12 +23,14 @@ species × stages recordings. ``Role.to_json`` goes to the truth side file.
 
 from __future__ import annotations
 
+import colorsys
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from marionette.schema import load_rig
 
+from . import terrain
 from .skeletons import HUNTER_PELVIS_H, MONSTER_PELVIS_H
 from .terrain import ARENA_CENTER
 
@@ -312,7 +314,6 @@ class Stage:
 
     def layers(self, x, z) -> list[np.ndarray]:
         """The stage's walkable surfaces at its own world (x, z): [ground, deck], nan where there is none."""
-        from . import terrain
 
         x, z = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(z, np.float64))
         q = self.unpoints(np.stack([x, np.zeros_like(x), z], -1))
@@ -339,7 +340,6 @@ class Skin:
 
 def draw_skin(seed: int, index: int) -> Skin:
     """Recording ``index``'s skin, drawn by (seed, index): two colours of any hue, mid saturation and value."""
-    import colorsys
 
     rng = np.random.default_rng([seed, 0x5C1, index])
 

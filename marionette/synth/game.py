@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+from concurrent.futures import ProcessPoolExecutor
 from datetime import UTC, datetime
 from fractions import Fraction
 from pathlib import Path
@@ -422,7 +423,6 @@ def generate(
     args = [(out_dir, part, k, seed, seconds, width, height, fps, mapping, spec or None, int(pooled)) for k in range(recordings)]
     if not pooled:
         return [write_recording(*a) for a in args]
-    from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(write_recording, *zip(*args)))
