@@ -388,33 +388,10 @@ def train(
     log = training.rank_zero_log(log)
     out_dir = Path(out_dir)
     corpus = corpus_path if isinstance(corpus_path, Corpus) else Corpus(Path(corpus_path), scene=config.scene)
-    device = torch.device(f"cuda:{torch.cuda.current_device()}" if torch.cuda.is_available() else "cpu")
-    use_bf16 = config.bf16 if config.bf16 is not None else (device.type == "cuda" and torch.cuda.is_bf16_supported())
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16) if use_bf16 else nullcontext()
-
+    device, use_bf16, autocast = _device(config)
     data, sampler, held = _windows(corpus, config, log)
-    normaliser, tokens, length = data.normaliser, data.tokens, sampler.length
-    terrain_switch = {} if config.terrain else {"terrain": (False,) * len(tokens.sizes)}
-    dyn = DynamicsConfig.preset(
-        config.preset,
-        corpus.layout,
-        tokens.sizes,
-        window=length,
-        relative_position=config.relative,
-        dropout=config.dropout,
-        residual=config.residual,
-        body_anchor=config.body_anchor and not config.residual,
-        rotation_anchor=config.rotation_anchor and not config.residual,
-        displacement_gate=config.displacement_gate and not config.residual,
-        adaptive_copy=config.adaptive_copy,
-        pose_progress=config.pose_progress,
-        token_classes=tokens.class_indices(corpus.vocab) if config.token_classes else (),
-        clip_frames=tokens.event_lengths(corpus.vocab) if config.time_left else (),
-        source_fps=float(corpus.fps),
-        model_fps=float(data.fps),
-        events_end=ended_events(data, tokens.event_lengths(corpus.vocab), corpus.fps / data.fps) if config.events_end else (),
-        **terrain_switch,
-    )
+    normaliser, length = data.normaliser, sampler.length
+    dyn = _dynamics_config(config, corpus, data, length)
     hinge = PenetrationHinge(corpus.layout, normaliser, config.hinge_margin) if config.terrain and config.w_hinge else None
     model = DynamicsModel(dyn, seed=config.seed).to(device)
     opt, sched = make_optimizer(model, config)
@@ -432,39 +409,18 @@ def train(
     def checkpoint(at: int) -> Path | None:
         if rank != 0:
             return None
-        meta = {
-            "train_config": config.to_json(),
-            "dynamics_config": dyn.to_json(),
-            "normaliser": normaliser.to_json(),
-            "vocab": {"hash": tokens.vocab_hash, "sizes": list(tokens.sizes), "entities": list(tokens.entities)},
-            "losses": run.history,
-            "evals": run.evals,
-        }
-        return save_checkpoint(out_dir, at, model, opt, sched, meta)
+        return save_checkpoint(out_dir, at, model, opt, sched, _checkpoint_meta(config, dyn, data, run))
 
     end = config.steps if stop_at is None else min(stop_at, config.steps)
-    board = None
-    if rank == 0 and run.step < end:  # a resumed run drops the events logged after its checkpoint
-        from torch.utils.tensorboard import SummaryWriter
-
-        board = SummaryWriter(str(out_dir / TENSORBOARD), purge_step=run.step + 1 if run.step else None)
+    board = _Board(out_dir, run.step, end, rank)
 
     def run_eval(at: int) -> None:
         if held is None:
             return
         metrics = {"step": at, **evaluate(model, held, device)}
         run.evals.append(metrics)
-        if board is not None:
-            for k, v in metrics.items():
-                if k not in ("step", "windows"):
-                    board.add_scalar(f"eval/{k}", v, at)
+        board.scalars("eval", metrics, at, skip=("step", "windows"))
         log(f"eval step {at} " + json.dumps({k: round(v, 4) for k, v in metrics.items()}))
-
-    def to_board(record: dict) -> None:
-        if board is not None:
-            for k, v in record.items():
-                if k != "step":
-                    board.add_scalar(f"train/{k}", v, record["step"])
 
     batches = batches_from(sampler, run.step, config.loader_workers)
 
@@ -493,7 +449,7 @@ def train(
             checkpoint_every=config.checkpoint_every,
             evaluate=run_eval,
             eval_every=config.eval_every,
-            on_record=to_board,
+            on_record=lambda record: board.scalars("train", record, record["step"], skip=("step",)),
             log=log,
             progress=progress,
             desc="train dynamics",
@@ -503,9 +459,14 @@ def train(
     if not run.evals or run.evals[-1]["step"] != run.step:
         run_eval(run.step)
     last = training.final_checkpoint(run, checkpoint)
-    if board is not None:
-        board.close()
-    summary = {
+    board.close()
+    return training.finish(out_dir, _summary(run, length, base, counts, last))
+
+
+def _summary(run: training.Run, length: int, base: dict | None, counts: dict, last: Path | None) -> dict:
+    """``summary.json``: steps, window, first and final losses, the last evaluation, the baselines, parameter counts,
+    the final checkpoint and every logged loss."""
+    return {
         "steps": run.step,
         "window": length,
         "first": run.history[0] if run.history else None,
@@ -516,7 +477,77 @@ def train(
         "checkpoint": str(last) if last else None,
         "losses": run.history,
     }
-    return training.finish(out_dir, summary)
+
+
+def _device(config: TrainConfig) -> tuple[torch.device, bool, Any]:
+    """This process's device (its CUDA device, else the CPU), whether it trains in bf16 (``config.bf16``, by default
+    where CUDA supports it) and the autocast context that does."""
+    device = torch.device(f"cuda:{torch.cuda.current_device()}" if torch.cuda.is_available() else "cpu")
+    use_bf16 = config.bf16 if config.bf16 is not None else (device.type == "cuda" and torch.cuda.is_bf16_supported())
+    return device, use_bf16, torch.autocast(device.type, dtype=torch.bfloat16) if use_bf16 else nullcontext()
+
+
+def _checkpoint_meta(config: TrainConfig, dyn: DynamicsConfig, data: WindowData, run: training.Run) -> dict:
+    """What a checkpoint carries beside the tensors: both configs, the normaliser, the vocabulary it was trained
+    with, and the run's losses and evaluations so far."""
+    tokens = data.tokens
+    return {
+        "train_config": config.to_json(),
+        "dynamics_config": dyn.to_json(),
+        "normaliser": data.normaliser.to_json(),
+        "vocab": {"hash": tokens.vocab_hash, "sizes": list(tokens.sizes), "entities": list(tokens.entities)},
+        "losses": run.history,
+        "evals": run.evals,
+    }
+
+
+def _dynamics_config(config: TrainConfig, corpus: Corpus, data: WindowData, length: int) -> DynamicsConfig:
+    """The model's configuration: the preset's sizes for this corpus's layout and vocabularies, the window, and the
+    switches of ``config`` (an anchor or gate is off with residual heads)."""
+    tokens = data.tokens
+    terrain_switch = {} if config.terrain else {"terrain": (False,) * len(tokens.sizes)}
+    return DynamicsConfig.preset(
+        config.preset,
+        corpus.layout,
+        tokens.sizes,
+        window=length,
+        relative_position=config.relative,
+        dropout=config.dropout,
+        residual=config.residual,
+        body_anchor=config.body_anchor and not config.residual,
+        rotation_anchor=config.rotation_anchor and not config.residual,
+        displacement_gate=config.displacement_gate and not config.residual,
+        adaptive_copy=config.adaptive_copy,
+        pose_progress=config.pose_progress,
+        token_classes=tokens.class_indices(corpus.vocab) if config.token_classes else (),
+        clip_frames=tokens.event_lengths(corpus.vocab) if config.time_left else (),
+        source_fps=float(corpus.fps),
+        model_fps=float(data.fps),
+        events_end=ended_events(data, tokens.event_lengths(corpus.vocab), corpus.fps / data.fps) if config.events_end else (),
+        **terrain_switch,
+    )
+
+
+class _Board:
+    """A run's TensorBoard scalars under ``<out>/tensorboard``, written by rank 0 while steps remain (a resumed run
+    drops the events logged after its checkpoint); otherwise nothing is written."""
+
+    def __init__(self, out_dir: Path, start: int, end: int, rank: int) -> None:
+        self.writer = None
+        if rank == 0 and start < end:
+            from torch.utils.tensorboard import SummaryWriter  # tensorboard's writer loads protobuf: only when it writes
+
+            self.writer = SummaryWriter(str(out_dir / TENSORBOARD), purge_step=start + 1 if start else None)
+
+    def scalars(self, prefix: str, record: dict, step: int, skip: tuple[str, ...]) -> None:
+        if self.writer is not None:
+            for k, v in record.items():
+                if k not in skip:
+                    self.writer.add_scalar(f"{prefix}/{k}", v, step)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
 
 
 # -- commands ----------------------------------------------------------------------------------------

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from marionette.corpus import paths
-from marionette.corpus.info import CorpusInfo
+from marionette.corpus import MODEL_FPS, paths
+from marionette.corpus.info import POSE_PATH, STATE_PATH, VIDEO_PATH, CorpusInfo
 from marionette.corpus.stages import UNPLACED, read_placements
 from marionette.corpus.vocab import classify
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
@@ -225,6 +225,24 @@ def finalize(corpus: Path, options: IngestOptions | None = None, stages: dict[st
     return write_metadata(corpus, options, stages)
 
 
+SEGMENT_COLUMNS = (
+    "segment",
+    "sample",
+    "stage",
+    "scene",
+    "species",
+    "weapon",
+    "frames",
+    "start",
+    "stop",
+    "chunks",
+    "split",
+    "shard",
+    "hash",
+)
+SEGMENT_INT_COLUMNS = ("species", "weapon", "frames", "start", "stop", "chunks", "shard")
+
+
 def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: dict[str, str] | None = None) -> dict:
     """Derive segments.parquet, samples.parquet, quarantine.parquet, vocab.json, stats.json and info.json."""
     info_path = paths.meta(corpus, paths.INFO)
@@ -241,24 +259,26 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
     ingested = [r for r in records if r["status"] == "ingested"]
     layouts = _layouts(options, ingested)
 
-    seg_rows: dict[str, list] = {
-        k: []
-        for k in (
-            "segment",
-            "sample",
-            "stage",
-            "scene",
-            "species",
-            "weapon",
-            "frames",
-            "start",
-            "stop",
-            "chunks",
-            "split",
-            "shard",
-            "hash",
-        )
-    }
+    seg_rows = _segment_rows(ingested, layouts, stages, placed)
+    write_parquet(
+        paths.meta(corpus, paths.SEGMENTS),
+        pa.table({k: pa.array(v, pa.int32() if k in SEGMENT_INT_COLUMNS else pa.string()) for k, v in seg_rows.items()}),
+    )
+    bad = [r for r in records if r["status"] == "quarantined"]
+    write_parquet(paths.meta(corpus, paths.SAMPLES), _samples_table(records))
+    write_parquet(paths.meta(corpus, paths.QUARANTINE), _quarantine_table(bad))
+    vocab, stats = _vocab_and_stats(ingested, layouts)
+    write_json(paths.meta(corpus, paths.VOCAB), vocab)
+    write_json(paths.meta(corpus, paths.STATS), stats)
+    info = _info(options, layouts, records, ingested, bad, seg_rows, stages, vocab)
+    write_json(info_path, CorpusInfo.from_json(info, str(info_path)).to_json())
+    return info
+
+
+def _segment_rows(ingested: list[dict], layouts: dict, stages: dict[str, str], placed: dict[str, str]) -> dict[str, list]:
+    """The columns of segments.parquet: one row per segment of every ingested sample, with its sample's stage (the
+    source's map, else the scan's placement), scene, species and weapon."""
+    seg_rows: dict[str, list] = {k: [] for k in SEGMENT_COLUMNS}
     for r in ingested:
         layout = layouts[r.get("scene", next(iter(layouts)))]
         types = r.get("types", {})
@@ -281,66 +301,70 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
                 ("hash", s["hash"]),
             ):
                 seg_rows[k].append(v)
-    seg_types = {
-        "species": pa.int32(),
-        "weapon": pa.int32(),
-        "frames": pa.int32(),
-        "start": pa.int32(),
-        "stop": pa.int32(),
-        "chunks": pa.int32(),
-        "shard": pa.int32(),
-    }
-    write_parquet(
-        paths.meta(corpus, paths.SEGMENTS), pa.table({k: pa.array(v, seg_types.get(k, pa.string())) for k, v in seg_rows.items()})
+    return seg_rows
+
+
+def _samples_table(records: list[dict]) -> pa.Table:
+    """samples.parquet: every sample's status, reason, input hash, shard, source and state hash."""
+    return pa.table(
+        {
+            "sample": pa.array([r["sample"] for r in records], pa.string()),
+            "status": pa.array([r["status"] for r in records], pa.string()),
+            "reason": pa.array([r.get("reason", "") for r in records], pa.string()),
+            "input_hash": pa.array([r["input_hash"] for r in records], pa.string()),
+            "shard": pa.array([r.get("shard") for r in records], pa.int32()),
+            "source": pa.array([r.get("source", "") for r in records], pa.string()),
+            "state_hash": pa.array([r.get("state_hash", "") for r in records], pa.string()),
+        }
     )
-    write_parquet(
-        paths.meta(corpus, paths.SAMPLES),
-        pa.table(
-            {
-                "sample": pa.array([r["sample"] for r in records], pa.string()),
-                "status": pa.array([r["status"] for r in records], pa.string()),
-                "reason": pa.array([r.get("reason", "") for r in records], pa.string()),
-                "input_hash": pa.array([r["input_hash"] for r in records], pa.string()),
-                "shard": pa.array([r.get("shard") for r in records], pa.int32()),
-                "source": pa.array([r.get("source", "") for r in records], pa.string()),
-                "state_hash": pa.array([r.get("state_hash", "") for r in records], pa.string()),
-            }
-        ),
+
+
+def _quarantine_table(bad: list[dict]) -> pa.Table:
+    """quarantine.parquet: each quarantined sample with its reason."""
+    return pa.table(
+        {
+            "sample": pa.array([r["sample"] for r in bad], pa.string()),
+            "reason": pa.array([r["reason"] for r in bad], pa.string()),
+            "input_hash": pa.array([r["input_hash"] for r in bad], pa.string()),
+            "source": pa.array([r.get("source", "") for r in bad], pa.string()),
+        }
     )
-    bad = [r for r in records if r["status"] == "quarantined"]
-    write_parquet(
-        paths.meta(corpus, paths.QUARANTINE),
-        pa.table(
-            {
-                "sample": pa.array([r["sample"] for r in bad], pa.string()),
-                "reason": pa.array([r["reason"] for r in bad], pa.string()),
-                "input_hash": pa.array([r["input_hash"] for r in bad], pa.string()),
-                "source": pa.array([r.get("source", "") for r in bad], pa.string()),
-            }
-        ),
-    )
-    if len(layouts) > 1:  # vocab and stats per scene: a species' actions and body are its own
+
+
+def _vocab_and_stats(ingested: list[dict], layouts: dict) -> tuple[dict, dict]:
+    """vocab.json and stats.json: one of each, or one per scene where scenes differ (a species' actions and body are
+    its own)."""
+    if len(layouts) > 1:
         scenes = {name: [r for r in ingested if r.get("scene") == name] for name in layouts}
         per = {name: build_vocab(recs) for name, recs in scenes.items()}
         vocab = {"version": 1, "scenes": per, "hash": text_sha256(json.dumps({n: v["hash"] for n, v in per.items()}))[:16]}
-        stats = {"scenes": {name: build_stats(recs) for name, recs in scenes.items()}}
-    else:
-        vocab, stats = build_vocab(ingested), build_stats(ingested)
-    write_json(paths.meta(corpus, paths.VOCAB), vocab)
-    write_json(paths.meta(corpus, paths.STATS), stats)
+        return vocab, {"scenes": {name: build_stats(recs) for name, recs in scenes.items()}}
+    return build_vocab(ingested), build_stats(ingested)
 
+
+def _info(
+    options: IngestOptions,
+    layouts: dict,
+    records: list[dict],
+    ingested: list[dict],
+    bad: list[dict],
+    seg_rows: dict[str, list],
+    stages: dict[str, str],
+    vocab: dict,
+) -> dict:
+    """info.json's fields (``CorpusInfo`` checks them): the layouts, rates, ingest options, totals and path templates."""
     only = next(iter(layouts.values())) if len(layouts) == 1 else None
     fps = sorted({r["fps"] for r in ingested}) or [30.0]
     splits: dict[str, int] = {}
     for r in ingested:
         for s in r["segments"]:
             splits[s["split"]] = splits.get(s["split"], 0) + s["frames"]
-    info = {
+    return {
         "codebase_version": f"marionette-ingest-{INGEST_VERSION}",
         "layout": {"hash": only.hash, **only.to_json()} if only is not None else {},
         **({"layouts": {n: {"hash": x.hash, **x.to_json()} for n, x in layouts.items()}} if len(layouts) > 1 else {}),
         "fps": fps[0] if len(fps) == 1 else fps,
-        "dynamics_fps": 20,
+        "dynamics_fps": int(MODEL_FPS),
         "ingest": options.to_json(),
         "features": features(only) if only is not None else {n: features(x) for n, x in layouts.items()},
         "total_samples": len(records),
@@ -354,12 +378,10 @@ def write_metadata(corpus: Path, options: IngestOptions | None = None, stages: d
         "shards": sorted(r["shard"] for r in ingested),
         "stages": stages,
         "vocab_hash": vocab["hash"],
-        "state_path": "state/shard-{shard:06d}.arrow",
-        "video_path": "video/shard-{shard:06d}.tar",
-        "pose_path": "pose/shard-{shard:06d}.tar",
+        "state_path": STATE_PATH,
+        "video_path": VIDEO_PATH,
+        "pose_path": POSE_PATH,
     }
-    write_json(info_path, CorpusInfo.from_json(info, str(info_path)).to_json())
-    return info
 
 
 def _layouts(options: IngestOptions, ingested: list[dict]) -> dict:

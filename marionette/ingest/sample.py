@@ -391,78 +391,8 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
             raise SampleError(refused)
         if digests is None:
             raise OSError(unreadable)
-        layout = options.layout_for(ref)
-        sample = read_sample(ref, layout, options.type_filter(layout), options.max_member_bytes)
-        runs = valid_runs(sample.valid, options.min_segment_frames)
-        if not runs:
-            raise SampleError(
-                f"{ref.path}: no valid segment of at least {options.min_segment_frames} frames "
-                f"({sample.n_frames} frames; {_describe_invalid(sample)})"
-            )
-        tables, segs, summaries, stats = [], [], {}, None
-        split = split_of(ref.name, options.split_fractions)
-        for k, (a, b), state, table in segment_states(layout, sample, runs):
-            seg_id = segment_id(ref, k)
-            tables.append(table)
-            seg_hash = hashlib.sha256()  # over every column but the ids: state, actions, roots, camera, ...
-            for name in tables[-1].column_names[2:]:
-                seg_hash.update(name.encode())
-                for buf in tables[-1][name].combine_chunks().buffers():
-                    if buf is not None:
-                        seg_hash.update(buf)
-            segs.append(
-                {"segment": seg_id, "start": a, "stop": b, "frames": b - a, "split": split, "hash": seg_hash.hexdigest()[:32]}
-            )
-            merge_action_stats(summaries, action_stats(layout, state, sample, a, b, sample.fps))
-            feats = {"state": state.astype(np.float64)}
-            for e in layout.articulated:
-                feats[f"{e.name}.root_world"] = sample.entities[e.name].joints_world[a:b, 0]
-            part = {k: moments(v) for k, v in feats.items()}
-            stats = part if stats is None else {k: merge_moments(stats[k], part[k]) for k in part}
-        write_ipc(stage / "state.arrow", pa.concat_tables(tables), options.compression)
-        video_records = write_video_shard(
-            stage / "video.tar",
-            ref.path / RGB_FILE,
-            [(s["segment"], s["start"], s["stop"], sample.camera_K[s["start"] : s["stop"]]) for s in segs],
-            sample.fps,
-            options.video,
-            {"sample": ref.name},
-        )
-        per_seg_chunks: dict[str, int] = {}
-        for r in video_records:
-            per_seg_chunks[r["segment"]] = per_seg_chunks.get(r["segment"], 0) + 1
-        for s in segs:
-            s["chunks"] = per_seg_chunks.get(s["segment"], 0)
-        types = {e.name: int(sample.entities[e.name].type_id[runs[0][0]]) for e in layout.entities}
-        record.update(
-            status="ingested",
-            scene=layout.scene,
-            fps=sample.fps,
-            n_frames=sample.n_frames,
-            video_size=list(sample.video_size),
-            types=types,
-            split=split,
-            segments=segs,
-            actions=summaries,
-            stats=stats,
-            pos_check_m={
-                e.name: max(
-                    float(
-                        np.nan_to_num(
-                            np.linalg.norm(
-                                sample.entities[e.name].pos[a:b] - sample.entities[e.name].joints_world[a:b, 0], axis=1
-                            ),
-                            nan=-1.0,
-                        ).max()
-                    )
-                    for a, b in runs
-                )
-                for e in layout.articulated
-            },
-            state_hash=file_sha256(stage / "state.arrow"),
-        )
-        if options.auto:  # its own layout travels with it to finalize
-            record["layout"] = {"hash": layout.hash, **layout.to_json()}
+        record.update(_stage_sample(ref, stage, options))
+        segs = record["segments"]
         result = SampleResult(ref.name, "ingested", h, segments=len(segs), frames=sum(s["frames"] for s in segs), worker=worker)
     except SampleSkipped as exc:
         record.update(status="skipped", reason=str(exc))
@@ -481,3 +411,104 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
             (stage / f).unlink(missing_ok=True)
     write_json(stage / "record.json", record)
     return result
+
+
+def _stage_sample(ref: SampleRef, stage: Path, options: IngestOptions) -> dict:
+    """Read one sample, write its segments' state (``state.arrow``) and video chunks (``video.tar``) under ``stage``;
+    returns the record's fields of an ingested sample. A sample with no valid segment is a ``SampleError``."""
+    layout = options.layout_for(ref)
+    sample = read_sample(ref, layout, options.type_filter(layout), options.max_member_bytes)
+    runs = valid_runs(sample.valid, options.min_segment_frames)
+    if not runs:
+        raise SampleError(
+            f"{ref.path}: no valid segment of at least {options.min_segment_frames} frames "
+            f"({sample.n_frames} frames; {_describe_invalid(sample)})"
+        )
+    split = split_of(ref.name, options.split_fractions)
+    tables, segs, summaries, stats = _segments(ref, layout, sample, runs, split)
+    write_ipc(stage / "state.arrow", pa.concat_tables(tables), options.compression)
+    video_records = write_video_shard(
+        stage / "video.tar",
+        ref.path / RGB_FILE,
+        [(s["segment"], s["start"], s["stop"], sample.camera_K[s["start"] : s["stop"]]) for s in segs],
+        sample.fps,
+        options.video,
+        {"sample": ref.name},
+    )
+    per_seg_chunks: dict[str, int] = {}
+    for r in video_records:
+        per_seg_chunks[r["segment"]] = per_seg_chunks.get(r["segment"], 0) + 1
+    for s in segs:
+        s["chunks"] = per_seg_chunks.get(s["segment"], 0)
+    fields = {
+        "status": "ingested",
+        "scene": layout.scene,
+        "fps": sample.fps,
+        "n_frames": sample.n_frames,
+        "video_size": list(sample.video_size),
+        "types": {e.name: int(sample.entities[e.name].type_id[runs[0][0]]) for e in layout.entities},
+        "split": split,
+        "segments": segs,
+        "actions": summaries,
+        "stats": stats,
+        "pos_check_m": _pos_check(layout, sample, runs),
+        "state_hash": file_sha256(stage / "state.arrow"),
+    }
+    if options.auto:  # its own layout travels with it to finalize
+        fields["layout"] = {"hash": layout.hash, **layout.to_json()}
+    return fields
+
+
+def _segments(
+    ref: SampleRef, layout: Layout, sample: RecordedSample, runs: list[tuple[int, int]], split: str
+) -> tuple[list[pa.Table], list[dict], dict, dict | None]:
+    """Per valid run: its state table, its segment record (id, frames, split, content hash), and the sample's action
+    statistics and moments merged over the runs."""
+    tables, segs, summaries, stats = [], [], {}, None
+    for k, (a, b), state, table in segment_states(layout, sample, runs):
+        tables.append(table)
+        segs.append(
+            {
+                "segment": segment_id(ref, k),
+                "start": a,
+                "stop": b,
+                "frames": b - a,
+                "split": split,
+                "hash": _segment_hash(table),
+            }
+        )
+        merge_action_stats(summaries, action_stats(layout, state, sample, a, b, sample.fps))
+        feats = {"state": state.astype(np.float64)}
+        for e in layout.articulated:
+            feats[f"{e.name}.root_world"] = sample.entities[e.name].joints_world[a:b, 0]
+        part = {k: moments(v) for k, v in feats.items()}
+        stats = part if stats is None else {k: merge_moments(stats[k], part[k]) for k in part}
+    return tables, segs, summaries, stats
+
+
+def _segment_hash(table: pa.Table) -> str:
+    """A segment's content hash: over every column but the ids (state, actions, roots, camera, ...)."""
+    seg_hash = hashlib.sha256()
+    for name in table.column_names[2:]:
+        seg_hash.update(name.encode())
+        for buf in table[name].combine_chunks().buffers():
+            if buf is not None:
+                seg_hash.update(buf)
+    return seg_hash.hexdigest()[:32]
+
+
+def _pos_check(layout: Layout, sample: RecordedSample, runs: list[tuple[int, int]]) -> dict[str, float]:
+    """Per articulated entity, the largest distance (m) between its recorded position and its root joint over the valid
+    runs (−1 where neither is known)."""
+    return {
+        e.name: max(
+            float(
+                np.nan_to_num(
+                    np.linalg.norm(sample.entities[e.name].pos[a:b] - sample.entities[e.name].joints_world[a:b, 0], axis=1),
+                    nan=-1.0,
+                ).max()
+            )
+            for a, b in runs
+        )
+        for e in layout.articulated
+    }
