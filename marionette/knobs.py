@@ -1,7 +1,9 @@
 """A config's knobs and the flags made from them: a config is a frozen dataclass whose fields are ``knob``s (a
 default, a help text, the values it accepts); ``check_knobs`` enforces them on a config, ``add_config_arguments``
 makes one validated flag per field, and ``add_training_arguments`` adds a training command's corpus, output,
-process and node options. Importable without torch: a command's ``--help`` reads it."""
+process and node options. A command's own options are a dataclass of ``option`` fields (each with its checked type,
+flag and help): ``add_options`` adds them to its parser and ``options_from_args`` reads them back, so the flags and the
+call they feed are one list. Importable without torch: a command's ``--help`` reads it."""
 
 from __future__ import annotations
 
@@ -27,12 +29,14 @@ def knob(
     max: float | None = None,
     above: float | None = None,
     below: float | None = None,
+    flag: str | None = None,
 ) -> Any:
     """A config field with its help text and the values it accepts (``choices``; ``min`` ≤ v ≤ ``max``,
     ``above`` < v < ``below``, each element of a tuple); ``check_knobs`` and the flags of
-    ``add_config_arguments`` both enforce them."""
+    ``add_config_arguments`` both enforce them. ``flag``: its command-line flag where it is not the field's name
+    (``--batch-size`` for ``batch_size``)."""
     limits = {"choices": choices, "min": min, "max": max, "above": above, "below": below}
-    return field(default=default, metadata={"help": help, **limits})
+    return field(default=default, metadata={"help": help, **limits, **({"flag": flag} if flag else {})})
 
 
 def knob_problem(f: Any, value: Any) -> str | None:
@@ -83,27 +87,36 @@ def _flag_type(kind: type, problem: Callable[[Any], str | None]) -> Callable[[st
     return parse
 
 
-def add_config_arguments(ap: argparse.ArgumentParser, cls: type) -> None:
-    """One flag per field of the config dataclass ``cls`` (``--batch-size`` for ``batch_size``), its help
-    text ending in the default; every flag defaults to None, so ``config_from_args`` sees which were given."""
-    for f in fields(cls):
-        flag = "--" + f.name.replace("_", "-")
+def add_config_arguments(
+    ap: argparse.ArgumentParser, cls: type, names: Sequence[str] | None = None, default: str | None = None
+) -> None:
+    """One flag per field of the config dataclass ``cls`` (``--batch-size`` for ``batch_size``, or the knob's
+    ``flag``), or per field in ``names``, its help text ending in the default (``default``: the words shown
+    instead, e.g. "the protocol's"); every flag defaults to None, so ``config_from_args`` sees which were given."""
+    chosen = [f for f in fields(cls) if names is None or f.name in names]
+    if names is not None and len(chosen) != len(names):
+        raise TypeError(f"{cls.__name__} has no fields {sorted(set(names) - {f.name for f in chosen})}")
+    for f in chosen:
+        flag = f.metadata.get("flag") or "--" + f.name.replace("_", "-")
         text = f.metadata.get("help", "")
-        if f.default is not None and f.default is not MISSING:
+        if default is not None:
+            text += f" (default: {default})"
+        elif f.default is not None and f.default is not MISSING:
             shown = " ".join(map(str, f.default)) if isinstance(f.default, tuple) else str(f.default)
             text += f" (default: {shown})"
         text = text.replace("%", "%%")
         kind = str(f.type).removesuffix(" | None")
+        common = {"dest": f.name, "default": None, "help": text}
         if kind == "bool":
-            ap.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
+            ap.add_argument(flag, action=argparse.BooleanOptionalAction, **common)
         elif kind == "str":
-            ap.add_argument(flag, choices=f.metadata.get("choices"), default=None, help=text)
+            ap.add_argument(flag, choices=f.metadata.get("choices"), **common)
         elif kind in ("int", "float"):
             check = _flag_type(int if kind == "int" else float, lambda v, f=f: knob_problem(f, v))
-            ap.add_argument(flag, type=check, default=None, help=text, metavar=f.name.upper())
+            ap.add_argument(flag, type=check, metavar=f.name.upper(), **common)
         elif kind == "tuple[float, float]":
             check = _flag_type(float, lambda v, f=f: knob_problem(f, v))
-            ap.add_argument(flag, type=check, nargs=2, default=None, help=text, metavar=("A", "B"))
+            ap.add_argument(flag, type=check, nargs=2, metavar=("A", "B"), **common)
         else:
             raise TypeError(f"{cls.__name__}.{f.name}: no flag for a field of type {f.type}")
 
@@ -123,6 +136,69 @@ def config_from_args(cls: type, args: argparse.Namespace) -> Any:
             raise ValueError(f"{args.config}: not a {cls.__name__} JSON: {exc}") from exc
     over = {f.name: getattr(args, f.name) for f in fields(cls) if getattr(args, f.name, None) is not None}
     return cls.from_json({**base, **over})
+
+
+def option(
+    default: Any,
+    help: str,
+    *,
+    parse: Callable[[str], Any] | None = None,
+    flag: str | None = None,
+    metavar: str | None = None,
+    positional: bool = False,
+    many: bool = False,
+    switch: bool = False,
+    optional: bool = False,
+    choices: Sequence[str] | None = None,
+) -> Any:
+    """A command's option as a dataclass field: its default (``MISSING``: required), help, the argparse type that
+    checks it as it is parsed (``parse``), its flag (default ``--`` and the field's name with dashes), ``metavar``;
+    ``positional`` (``optional``: it may be left out), ``many`` (repeatable, each flag taking one or more values,
+    gathered into a tuple), ``switch`` (a flag without a value: it sets True, or False where the default is True,
+    e.g. ``--no-pose``), ``choices`` (the values it accepts)."""
+    spec = {"parse": parse, "flag": flag, "metavar": metavar, "positional": positional, "many": many, "switch": switch}
+    return field(default=default, metadata={"help": help, "option": {**spec, "optional": optional, "choices": choices}})
+
+
+def add_options(ap: argparse.ArgumentParser, cls: type) -> None:
+    """Add the ``option`` fields of the dataclass ``cls`` to ``ap``, in field order, each with its default."""
+    for f in fields(cls):
+        if "option" not in f.metadata:
+            raise TypeError(f"{cls.__name__}.{f.name} is not an option (knobs.option)")
+        spec = f.metadata["option"]
+        kwargs: dict[str, Any] = {"help": f.metadata["help"]}
+        if spec["metavar"]:
+            kwargs["metavar"] = spec["metavar"]
+        if spec["choices"]:
+            kwargs["choices"] = spec["choices"]
+        if spec["positional"]:
+            if spec["optional"]:
+                kwargs["nargs"] = "?"
+            ap.add_argument(f.name, type=spec["parse"], **kwargs)
+            continue
+        flag = spec["flag"] or "--" + f.name.replace("_", "-")
+        if spec["switch"]:
+            ap.add_argument(flag, dest=f.name, action="store_false" if f.default is True else "store_true", **kwargs)
+        elif spec["many"]:
+            ap.add_argument(flag, dest=f.name, type=spec["parse"], nargs="+", action="extend", default=[], **kwargs)
+        elif f.default is MISSING:
+            ap.add_argument(flag, dest=f.name, type=spec["parse"], required=True, **kwargs)
+        else:
+            ap.add_argument(flag, dest=f.name, type=spec["parse"], default=f.default, **kwargs)
+
+
+def options_from_args(cls: type, args: argparse.Namespace) -> Any:
+    """The ``cls`` of parsed arguments (``add_options``'s): repeatable options as tuples."""
+    return cls(**{f.name: _frozen(getattr(args, f.name)) for f in fields(cls)})
+
+
+def option_values(options: Any) -> dict[str, Any]:
+    """An options dataclass's fields by name, unconverted (the keyword arguments of the function it feeds)."""
+    return {f.name: getattr(options, f.name) for f in fields(options)}
+
+
+def _frozen(v: Any) -> Any:
+    return tuple(v) if isinstance(v, list) else v
 
 
 def _host(s: str) -> str:

@@ -261,3 +261,16 @@ def test_eval_rollouts_report_progress_and_the_same_numbers(posed, tmp_path):
     told.clear()
     state_layer(runs, posed, windows, tables, render_size=None, progress=lambda *a: told.append(a))
     assert told == [("state-layer metrics", k, 3) for k in (1, 2, 3)]
+
+
+def test_eval_flags_are_generated_from_the_protocol_fields():
+    from dataclasses import fields
+
+    from marionette.eval.config import OVERRIDES, EvalProtocol
+
+    args = build_parser().parse_args(["eval", "d", "c", "--out", "r", "--segments", "3", "--state-seconds", "9.5"])
+    assert args.probe_windows == 3 and args.state_seconds == 9.5 and args.rollouts is None
+    knobs = {f.name: f for f in fields(EvalProtocol)}
+    helps = {a.dest: a.help for a in build_parser()._subparsers._group_actions[0].choices["eval"]._actions}
+    for name in OVERRIDES:  # each flag's help is its field's, and the protocol it overrides accepts what it parses
+        assert helps[name].startswith(knobs[name].metadata["help"].replace("%", "%%"))

@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from marionette.commands import command, strict_status
-from marionette.commands.args import checked_scene, scene_arguments, scene_name
+from marionette.commands.args import checked_scene, rigs_dir, scene_arguments, scene_missing, scene_name
 from marionette.commands.summary import inspect_text, segment_row, segment_rows, segments_text
 from marionette.corpus import Corpus
 from marionette.corpus.paths import chunk_key, parse_chunk_key
 from marionette.corpus.video_shards import CHUNK_KIND, POSE_KIND, RGB_KIND, chunk_record, read_joined
 from marionette.io import write_bytes, write_json
+from marionette.knobs import add_options, option, options_from_args
 from marionette.options import (
     chunk_frames,
     even_int,
@@ -29,6 +31,7 @@ from marionette.options import (
 )
 from marionette.pipeline import build
 from marionette.progress import ProgressBars, progress_items
+from marionette.schema import load_scene
 
 
 def synthetic_arguments(
@@ -152,29 +155,71 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     return 0
 
 
-def ingest_options(a: argparse.Namespace):
-    from marionette.ingest import IngestOptions, VideoSettings
+@dataclass(frozen=True, kw_only=True)
+class IngestCommand:
+    """``marionette ingest``'s options, each checked as it is parsed (``--scene`` with ``--rigs`` once both are):
+    the ingest options of the corpus (``ingest_options``) and how the build runs."""
 
-    h, w = a.video_size
-    if a.scene != "auto":
-        checked_scene(a)
-    return IngestOptions(
-        scene=a.scene,
-        rigs=None if a.rigs is None else str(a.rigs),
-        monster_species=a.monster_species,
-        weapon=a.weapon,
-        min_segment_frames=a.min_segment_frames,
-        video=VideoSettings(height=h, width=w, chunk_frames=a.chunk_frames, crf=a.crf),
-        compression=a.compression,
-        max_member_bytes=a.max_member_bytes,
+    src: Path = option(MISSING, "the source tree: a directory holding sample directories", parse=Path, positional=True)
+    corpus: Path = option(MISSING, "the corpus directory (created, or updated incrementally)", parse=Path, positional=True)
+    scene: str = option(
+        "duel",
+        "the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs); auto: each recording the "
+        "layout of what it holds (its species', player's and weapon's rigs: one corpus, many scenes)",
+        parse=scene_name,
     )
+    rigs: Path | None = option(
+        None, "user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)", parse=rigs_dir
+    )
+    monster_species: int | None = option(
+        None,
+        "ingest only recordings whose monster has this species id (default: every species the rig declares)",
+        parse=non_negative_int,
+    )
+    weapon: int | None = option(
+        None, "ingest only recordings whose hunter has this weapon (default: any)", parse=non_negative_int
+    )
+    workers: int = option(1, "samples ingested (then recordings scanned) in parallel processes", parse=positive_int)
+    min_segment_frames: int = option(30, "shortest segment kept, frames", parse=positive_int)
+    video_size: tuple[int, int] = option((176, 320), "video chunks' size, HxW (even)", parse=even_size_hxw, metavar="HxW")
+    chunk_frames: int = option(81, "frames per video chunk (4k + 1, at least 5)", parse=chunk_frames)
+    crf: int = option(20, "x264 quality of the video chunks, 0..51 (lower is better)", parse=x264_crf)
+    compression: str = option("zstd", "codec of the Arrow state shards", choices=("none", "lz4", "zstd"))
+    max_member_bytes: int = option(
+        2 << 30,
+        "largest skeleton.npz array a sample may declare, bytes (checked before it is inflated)",
+        parse=positive_int,
+    )
+    quiet: bool = option(False, "no progress bars", switch=True)
+    terrain: bool = option(True, "skip the incremental terrain scan after ingest", flag="--no-terrain", switch=True)
+    pose: bool = option(True, "skip rendering the pose-control targets after ingest", flag="--no-pose", switch=True)
+    strict: bool = option(False, "exit 1 when any sample is quarantined or any scan or pose target fails", switch=True)
+
+    def ingest_options(self):
+        """The corpus's ``IngestOptions`` (the scene looked up now: an unknown one or a bad rig names the file)."""
+        from marionette.ingest import IngestOptions, VideoSettings
+
+        h, w = self.video_size
+        if self.scene != "auto":
+            load_scene(self.scene, rigs=self.rigs)
+        return IngestOptions(
+            scene=self.scene,
+            rigs=None if self.rigs is None else str(self.rigs),
+            monster_species=self.monster_species,
+            weapon=self.weapon,
+            min_segment_frames=self.min_segment_frames,
+            video=VideoSettings(height=h, width=w, chunk_frames=self.chunk_frames, crf=self.crf),
+            compression=self.compression,
+            max_member_bytes=self.max_member_bytes,
+        )
 
 
 def cmd_ingest(a: argparse.Namespace) -> int:
     """Ingest, then scan the terrain and render the pose targets (``marionette.pipeline.build``); 1 with --strict when anything failed."""
 
     t0 = time.time()
-    report = build(a.src, a.corpus, ingest_options(a), workers=a.workers, terrain=a.terrain, pose=a.pose, progress=not a.quiet)
+    o = options_from_args(IngestCommand, a)
+    report = build(o.src, o.corpus, o.ingest_options(), workers=o.workers, terrain=o.terrain, pose=o.pose, progress=not o.quiet)
     counts: dict[str, int] = {}
     for r in report["results"]:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
@@ -184,12 +229,12 @@ def cmd_ingest(a: argparse.Namespace) -> int:
         print(f"not a sample: {path}: {why}")
     info = report["info"]
     print(
-        f"corpus {a.corpus}: {info['total_segments']} segments, {info['total_frames']} frames, "
+        f"corpus {o.corpus}: {info['total_segments']} segments, {info['total_frames']} frames, "
         f"{', '.join(f'{v} {k}' for k, v in sorted(counts.items()))} in {time.time() - t0:.1f} s"
     )
     for line in report["refresh"].lines():
         print(line)
-    return strict_status(a.strict, report["failures"])
+    return strict_status(o.strict, report["failures"])
 
 
 def cmd_inspect(a: argparse.Namespace) -> int:
@@ -352,35 +397,8 @@ def register(sub) -> None:
     s.set_defaults(fn=cmd_synth)
 
     s = command("ingest", "ingest WildWorld recordings into a corpus (then finalize, scan terrain, render pose targets)", sub)
-    s.add_argument("src", type=Path, help="the source tree: a directory holding sample directories")
-    s.add_argument("corpus", type=Path, help="the corpus directory (created, or updated incrementally)")
-    scene_arguments(
-        s,
-        "duel",
-        "the scene layout (schemas/scenes/NAME.json, or DIR/scenes/NAME.json of --rigs); auto: each recording the "
-        "layout of what it holds (its species', player's and weapon's rigs: one corpus, many scenes)",
-    )
-    species_help = "ingest only recordings whose monster has this species id (default: every species the rig declares)"
-    s.add_argument("--monster-species", type=non_negative_int, help=species_help)
-    s.add_argument("--weapon", type=non_negative_int, help="ingest only recordings whose hunter has this weapon (default: any)")
-    s.add_argument(
-        "--workers", type=positive_int, default=1, help="samples ingested (then recordings scanned) in parallel processes"
-    )
-    s.add_argument("--min-segment-frames", type=positive_int, default=30, help="shortest segment kept, frames")
-    s.add_argument("--video-size", type=even_size_hxw, default=(176, 320), metavar="HxW", help="video chunks' size, HxW (even)")
-    s.add_argument("--chunk-frames", type=chunk_frames, default=81, help="frames per video chunk (4k + 1, at least 5)")
-    s.add_argument("--crf", type=x264_crf, default=20, help="x264 quality of the video chunks, 0..51 (lower is better)")
-    s.add_argument("--compression", choices=["none", "lz4", "zstd"], default="zstd", help="codec of the Arrow state shards")
-    s.add_argument(
-        "--max-member-bytes",
-        type=positive_int,
-        default=2 << 30,
-        help="largest skeleton.npz array a sample may declare, bytes (checked before it is inflated)",
-    )
-    s.add_argument("--quiet", action="store_true", help="no progress bars")
-    s.add_argument("--no-terrain", dest="terrain", action="store_false", help="skip the incremental terrain scan after ingest")
-    s.add_argument("--no-pose", dest="pose", action="store_false", help="skip rendering the pose-control targets after ingest")
-    s.add_argument("--strict", action="store_true", help="exit 1 when any sample is quarantined or any scan or pose target fails")
+    add_options(s, IngestCommand)
+    s.add_check(scene_missing)
     s.set_defaults(fn=cmd_ingest)
 
     s = command("inspect", "summarise a corpus, or list its segments", sub)

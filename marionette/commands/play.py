@@ -5,14 +5,13 @@ from __future__ import annotations
 import argparse
 
 from marionette.commands import command
-from marionette.play import ARGUMENTS, serve
-from marionette.play import add_arguments as play_arguments
+from marionette.knobs import option_values, options_from_args
+from marionette.play import PlayOptions, add_arguments, serve
 
 
 def cmd_play(a: argparse.Namespace) -> int:
     """Serve the play page (live or replay) on 127.0.0.1 until interrupted."""
-
-    serve(**{k: getattr(a, k) for k in ARGUMENTS})
+    serve(**option_values(options_from_args(PlayOptions, a)))
     return 0
 
 
@@ -21,5 +20,5 @@ def register(sub) -> None:
     s = command(
         "play", "play the world model in a browser (keys force tokens, WASD moves a root), or replay state with no model", sub
     )
-    play_arguments(s)
+    add_arguments(s)
     s.set_defaults(fn=cmd_play)

@@ -7,15 +7,17 @@ import argparse
 from marionette.commands import command
 from marionette.commands.summary import segment_row
 from marionette.corpus import Corpus
-from marionette.dynamics.controls import add_rollout_arguments
+from marionette.dynamics.controls import RolloutOptions, add_rollout_arguments
+from marionette.knobs import option_values, options_from_args
 
 
 def cmd_rollout(a: argparse.Namespace) -> int:
     """Roll a trained dynamics model out from a recorded segment's first frames."""
-    from marionette.dynamics.rollout import ARGUMENTS, write_rollout
+    from marionette.dynamics.rollout import write_rollout
 
-    segment_row(Corpus(a.corpus), a.segment)
-    write_rollout(**{k: getattr(a, k) for k in ARGUMENTS})
+    options = options_from_args(RolloutOptions, a)
+    segment_row(Corpus(options.corpus), options.segment)
+    write_rollout(**option_values(options))
     return 0
 
 

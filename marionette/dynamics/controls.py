@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from marionette.bridge.rules import RULES
+from marionette.knobs import add_options, option
 from marionette.options import HelpFormatter, non_negative_float, non_negative_int, positive_int, size_hxw
 
 Force = tuple[str, int, int, int]  # (entity, start, end exclusive, token), predicted-frame indices
@@ -75,24 +77,40 @@ def parse_rules(s: str) -> str:
     return s
 
 
+@dataclass(frozen=True, kw_only=True)
+class RolloutOptions:
+    """The rollout command's options (``marionette rollout`` and ``python -m marionette.dynamics.rollout``), each
+    checked as it is parsed; ``rollout.write_rollout`` takes them as keyword arguments."""
+
+    ckpt: Path = option(MISSING, "a checkpoint directory or a training output directory", parse=Path, positional=True)
+    corpus: Path = option(MISSING, "the corpus the segment comes from", parse=Path, positional=True)
+    segment: str = option(MISSING, "the recorded segment whose first frames seed the rollout")
+    seed_frames: int = option(64, "recorded frames fed before the first predicted one", parse=positive_int)
+    horizon: int = option(MISSING, "predicted frames", parse=positive_int)
+    temperature: float = option(0.0, "sampling temperature; 0: argmax, deterministic", parse=non_negative_float)
+    seed: int = option(0, "the sampler's seed", parse=non_negative_int)
+    force: tuple[Force, ...] = option(
+        (),
+        "ENTITY:START:END:TOKEN, predicted frames, END exclusive (repeatable; default: no forced tokens)",
+        parse=parse_force,
+        many=True,
+    )
+    script_root: tuple[tuple[str, Any], ...] = option(
+        (),
+        "ENTITY:START:END:VX,VY,VZ (m/s, own frame) or ENTITY:FILE.npy ((horizon, 9) root channels; default: none)",
+        parse=parse_script,
+        many=True,
+    )
+    rules: str = option("auto", f"auto, none, or a comma list of {','.join(RULES)}", parse=parse_rules)
+    out: Path = option(MISSING, "STATES.arrow (the corpus state schema)", parse=Path)
+    render: Path | None = option(None, "also render the rollout (follow camera) to this .mkv", parse=Path)
+    size: tuple[int, int] = option((352, 640), "render size, HxW", parse=size_hxw, metavar="HxW")
+
+
 def add_rollout_arguments(ap: argparse.ArgumentParser) -> None:
-    """The rollout command's arguments (shared by ``marionette rollout`` and ``python -m``), each checked as it is parsed."""
+    """The rollout command's arguments (``RolloutOptions``), under either entry point."""
     ap.formatter_class = HelpFormatter  # every option's default in --help, under either entry point
-    ap.add_argument("ckpt", type=Path, help="a checkpoint directory or a training output directory")
-    ap.add_argument("corpus", type=Path, help="the corpus the segment comes from")
-    ap.add_argument("--segment", required=True, help="the recorded segment whose first frames seed the rollout")
-    ap.add_argument("--seed-frames", type=positive_int, default=64, help="recorded frames fed before the first predicted one")
-    ap.add_argument("--horizon", type=positive_int, required=True, help="predicted frames")
-    ap.add_argument("--temperature", type=non_negative_float, default=0.0, help="sampling temperature; 0: argmax, deterministic")
-    ap.add_argument("--seed", type=non_negative_int, default=0, help="the sampler's seed")
-    force_help = "ENTITY:START:END:TOKEN, predicted frames, END exclusive (repeatable; default: no forced tokens)"
-    ap.add_argument("--force", type=parse_force, nargs="+", action="extend", default=[], help=force_help)
-    script_help = "ENTITY:START:END:VX,VY,VZ (m/s, own frame) or ENTITY:FILE.npy ((horizon, 9) root channels; default: none)"
-    ap.add_argument("--script-root", type=parse_script, nargs="+", action="extend", default=[], help=script_help)
-    ap.add_argument("--rules", type=parse_rules, default="auto", help=f"auto, none, or a comma list of {','.join(RULES)}")
-    ap.add_argument("--out", type=Path, required=True, help="STATES.arrow (the corpus state schema)")
-    ap.add_argument("--render", type=Path, default=None, help="also render the rollout (follow camera) to this .mkv")
-    ap.add_argument("--size", type=size_hxw, default=(352, 640), metavar="HxW", help="render size, HxW")
+    add_options(ap, RolloutOptions)
 
 
 def forced_at(force: Sequence[Force], t: int, names: Sequence[str]) -> tuple[dict[int, int], list[int]]:

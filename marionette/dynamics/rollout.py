@@ -17,9 +17,17 @@ import torch
 
 from marionette.checkpoint import read_meta
 from marionette.corpus import MODEL_FPS, Corpus, as_corpus, state_table
-from marionette.dynamics.controls import Force, add_rollout_arguments, forced_at, script_from_args, script_roots
+from marionette.dynamics.controls import (
+    Force,
+    RolloutOptions,
+    add_rollout_arguments,
+    forced_at,
+    script_from_args,
+    script_roots,
+)
 from marionette.dynamics.engine import Rollout, checkpoint_dir, open_terrain_field
 from marionette.io import write_ipc
+from marionette.knobs import option_values, options_from_args
 from marionette.schema import state_schema
 from terrain_scan.store import segment_terrain
 
@@ -167,7 +175,7 @@ def write_rollout(
     log=print,
 ) -> pa.Table:
     """The rollout command: roll ``horizon`` frames out from ``segment``, write the table to ``out`` (and render it
-    through the follow camera to ``render``); ``force`` and ``script_root`` as ``add_arguments`` parses them, ``rules``
+    through the follow camera to ``render``); the keyword arguments are ``RolloutOptions``' fields, ``rules``
     "auto", "none" or a comma list."""
     rules_in = rules if rules in ("auto", "none") else tuple(r for r in rules.split(",") if r)
     trained = read_meta(checkpoint_dir(ckpt))["train_config"]
@@ -189,29 +197,11 @@ def write_rollout(
     return table
 
 
-ARGUMENTS = (
-    "ckpt",
-    "corpus",
-    "segment",
-    "out",
-    "horizon",
-    "seed_frames",
-    "temperature",
-    "seed",
-    "force",
-    "script_root",
-    "rules",
-    "render",
-    "size",
-)
-
-
 def main(argv: list[str] | None = None) -> pa.Table:
     """``python -m marionette.dynamics.rollout DIR CORPUS --segment ID --horizon N --out STATES.arrow [...]``."""
     ap = argparse.ArgumentParser(prog="python -m marionette.dynamics.rollout", description=__doc__.splitlines()[0])
     add_rollout_arguments(ap)
-    parsed = vars(ap.parse_args(argv))
-    return write_rollout(**{k: parsed[k] for k in ARGUMENTS})
+    return write_rollout(**option_values(options_from_args(RolloutOptions, ap.parse_args(argv))))
 
 
 if __name__ == "__main__":

@@ -3,12 +3,19 @@
 smaller than the paper's. Table 3's state columns may run on more and longer rollouts (``state_rollouts`` ×
 ``state_seconds``) than Tables 1 and 3 paint: the painted rollouts are the first ``rollouts`` of them, cut to
 ``rollout_seconds``. The paper's are the same rollouts; the quick protocol paints 2 × 3 s and measures the rules on
-8 × 9 s. Importable without torch: ``marionette eval --help`` reads it."""
+8 × 9 s. Every count is a knob (``knobs.knob``): ``marionette eval`` generates its flags from the fields in
+``OVERRIDES``, each overriding the chosen protocol's. Importable without torch: ``marionette eval --help`` reads it."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 from typing import Any
+
+from marionette.knobs import knob
+
+# the fields ``marionette eval`` takes as flags, each overriding the chosen protocol's
+OVERRIDES = ("probe_windows", "seed_frames", "horizon", "rollouts", "rollout_seconds", "state_rollouts", "state_seconds")
+OVERRIDES += ("fvd_steps",)
 
 
 @dataclass(frozen=True)
@@ -17,24 +24,28 @@ class EvalProtocol:
     the demo's. Frames are dynamics frames (the model's rate) unless named video frames."""
 
     name: str
-    probe_windows: int = 48  # Table 2: held-out windows of the controllability probe (and the Free state layer)
-    seed_frames: int = 64  # recorded frames that seed every rollout
-    horizon: int = 120  # Table 2: predicted frames per probe window
-    rollouts: int = 32  # Tables 1 and 3: held-out long rollouts per model and driving state
-    rollout_seconds: float = 16.0  # Tables 1 and 3: length of each long rollout (s of video)
+    probe_windows: int = knob(
+        48, "probe windows (Table 2's held-out windows, and the Free state layer's)", min=1, flag="--segments"
+    )
+    seed_frames: int = knob(64, "recorded frames seeding every rollout", min=1)
+    horizon: int = knob(120, "predicted frames of each probe window", min=1)
+    rollouts: int = knob(32, "long rollouts of Tables 1 and 3 (per model and driving state)", min=2)
+    rollout_seconds: float = knob(16.0, "length of each long rollout, s", above=0.0)
     clip_frames: int = 16  # Table 1: video frames per FVD clip (FVD16)
     clips_per_rollout: int = 8  # Table 1: FVD clips per long rollout, evenly spaced
     final_frames: int = (
         81  # Table 1: the final chunk, the last this many video frames of a rollout; also the chunk of the per-chunk curve
     )
-    fvd_steps: int = 20  # sampling steps of the observation model
+    fvd_steps: int = knob(20, "sampling steps of the observation models", min=1)
     resamples: int = 200  # clip-bootstrap resamples of every interval
     temperature: float = 0.0  # sampling temperature of every rollout
     # Table 3's state columns and the long-horizon curves: this many long rollouts of this many seconds (None: as
     # ``rollouts`` / ``rollout_seconds``); the first ``rollouts`` of them, cut to ``rollout_seconds``, are the painted
     # ones. State rollouts are cheap and painting is not, so a small protocol can keep Table 3's rules measurable.
-    state_rollouts: int | None = None
-    state_seconds: float | None = None
+    state_rollouts: int | None = knob(
+        None, "long rollouts of Table 3's state columns, ≥ --rollouts; the first are painted", min=2
+    )
+    state_seconds: float | None = knob(None, "their length, s, ≥ --rollout-seconds", above=0.0)
 
     def __post_init__(self) -> None:
         for f in ("probe_windows", "seed_frames", "horizon", "rollouts", "clip_frames", "clips_per_rollout", "fvd_steps"):

@@ -10,85 +10,64 @@ bridge's rendering of one frame and the stage map, ``page.html`` the page.
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
+from marionette.dynamics.controls import parse_rules
+from marionette.knobs import add_options, option
 from marionette.options import int_in, non_negative_float, non_negative_int, positive_int, size_hxw
-
-ARGUMENTS = (
-    "run",
-    "corpus",
-    "replay",
-    "replay_corpus",
-    "segment",
-    "port",
-    "size",
-    "fps",
-    "seed_frames",
-    "temperature",
-    "seed",
-    "rules",
-    "record_dir",
-    "paused",
-    "observation",
-    "paint_steps",
-)
 
 
 def port_number(s: str) -> int:
-
+    """An argparse type: a TCP port, 0 (any free port) to 65535."""
     return int_in(0, 65535)(s)
 
 
-def add_arguments(ap: argparse.ArgumentParser) -> None:
-    """The play command's arguments, each checked as it is parsed."""
-    from marionette.dynamics.controls import parse_rules
+@dataclass(frozen=True, kw_only=True)
+class PlayOptions:
+    """The play command's options, each checked as it is parsed; ``serve`` takes them as keyword arguments."""
 
-    ap.add_argument("run", type=Path, nargs="?", help="a dynamics checkpoint or training directory (live play)")
-    ap.add_argument("corpus", type=Path, nargs="?", help="the corpus whose segment seeds the rollout (live play)")
-    ap.add_argument(
-        "--replay",
-        type=Path,
-        default=None,
-        metavar="SOURCE",
-        help="replay a corpus directory's segment or a STATES.arrow, no model",
+    run: Path | None = option(
+        None, "a dynamics checkpoint or training directory (live play)", parse=Path, positional=True, optional=True
     )
-    ap.add_argument(
-        "--replay-corpus",
-        type=Path,
-        default=None,
+    corpus: Path | None = option(
+        None, "the corpus whose segment seeds the rollout (live play)", parse=Path, positional=True, optional=True
+    )
+    replay: Path | None = option(
+        None, "replay a corpus directory's segment or a STATES.arrow, no model", parse=Path, metavar="SOURCE"
+    )
+    replay_corpus: Path | None = option(
+        None,
+        "replaying a STATES.arrow: the corpus whose vocab names its tokens and whose stage is its terrain",
+        parse=Path,
         metavar="CORPUS",
-        help="replaying a STATES.arrow: the corpus whose vocab names its tokens and whose stage is its terrain",
     )
-    ap.add_argument("--segment", default=None, help="segment to seed from (live; default the longest held-out one) or to replay")
-    ap.add_argument("--port", type=port_number, default=8765, help="port on 127.0.0.1 (0: any free port)")
-    ap.add_argument("--size", type=size_hxw, default=(176, 320), metavar="HxW", help="the view's size, HxW")
-    ap.add_argument(
-        "--fps",
-        type=non_negative_float,
-        default=None,
-        help="frames per second (default: the model's or the rows' rate; 0: as fast as it can)",
+    segment: str | None = option(None, "segment to seed from (live; default the longest held-out one) or to replay")
+    port: int = option(8765, "port on 127.0.0.1 (0: any free port)", parse=port_number)
+    size: tuple[int, int] = option((176, 320), "the view's size, HxW", parse=size_hxw, metavar="HxW")
+    fps: float | None = option(
+        None,
+        "frames per second (default: the model's or the rows' rate; 0: as fast as it can)",
+        parse=non_negative_float,
     )
-    ap.add_argument("--seed-frames", type=positive_int, default=64, help="recorded frames fed before the first played one")
-    ap.add_argument(
-        "--temperature", type=non_negative_float, default=0.0, help="sampling temperature of the free entities; 0: argmax"
-    )
-    ap.add_argument("--seed", type=non_negative_int, default=0, help="the sampler's seed")
-    ap.add_argument(
-        "--rules",
-        type=parse_rules,
-        default="auto",
-        help="rules on at the start: auto, none or a comma list (toggled on the page)",
-    )
-    ap.add_argument("--record-dir", type=Path, default=Path("play-sessions"), help="where recorded sessions are written")
-    ap.add_argument("--paused", action="store_true", help="start paused")
-    ap.add_argument(
-        "--observation",
-        type=Path,
-        default=None,
+    seed_frames: int = option(64, "recorded frames fed before the first played one", parse=positive_int)
+    temperature: float = option(0.0, "sampling temperature of the free entities; 0: argmax", parse=non_negative_float)
+    seed: int = option(0, "the sampler's seed", parse=non_negative_int)
+    rules: str = option("auto", "rules on at the start: auto, none or a comma list (toggled on the page)", parse=parse_rules)
+    record_dir: Path = option(Path("play-sessions"), "where recorded sessions are written", parse=Path)
+    paused: bool = option(False, "start paused", switch=True)
+    observation: Path | None = option(
+        None,
+        "paint the live view with this small observation model (its size divides --size), beside the pose view",
+        parse=Path,
         metavar="OBS",
-        help="paint the live view with this small observation model (its size divides --size), beside the pose view",
     )
-    ap.add_argument("--paint-steps", type=positive_int, default=4, help="sampling steps per painted chunk")
+    paint_steps: int = option(4, "sampling steps per painted chunk", parse=positive_int)
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The play command's arguments (``PlayOptions``)."""
+    add_options(ap, PlayOptions)
 
 
 def make_session(
