@@ -30,7 +30,7 @@ network predicts ε − x₀) by Euler steps from σ = 1 to 0 on a uniform grid 
 frame 0 is the first frame's latent at the start and after every step, and its tokens are given timestep 0.
 No classifier-free guidance (without a text encoder there is no prompt to guide by).
 
-Relay (``generate``), as in ``marionette.observation.model``: chunk k + 1 starts from the last decoded frame of
+Relay (``generate``), as in ``marionette.observation.relay``: chunk k + 1 starts from the last decoded frame of
 chunk k and the next T − 1 pose frames, so N chunks give 1 + N·(T − 1) frames, with noise from one
 ``torch.Generator`` seeded by ``seed``.
 """

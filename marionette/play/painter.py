@@ -4,7 +4,7 @@ The session starts a scene with the recorded RGB frame at the seed's last row (`
 first pose frame shows what that RGB frame shows, a follow camera seeded at the recorded camera of that row. From
 then on every played frame's G-buffer codes are fed in (reduced to the model's size as training reduces them:
 ``observation.data.pose_frames``), and whenever a chunk's worth (the model's T − 1 frames after the last painted one)
-is there, ``observation.model.Relay`` paints it from the last painted frame — the relay ``marionette generate``
+is there, ``observation.relay.Relay`` paints it from the last painted frame — the relay ``marionette generate``
 runs, at whatever rate the machine manages. The rate and how far painting is behind are reported with every
 painted frame. Painting never holds the live loop: its thread runs at a lower priority (``PAINT_NICE``), and
 when it is more than ``MAX_BEHIND_CHUNKS`` chunks behind, it

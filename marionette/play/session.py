@@ -1,6 +1,6 @@
 """A live rollout a person drives: the dynamics model stepped in real time, its frames rendered through the bridge.
 
-``LiveSession`` owns one ``dynamics.rollout.Rollout`` (batch 1) seeded from a corpus segment, and per frame:
+``LiveSession`` owns one ``dynamics.engine.Rollout`` (batch 1) seeded from a corpus segment, and per frame:
 
 1. takes the controls that arrived since the last frame (``control``): a token forced on an entity for a number of
    frames (a key press forces its bound token for the action's clip, so an attack plays out), a root velocity in the
