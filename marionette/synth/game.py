@@ -21,7 +21,7 @@ import numpy as np
 from marionette.geometry import matrix_to_quat, yaw_quat
 from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, SKELETON_FILE, STATE_FILE
 from marionette.schema import load_rig
-from terrain_scan.depth import SYNTHETIC_DEPTH_ENCODING
+from terrain_scan.depth import SYNTHETIC_DEPTH_ENCODING, DepthDecoder
 
 from . import behaviour, sim
 from .cast import GREATSWORD, Cast, make_cast, rig_edges
@@ -183,6 +183,124 @@ def write_recording(
     pan = camera_pans(seed, index, N, float(fps)) if role.camera_pans else None
     cam_pos, cam_rot = follow_camera(roots["hunter"], yaws["hunter"], roots["monster"], present, pan)
 
+    edges, radii = _bones(role)
+    colours = role.skin.colours() if role.skin is not None else None
+    renderer = Renderer(width, height, edges, radii, colours=colours, threads=ray_threads)
+    encode = encode_depth if depth_mapping is None else DepthDecoder.from_json(depth_mapping).encode
+    meshes = {e: renderer.meshes(e, sk[e]) for e in ("hunter", "weapon", "monster")}  # every frame's at once
+    shown = {e: np.isfinite(sk[e]).all(axis=(1, 2)) for e in meshes}
+    shown["monster"] &= present
+    rgb, depth = [], []
+    bodies = [{e: (V[i], T) for e, (V, T) in meshes.items() if shown[e][i]} for i in range(N)]
+    for img, z in renderer.frames(cam_pos, cam_rot, bodies):
+        rgb.append(img)
+        depth.append(encode(z))
+    # Rendered in the first stage's frame; what the recording states in world coordinates moves into its stage.
+    stage = role.stage
+    sk = {e: stage.points(v) for e, v in sk.items()}
+    roots = {e: stage.points(v) for e, v in roots.items()}
+    yaws = {e: v + stage.turn for e, v in yaws.items()} if not stage.identity else yaws
+    cam_pos, cam_rot = stage.points(cam_pos), stage.rotations(cam_rot)
+    if role.species is not None:  # the pos columns: each body's root joint
+        roots["monster"] = sk["monster"][:, role.species.names.index(role.species.root)]
+    if role.player.scale != 1.0:
+        roots["hunter"] = sk["hunter"][:, load_rig("hunter").source_joints.index("pelvis")]
+    _write_videos(d, rgb, depth, fps, index)
+
+    K = intrinsics(width, height)
+    rows = _state_rows(plan, role, roots, yaws, K, cam_pos, cam_rot, cam_valid, present)
+
+    _atomic(d / STATE_FILE, lambda tmp: _write_csv(tmp, rows))
+
+    m = sk["monster"].astype(np.float32)
+    m[~present] = np.nan
+    arrays = {
+        f"m1_{role.monster_type}": m,
+        f"n1_{role.player.type_id}": sk["hunter"].astype(np.float32),
+        f"w1_{role.weapon.type_id}": sk["weapon"].astype(np.float32),
+    }
+    _atomic(d / SKELETON_FILE, lambda tmp: _savez(tmp, arrays))
+
+    _write_truth(Path(out_dir) / "truth" / part, sample_id, roots, yaws, present, cam_valid, cam_pos, cam_rot)
+    meta = _truth_meta(sample_id, part, seed, index, N, fps, width, height, depth_mapping, K, plan, cast, role)
+    _atomic(Path(out_dir) / "truth" / part / f"{sample_id}.json", lambda tmp: tmp.write_text(json.dumps(meta, indent=1)))
+    return d
+
+
+def _truth_meta(
+    sample_id: str,
+    part: str,
+    seed: int,
+    index: int,
+    N: int,
+    fps: int,
+    width: int,
+    height: int,
+    depth_mapping: dict | None,
+    K,
+    plan: sim.Plan,
+    cast: dict | None,
+    role,
+) -> dict:
+    """The truth side file's JSON: how the recording was made (seed, size, depth encoding, cast and role), the
+    frames without a monster or a valid camera, the clip tables and each entity's played segments."""
+    return {
+        "sample_id": sample_id,
+        "part": part,
+        "seed": seed,
+        "index": index,
+        "n_frames": N,
+        "fps": fps,
+        "width": width,
+        "height": height,
+        "recording_time": RECORDING_EPOCH + 86400 * index,
+        "depth_encoding": SYNTHETIC_DEPTH_ENCODING if depth_mapping is None else depth_mapping,
+        "camera_K": list(K),
+        "monster_absent_frames": list(plan.absent),
+        "cast": cast or {},
+        "role": role.to_json(),
+        "camera_invalid_frames": list(plan.camera_invalid),
+        "clips": {e: {str(k): v for k, v in clip_table(e).items()} for e in ("monster", "hunter")},
+        "segments": {
+            e: [{"start": s.start, "clip": s.clip, "length": s.length} for s in plan.tracks[e].segments]
+            for e in ("monster", "hunter")
+        },
+    }
+
+
+def _write_videos(d: Path, rgb: list[np.ndarray], depth: list[np.ndarray], fps: int, index: int) -> None:
+    """rgb.mp4 (H.264) and depth.mkv (lossless HEVC, gray) of one recording, byte-stable across runs."""
+    # One thread and no lookahead / macroblock tree: measured to make the bitstream byte-stable across runs.
+    x264 = {
+        "crf": "20",
+        "preset": "veryfast",
+        "x264-params": "threads=1:lookahead-threads=1:sync-lookahead=0:rc-lookahead=0:mbtree=0",
+    }
+    # the recording's time in the container (scanners read it; never the wall clock of the run)
+    created = datetime.fromtimestamp(RECORDING_EPOCH + 86400 * index, UTC).strftime("%Y-%m-%dT%H:%M:%S.000000Z")
+    _write_video(d / RGB_FILE, rgb, fps, "libx264", "yuv420p", "mp4", x264, {"creation_time": created})
+    _write_video(
+        d / DEPTH_FILE,
+        depth,
+        fps,
+        "libx265",
+        "gray",
+        "matroska",
+        {"x265-params": "lossless=1:log-level=error:pools=1:frame-threads=1"},
+    )
+
+
+def _write_csv(path: Path, rows: list[list[str]]) -> None:
+    """state.csv: the header (``COLUMNS``) and the rows, "\\n"-terminated."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(COLUMNS)
+        w.writerows(rows)
+
+
+def _bones(role) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Each body's bones (edges) and capsule radii (m) as the cast's role draws them: its species' and weapon's own
+    where they are not the built-in rigs, the drake's thick body and neck and tapering tail, the player's scale."""
     rigs = {e: load_rig(r) for e, r in RIGS.items()}
     edges = {e: rig_edges(r) for e, r in rigs.items()}
     if role.weapon != GREATSWORD:
@@ -210,53 +328,24 @@ def write_recording(
             )
         radii[e] = r.capsule_radius_m * scale * (role.player.scale if e == "hunter" else 1.0)
     radii["weapon"] = radii["weapon"][: len(edges["weapon"])]
-    colours = role.skin.colours() if role.skin is not None else None
-    renderer = Renderer(width, height, edges, radii, colours=colours, threads=ray_threads)
-    encode = encode_depth
-    if depth_mapping is not None:
-        from terrain_scan.depth import DepthDecoder
+    return edges, radii
 
-        encode = DepthDecoder.from_json(depth_mapping).encode
-    meshes = {e: renderer.meshes(e, sk[e]) for e in ("hunter", "weapon", "monster")}  # every frame's at once
-    shown = {e: np.isfinite(sk[e]).all(axis=(1, 2)) for e in meshes}
-    shown["monster"] &= present
-    rgb, depth = [], []
-    bodies = [{e: (V[i], T) for e, (V, T) in meshes.items() if shown[e][i]} for i in range(N)]
-    for img, z in renderer.frames(cam_pos, cam_rot, bodies):
-        rgb.append(img)
-        depth.append(encode(z))
-    # Rendered in the first stage's frame; what the recording states in world coordinates moves into its stage.
-    stage = role.stage
-    sk = {e: stage.points(v) for e, v in sk.items()}
-    roots = {e: stage.points(v) for e, v in roots.items()}
-    yaws = {e: v + stage.turn for e, v in yaws.items()} if not stage.identity else yaws
-    cam_pos, cam_rot = stage.points(cam_pos), stage.rotations(cam_rot)
-    if role.species is not None:  # the pos columns: each body's root joint
-        roots["monster"] = sk["monster"][:, role.species.names.index(role.species.root)]
-    if role.player.scale != 1.0:
-        roots["hunter"] = sk["hunter"][:, load_rig("hunter").source_joints.index("pelvis")]
-    # One thread and no lookahead / macroblock tree: measured to make the bitstream byte-stable across runs.
-    x264 = {
-        "crf": "20",
-        "preset": "veryfast",
-        "x264-params": "threads=1:lookahead-threads=1:sync-lookahead=0:rc-lookahead=0:mbtree=0",
-    }
-    # the recording's time in the container (scanners read it; never the wall clock of the run)
-    created = datetime.fromtimestamp(RECORDING_EPOCH + 86400 * index, UTC).strftime("%Y-%m-%dT%H:%M:%S.000000Z")
-    _write_video(d / RGB_FILE, rgb, fps, "libx264", "yuv420p", "mp4", x264, {"creation_time": created})
-    _write_video(
-        d / DEPTH_FILE,
-        depth,
-        fps,
-        "libx265",
-        "gray",
-        "matroska",
-        {"x265-params": "lossless=1:log-level=error:pools=1:frame-threads=1"},
-    )
 
-    # state.csv
+def _state_rows(
+    plan: sim.Plan,
+    role,
+    roots: dict[str, np.ndarray],
+    yaws: dict[str, np.ndarray],
+    K,
+    cam_pos: np.ndarray,
+    cam_rot: np.ndarray,
+    cam_valid: np.ndarray,
+    present: np.ndarray,
+) -> list[list[str]]:
+    """The rows of state.csv (``COLUMNS``), one per frame: the camera, the player's fields, the monster's (NaN while it
+    is away)."""
+    N = len(present)
     hp = _hp(plan, roots)
-    K = intrinsics(width, height)
     cam_q = matrix_to_quat(cam_rot)
     hq, mq = yaw_quat(yaws["hunter"]), yaw_quat(yaws["monster"])
     hnames, hmf = sim.clip_at_frames(plan, "hunter", np.arange(N))
@@ -312,26 +401,20 @@ def write_recording(
         else:
             row += ["0"] + ["nan"] * len(MONSTER_FIELDS)
         rows.append(row)
+    return rows
 
-    def write_csv(tmp: Path) -> None:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.writer(fh, lineterminator="\n")
-            w.writerow(COLUMNS)
-            w.writerows(rows)
 
-    _atomic(d / STATE_FILE, write_csv)
-
-    m = sk["monster"].astype(np.float32)
-    m[~present] = np.nan
-    arrays = {
-        f"m1_{role.monster_type}": m,
-        f"n1_{role.player.type_id}": sk["hunter"].astype(np.float32),
-        f"w1_{role.weapon.type_id}": sk["weapon"].astype(np.float32),
-    }
-    _atomic(d / SKELETON_FILE, lambda tmp: _savez(tmp, arrays))
-
-    # Truth side file.
-    tdir = Path(out_dir) / "truth" / part
+def _write_truth(
+    tdir: Path,
+    sample_id: str,
+    roots: dict[str, np.ndarray],
+    yaws: dict[str, np.ndarray],
+    present: np.ndarray,
+    cam_valid: np.ndarray,
+    cam_pos: np.ndarray,
+    cam_rot: np.ndarray,
+) -> None:
+    """The truth side file's arrays (``truth/<part>/<sample>.npz``): headings, world roots, presence and the camera."""
     tdir.mkdir(parents=True, exist_ok=True)
     truth = {
         "heading_monster": yaws["monster"],
@@ -344,30 +427,6 @@ def write_recording(
         "camera_rot_cw": cam_rot,
     }
     _atomic(tdir / f"{sample_id}.npz", lambda tmp: _savez(tmp, truth))
-    meta = {
-        "sample_id": sample_id,
-        "part": part,
-        "seed": seed,
-        "index": index,
-        "n_frames": N,
-        "fps": fps,
-        "width": width,
-        "height": height,
-        "recording_time": RECORDING_EPOCH + 86400 * index,
-        "depth_encoding": SYNTHETIC_DEPTH_ENCODING if depth_mapping is None else depth_mapping,
-        "camera_K": list(K),
-        "monster_absent_frames": list(plan.absent),
-        "cast": cast or {},
-        "role": role.to_json(),
-        "camera_invalid_frames": list(plan.camera_invalid),
-        "clips": {e: {str(k): v for k, v in clip_table(e).items()} for e in ("monster", "hunter")},
-        "segments": {
-            e: [{"start": s.start, "clip": s.clip, "length": s.length} for s in plan.tracks[e].segments]
-            for e in ("monster", "hunter")
-        },
-    }
-    _atomic(tdir / f"{sample_id}.json", lambda tmp: tmp.write_text(json.dumps(meta, indent=1)))
-    return d
 
 
 def _savez(tmp: Path, arrays: dict) -> None:
