@@ -317,6 +317,15 @@ def cmd_export_chunk(a: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add survey, calibrate-depth, synth, ingest, inspect, export-chunk to ``sub`` (the ``marionette`` subparsers)."""
+    _register_survey(sub)
+    _register_calibrate_depth(sub)
+    _register_synth(sub)
+    _register_ingest(sub)
+    _register_inspect(sub)
+    _register_export_chunk(sub)
+
+
+def _register_survey(sub) -> None:
     s = command("survey", "report what a recording tree holds without building anything; draft rigs for its skeletons", sub)
     s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
     s.add_argument("--rigs-out", type=Path, default=None, help="draft a rig per skeleton type and a scene per combination here")
@@ -332,6 +341,8 @@ def register(sub) -> None:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=cmd_survey)
 
+
+def _register_calibrate_depth(sub) -> None:
     s = command("calibrate-depth", "fit the unpublished 8-bit depth mapping from recorded skeletons and cameras", sub)
     s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
     scene_arguments(
@@ -360,6 +371,8 @@ def register(sub) -> None:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=cmd_calibrate_depth)
 
+
+def _register_synth(sub) -> None:
     s = command("synth", "write synthetic WildWorld-format recordings", sub)
     s.add_argument("out", type=Path, help="directory to write the recordings under")
     synthetic_arguments(s, recordings=2, workers=1)
@@ -396,11 +409,15 @@ def register(sub) -> None:
     )
     s.set_defaults(fn=cmd_synth)
 
+
+def _register_ingest(sub) -> None:
     s = command("ingest", "ingest WildWorld recordings into a corpus (then finalize, scan terrain, render pose targets)", sub)
     add_options(s, IngestCommand)
     s.add_check(scene_missing)
     s.set_defaults(fn=cmd_ingest)
 
+
+def _register_inspect(sub) -> None:
     s = command("inspect", "summarise a corpus, or list its segments", sub)
     s.add_argument("corpus", type=Path, help="a corpus directory")
     s.add_argument("--segments", action="store_true", help="list the segments: id, split, frames, stage, video chunks")
@@ -409,6 +426,8 @@ def register(sub) -> None:
     s.add_argument("--scene", type=scene_name, default=None, help="in a corpus of several scenes: show this one's")
     s.set_defaults(fn=cmd_inspect)
 
+
+def _register_export_chunk(sub) -> None:
     s = command("export-chunk", "take a video chunk's pose target and first frame out of a corpus (the inputs of generate)", sub)
     s.add_argument("corpus", type=Path, help="a corpus directory")
     s.add_argument("--segment", required=True, help="segment id (`marionette inspect CORPUS --segments` lists them)")
