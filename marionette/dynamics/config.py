@@ -53,7 +53,30 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Everything that fixes the dynamics model's parameter set; saved as JSON beside its checkpoints."""
+    """Everything that fixes the dynamics model's parameter set; saved as JSON beside its checkpoints.
+
+    The heads. ActionGPT's root head predicts the next displacements outright and, with ``rotation_anchor``, each
+    next rotation as rot6d[t] + Δ (the rollout re-orthonormalises it). With ``displacement_gate``, each next
+    displacement is g · carried + (1 − g) · head, g = sigmoid(gate head) in (0, 1) per dimension, carried =
+    ``frames.skip`` when given, else root[t]: a rollout passes its own proposal of root[t], before the rules
+    corrected it (a carried correction of the separation cap, which moves both bodies by half the excess, would
+    become a common motion of both; the transformer still reads the corrected root), and g is 0 where an action
+    starts (``ActionGPT.action_starts``): a new action's first displacement is the head's. The head learns on its own
+    (its proposal, ``ActionOutputs.proposal``, has its own loss) and the blend holds it fixed, so the blend's loss
+    trains the gate; over four seeds the gate beats constant velocity one step ahead on every one (docs/tradeoffs.md,
+    "Seed to seed"), so training turns it on by default (``TrainConfig``). PoseGPT's body head, with
+    ``body_anchor``, predicts body[t+1] = g ⊙ body[t] + Δ with g one learned gain per body dimension (starting at
+    1); without an anchor, that part is predicted outright. ``residual`` (for comparison; it excludes the anchors
+    and the gate) makes both heads add Δ to the current frame with gain 1.
+
+    Every output head starts at zero, so an untrained model predicts its anchors: copy-last body and rotations,
+    sigmoid(``GATE_INIT``) = 0.88 of the current displacement (the mean without the gate), and (with ActionGPT's
+    copy gain) the current action; with ``adaptive_copy`` the copy gain gets a per-frame term from a stay head
+    (starting at 0), so the model can let go of the current action where it expects a change without outbidding a
+    gain of ~7 with one token's logit. Residual heads drift in long rollouts, and so does a learned gain on the
+    displacement (it amplifies the head's bias by 1/(1 − g): kilometres over 10,000 frames, docs/tradeoffs.md);
+    the gate's g stays below 1 and its carried displacement is the model's own.
+    """
 
     scene: str
     layout_hash: str

@@ -29,27 +29,7 @@ Alignment, for training on a window of frames x[0..T] (``action_training_pair``,
   ``pose_progress`` the progress[t+1] of each token there (a rollout's: it restarts at 0 where a token is
   forced); it predicts body[t+1].
 
-Heads. ActionGPT's root head predicts the next displacements outright and, with ``rotation_anchor``
-on, each next rotation as rot6d[t] + Δ (the rollout re-orthonormalises it). With ``displacement_gate``
-on, each next displacement is g · carried + (1 − g) · head, g = sigmoid(gate head) in (0, 1) per
-dimension, carried = ``frames.skip`` when given, else root[t]: a rollout passes its own proposal of
-root[t], before the rules corrected it (the separation cap moves both bodies by half the excess, and a
-carried correction became a common motion that grew to 50 m/s; the transformer still reads the corrected
-root), and g is 0 where an action starts (``ActionGPT.action_starts``): a new action's first displacement
-is the head's. The head learns on its own (its proposal, ``ActionOutputs.proposal``, has its own loss) and the
-blend holds it fixed, so the blend's loss trains the gate. On by default in training (``TrainConfig``): over four
-seeds it beat constant velocity one step ahead on every one (docs/tradeoffs.md, "Seed to seed"). PoseGPT's body head, with ``body_anchor`` on, predicts
-body[t+1] = g ⊙ body[t] + Δ with g one learned gain per body dimension (starting at 1); with either
-off, that part is predicted outright. With
-``residual`` on (for comparison; it excludes the anchors and the gate) both heads add Δ to the current
-frame with gain 1. Every output head starts at zero, so an untrained model predicts its anchors:
-copy-last body and rotations, sigmoid(``GATE_INIT``) = 0.88 of the current displacement (the mean
-without the gate), and (with ActionGPT's copy gain) the current action; with ``adaptive_copy`` the copy
-gain gets a per-frame term from a stay head (starting at 0), so the model can let go of the current
-action where it expects a change without outbidding a gain of ~7 with one token's logit. Residual heads
-drift in long rollouts, and a learned gain on the displacement does too (it amplifies the head's bias by
-1/(1 − g); the pair ran off by kilometres over 10,000 frames, docs/tradeoffs.md): the gate's g stays
-below 1 and its carried displacement is the model's own.
+Heads: anchored, gated or residual, as ``config.DynamicsConfig`` switches them (its docstring defines each).
 Inputs are expected normalised by the caller.
 
 Attention window and streaming. ``forward`` over T frames lets frame i attend to frames
