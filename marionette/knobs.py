@@ -150,22 +150,37 @@ def option(
     switch: bool = False,
     optional: bool = False,
     choices: Sequence[str] | None = None,
+    append: bool = False,
+    group: tuple[str, str] | None = None,
 ) -> Any:
     """A command's option as a dataclass field: its default (``MISSING``: required), help, the argparse type that
     checks it as it is parsed (``parse``), its flag (default ``--`` and the field's name with dashes), ``metavar``;
     ``positional`` (``optional``: it may be left out), ``many`` (repeatable, each flag taking one or more values,
     gathered into a tuple), ``switch`` (a flag without a value: it sets True, or False where the default is True,
-    e.g. ``--no-pose``), ``choices`` (the values it accepts)."""
+    e.g. ``--no-pose``), ``choices`` (the values it accepts), ``append`` (repeatable, one value a flag, gathered
+    into a tuple), ``group`` (the help's group of options it is listed in: title, description)."""
     spec = {"parse": parse, "flag": flag, "metavar": metavar, "positional": positional, "many": many, "switch": switch}
-    return field(default=default, metadata={"help": help, "option": {**spec, "optional": optional, "choices": choices}})
+    spec |= {"optional": optional, "choices": choices, "append": append, "group": group}
+    return field(default=default, metadata={"help": help, "option": spec})
 
 
-def add_options(ap: argparse.ArgumentParser, cls: type) -> None:
-    """Add the ``option`` fields of the dataclass ``cls`` to ``ap``, in field order, each with its default."""
+def add_options(ap: argparse.ArgumentParser, cls: type, defaults: dict[str, Any] | None = None) -> None:
+    """Add the ``option`` fields of the dataclass ``cls`` to ``ap``, in field order, each with its default (or the one
+    ``defaults`` gives it: options shared by two commands with defaults of their own)."""
+    defaults = defaults or {}
+    if unknown := set(defaults) - {f.name for f in fields(cls)}:
+        raise TypeError(f"{cls.__name__} has no fields {sorted(unknown)}")
+    groups: dict[str, Any] = {}
     for f in fields(cls):
         if "option" not in f.metadata:
             raise TypeError(f"{cls.__name__}.{f.name} is not an option (knobs.option)")
         spec = f.metadata["option"]
+        target = ap
+        if spec["group"] is not None:
+            title, description = spec["group"]
+            if title not in groups:
+                groups[title] = ap.add_argument_group(title, description)
+            target = groups[title]
         kwargs: dict[str, Any] = {"help": f.metadata["help"]}
         if spec["metavar"]:
             kwargs["metavar"] = spec["metavar"]
@@ -174,17 +189,19 @@ def add_options(ap: argparse.ArgumentParser, cls: type) -> None:
         if spec["positional"]:
             if spec["optional"]:
                 kwargs["nargs"] = "?"
-            ap.add_argument(f.name, type=spec["parse"], **kwargs)
+            target.add_argument(f.name, type=spec["parse"], **kwargs)
             continue
         flag = spec["flag"] or "--" + f.name.replace("_", "-")
         if spec["switch"]:
-            ap.add_argument(flag, dest=f.name, action="store_false" if f.default is True else "store_true", **kwargs)
+            target.add_argument(flag, dest=f.name, action="store_false" if f.default is True else "store_true", **kwargs)
         elif spec["many"]:
-            ap.add_argument(flag, dest=f.name, type=spec["parse"], nargs="+", action="extend", default=[], **kwargs)
+            target.add_argument(flag, dest=f.name, type=spec["parse"], nargs="+", action="extend", default=[], **kwargs)
+        elif spec["append"]:
+            target.add_argument(flag, dest=f.name, type=spec["parse"], action="append", default=[], **kwargs)
         elif f.default is MISSING:
-            ap.add_argument(flag, dest=f.name, type=spec["parse"], required=True, **kwargs)
+            target.add_argument(flag, dest=f.name, type=spec["parse"], required=True, **kwargs)
         else:
-            ap.add_argument(flag, dest=f.name, type=spec["parse"], default=f.default, **kwargs)
+            target.add_argument(flag, dest=f.name, type=spec["parse"], default=defaults.get(f.name, f.default), **kwargs)
 
 
 def options_from_args(cls: type, args: argparse.Namespace) -> Any:

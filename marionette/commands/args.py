@@ -44,16 +44,7 @@ def scene_missing(a: argparse.Namespace) -> str | None:
     return f"argument --scene: no scene {a.scene!r} {where}{near_ids(names, a.scene)} (scenes: {', '.join(names)})"
 
 
-def scene_arguments(s: argparse.ArgumentParser, default: str, help: str) -> None:
-    """``--scene`` (a scene name, or auto) and ``--rigs DIR``, checked together once parsed (``scene_missing``)."""
-    s.add_argument("--scene", type=scene_name, default=default, help=help)
-    s.add_argument(
-        "--rigs",
-        type=rigs_dir,
-        default=None,
-        help="user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)",
-    )
-    s.add_check(scene_missing)
+RIGS_HELP = "user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)"  # --rigs, beside --scene
 
 
 def checked_scene(a: argparse.Namespace):

@@ -9,7 +9,7 @@ from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from marionette.commands import command, strict_status
-from marionette.commands.args import checked_scene, rigs_dir, scene_arguments, scene_missing, scene_name
+from marionette.commands.args import RIGS_HELP, checked_scene, rigs_dir, scene_missing, scene_name
 from marionette.commands.summary import inspect_text, segment_row, segment_rows, segments_text
 from marionette.corpus import Corpus
 from marionette.corpus.paths import chunk_key, parse_chunk_key
@@ -34,16 +34,16 @@ from marionette.progress import ProgressBars, progress_items
 from marionette.schema import load_scene
 
 
-def synthetic_arguments(
-    s: argparse.ArgumentParser, recordings: int, workers: int, seconds: float = 20.0, size: tuple[int, int] = (320, 180)
-) -> None:
-    """The synthetic recordings' options (``synth`` and ``demo``)."""
-    s.add_argument("--recordings", type=positive_int, default=recordings, help="recordings to write")
-    s.add_argument("--seconds", type=positive_float, default=seconds, help="length of each recording, seconds")
-    s.add_argument("--seed", type=non_negative_int, default=0, help="seed of the synthetic game")
-    s.add_argument("--width", type=even_int, default=size[0], help="source video width, pixels (even)")
-    s.add_argument("--height", type=even_int, default=size[1], help="source video height, pixels (even)")
-    s.add_argument("--workers", type=positive_int, default=workers, help="parallel worker processes")
+@dataclass(frozen=True, kw_only=True)
+class SyntheticData:
+    """The synthetic recordings' options, ``synth``'s defaults (``demo`` gives its own, ``DEMO_DATA``)."""
+
+    recordings: int = option(2, "recordings to write", parse=positive_int)
+    seconds: float = option(20.0, "length of each recording, seconds", parse=positive_float)
+    seed: int = option(0, "seed of the synthetic game", parse=non_negative_int)
+    width: int = option(320, "source video width, pixels (even)", parse=even_int)
+    height: int = option(180, "source video height, pixels (even)", parse=even_int)
+    workers: int = option(1, "parallel worker processes", parse=positive_int)
 
 
 def cmd_synth(a: argparse.Namespace) -> int:
@@ -168,9 +168,7 @@ class IngestCommand:
         "layout of what it holds (its species', player's and weapon's rigs: one corpus, many scenes)",
         parse=scene_name,
     )
-    rigs: Path | None = option(
-        None, "user rigs and scenes looked up before the built-in ones (DIR/rigs, DIR/scenes)", parse=rigs_dir
-    )
+    rigs: Path | None = option(None, RIGS_HELP, parse=rigs_dir)
     monster_species: int | None = option(
         None,
         "ingest only recordings whose monster has this species id (default: every species the rig declares)",
@@ -325,88 +323,104 @@ def register(sub) -> None:
     _register_export_chunk(sub)
 
 
+@dataclass(frozen=True, kw_only=True)
+class SurveyOptions:
+    """``marionette survey``'s options."""
+
+    source: Path = option(MISSING, "a WildWorld recording tree (data_part*/<id>/)", parse=Path, positional=True)
+    rigs_out: Path | None = option(None, "draft a rig per skeleton type and a scene per combination here", parse=Path)
+    drop_shorter_than: float = option(
+        0.0,
+        "drafts drop helper joints whose median distance to their parent is below this, metres (0: keep all)",
+        parse=non_negative_float,
+    )
+    frames_per_type: int = option(3000, "frames of each skeleton type read to draft it", parse=int_at_least(10))
+    out: Path | None = option(None, "write the report (and the drafts' names) as JSON here", parse=Path)
+    strict: bool = option(False, "exit 1 when a sample has missing or unreadable files or a draft failed", switch=True)
+    quiet: bool = option(False, "no progress bar", switch=True)
+
+
 def _register_survey(sub) -> None:
     s = command("survey", "report what a recording tree holds without building anything; draft rigs for its skeletons", sub)
-    s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
-    s.add_argument("--rigs-out", type=Path, default=None, help="draft a rig per skeleton type and a scene per combination here")
-    s.add_argument(
-        "--drop-shorter-than",
-        type=non_negative_float,
-        default=0.0,
-        help="drafts drop helper joints whose median distance to their parent is below this, metres (0: keep all)",
-    )
-    s.add_argument("--frames-per-type", type=int_at_least(10), default=3000, help="frames of each skeleton type read to draft it")
-    s.add_argument("--out", type=Path, default=None, help="write the report (and the drafts' names) as JSON here")
-    s.add_argument("--strict", action="store_true", help="exit 1 when a sample has missing or unreadable files or a draft failed")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_options(s, SurveyOptions)
     s.set_defaults(fn=cmd_survey)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CalibrateDepthOptions:
+    """``marionette calibrate-depth``'s options (``--scene`` with ``--rigs`` checked once both are parsed)."""
+
+    source: Path = option(MISSING, "a WildWorld recording tree (data_part*/<id>/)", parse=Path, positional=True)
+    scene: str = option(
+        "auto",
+        "scene layout: which rigs the skeletons are (auto: each recording's own, its types' rigs found by their edges key)",
+        parse=scene_name,
+    )
+    rigs: Path | None = option(None, RIGS_HELP, parse=rigs_dir)
+    frame_stride: int = option(5, "use every Nth frame", parse=positive_int)
+    max_recordings: int | None = option(None, "use the first N recordings (default: all)", parse=positive_int)
+    family: str = option(
+        "auto",
+        "the mapping's form (auto: the parametric one whose inliers scatter least)",
+        choices=("auto", "inverse", "log", "linear", "table"),
+    )
+    out: Path | None = option(None, "write the mapping and the fit's report here (JSON)", parse=Path)
+    plot: Path | None = option(None, "plot the pairs, the fits and the residuals here (.png)", parse=png_path)
+    corpus: Path | None = option(None, "make the mapping this corpus's scan decoder (meta/scan.json)", parse=Path)
+    contact_scale: bool = option(
+        True,
+        "keep the joints' fit as it is (by default every depth is scaled so that the ground stands where the "
+        "characters' contact joints stood; a second pass over the recordings)",
+        flag="--no-contact-scale",
+        switch=True,
+    )
+    quiet: bool = option(False, "no progress bar", switch=True)
 
 
 def _register_calibrate_depth(sub) -> None:
     s = command("calibrate-depth", "fit the unpublished 8-bit depth mapping from recorded skeletons and cameras", sub)
-    s.add_argument("source", type=Path, help="a WildWorld recording tree (data_part*/<id>/)")
-    scene_arguments(
-        s,
-        "auto",
-        "scene layout: which rigs the skeletons are (auto: each recording's own, its types' rigs found by their edges key)",
-    )
-    s.add_argument("--frame-stride", type=positive_int, default=5, help="use every Nth frame")
-    s.add_argument("--max-recordings", type=positive_int, default=None, help="use the first N recordings (default: all)")
-    s.add_argument(
-        "--family",
-        choices=("auto", "inverse", "log", "linear", "table"),
-        default="auto",
-        help="the mapping's form (auto: the parametric one whose inliers scatter least)",
-    )
-    s.add_argument("--out", type=Path, default=None, help="write the mapping and the fit's report here (JSON)")
-    s.add_argument("--plot", type=png_path, default=None, help="plot the pairs, the fits and the residuals here (.png)")
-    s.add_argument("--corpus", type=Path, default=None, help="make the mapping this corpus's scan decoder (meta/scan.json)")
-    s.add_argument(
-        "--no-contact-scale",
-        dest="contact_scale",
-        action="store_false",
-        help="keep the joints' fit as it is (by default every depth is scaled so that the ground stands where the "
-        "characters' contact joints stood; a second pass over the recordings)",
-    )
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_options(s, CalibrateDepthOptions)
+    s.add_check(scene_missing)
     s.set_defaults(fn=cmd_calibrate_depth)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SynthOptions:
+    """``marionette synth``'s own options (beside the synthetic data's, ``SyntheticData``): what the tree is like."""
+
+    out: Path = option(MISSING, "directory to write the recordings under", parse=Path, positional=True)
+    hidden_depth: bool = option(
+        False,
+        "encode depth with a mapping drawn from a family by --seed, written only to the truth (calibrate it with "
+        "`marionette calibrate-depth`)",
+        switch=True,
+    )
+    species: int = option(
+        0,
+        "monster species with generated skeletons (40–80 joints, recorded in no tree order); 0: the drake alone",
+        parse=int_in(0, 20),
+    )
+    players: int = option(1, "player characters (one npc skeleton, each its own size)", parse=int_in(1, 4))
+    weapons: int = option(1, "weapon types: the 5-point greatsword, then a 2-point short blade", parse=int_in(1, 2))
+    stages: int = option(1, "stages: each further one the first's map turned 90° and raised 1.5 m", parse=int_in(1, 4))
+    skins: bool = option(
+        False,
+        "each recording's monster and player in colours of their own (appearance a model must read from the "
+        "video, as between the real game's variants and armour)",
+        switch=True,
+    )
+    camera_pans: bool = option(
+        False,
+        "the player looks around now and then (the camera turned 120–180° for 2.5–4 s every 2–5 s): the bodies "
+        "leave the view and come back",
+        switch=True,
+    )
 
 
 def _register_synth(sub) -> None:
     s = command("synth", "write synthetic WildWorld-format recordings", sub)
-    s.add_argument("out", type=Path, help="directory to write the recordings under")
-    synthetic_arguments(s, recordings=2, workers=1)
-    s.add_argument(
-        "--hidden-depth",
-        action="store_true",
-        help="encode depth with a mapping drawn from a family by --seed, written only to the truth (calibrate it with "
-        "`marionette calibrate-depth`)",
-    )
-    s.add_argument(
-        "--species",
-        type=int_in(0, 20),
-        default=0,
-        help="monster species with generated skeletons (40–80 joints, recorded in no tree order); 0: the drake alone",
-    )
-    s.add_argument("--players", type=int_in(1, 4), default=1, help="player characters (one npc skeleton, each its own size)")
-    s.add_argument(
-        "--weapons", type=int_in(1, 2), default=1, help="weapon types: the 5-point greatsword, then a 2-point short blade"
-    )
-    s.add_argument(
-        "--stages", type=int_in(1, 4), default=1, help="stages: each further one the first's map turned 90° and raised 1.5 m"
-    )
-    s.add_argument(
-        "--skins",
-        action="store_true",
-        help="each recording's monster and player in colours of their own (appearance a model must read from the "
-        "video, as between the real game's variants and armour)",
-    )
-    s.add_argument(
-        "--camera-pans",
-        action="store_true",
-        help="the player looks around now and then (the camera turned 120–180° for 2.5–4 s every 2–5 s): the bodies "
-        "leave the view and come back",
-    )
+    add_options(s, SyntheticData)
+    add_options(s, SynthOptions)
     s.set_defaults(fn=cmd_synth)
 
 
@@ -417,20 +431,34 @@ def _register_ingest(sub) -> None:
     s.set_defaults(fn=cmd_ingest)
 
 
+@dataclass(frozen=True, kw_only=True)
+class InspectOptions:
+    """``marionette inspect``'s options."""
+
+    corpus: Path = option(MISSING, "a corpus directory", parse=Path, positional=True)
+    segments: bool = option(False, "list the segments: id, split, frames, stage, video chunks", switch=True)
+    split: str | None = option(None, "list only this split's segments, e.g. test (implies --segments)")
+    json: bool = option(False, "print info.json (with --segments: the segment rows) as JSON", switch=True)
+    scene: str | None = option(None, "in a corpus of several scenes: show this one's", parse=scene_name)
+
+
 def _register_inspect(sub) -> None:
     s = command("inspect", "summarise a corpus, or list its segments", sub)
-    s.add_argument("corpus", type=Path, help="a corpus directory")
-    s.add_argument("--segments", action="store_true", help="list the segments: id, split, frames, stage, video chunks")
-    s.add_argument("--split", default=None, help="list only this split's segments, e.g. test (implies --segments)")
-    s.add_argument("--json", action="store_true", help="print info.json (with --segments: the segment rows) as JSON")
-    s.add_argument("--scene", type=scene_name, default=None, help="in a corpus of several scenes: show this one's")
+    add_options(s, InspectOptions)
     s.set_defaults(fn=cmd_inspect)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExportChunkOptions:
+    """``marionette export-chunk``'s options."""
+
+    corpus: Path = option(MISSING, "a corpus directory", parse=Path, positional=True)
+    segment: str = option(MISSING, "segment id (`marionette inspect CORPUS --segments` lists them)")
+    chunk: int | None = option(None, "chunk number in the segment (default: list its chunks)", parse=non_negative_int)
+    out: Path | None = option(None, "directory for pose.mkv, first.png and rgb.mp4 (required with --chunk)", parse=Path)
 
 
 def _register_export_chunk(sub) -> None:
     s = command("export-chunk", "take a video chunk's pose target and first frame out of a corpus (the inputs of generate)", sub)
-    s.add_argument("corpus", type=Path, help="a corpus directory")
-    s.add_argument("--segment", required=True, help="segment id (`marionette inspect CORPUS --segments` lists them)")
-    s.add_argument("--chunk", type=non_negative_int, default=None, help="chunk number in the segment (default: list its chunks)")
-    s.add_argument("--out", type=Path, default=None, help="directory for pose.mkv, first.png and rgb.mp4 (required with --chunk)")
+    add_options(s, ExportChunkOptions)
     s.set_defaults(fn=cmd_export_chunk)

@@ -5,17 +5,19 @@ from __future__ import annotations
 import argparse
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
 from marionette.commands import command
-from marionette.commands.corpus import export_chunk, joined_chunks, synthetic_arguments
+from marionette.commands.corpus import SyntheticData, export_chunk, joined_chunks
 from marionette.commands.render import render_source
 from marionette.commands.summary import inspect_text
 from marionette.corpus import Corpus
 from marionette.corpus.video_shards import POSE_KIND
 from marionette.corpus.vocab import ActionTokens
 from marionette.dynamics.config import TrainConfig
+from marionette.knobs import add_options, option
 from marionette.observation.config import ObservationTrainConfig
 from marionette.options import (
     positive_int,
@@ -193,21 +195,26 @@ def _train_quietly(corpus: str, out: str, config: dict) -> list[str]:
     return [*lines, f"{s['steps']} steps in {time.time() - started:.1f} s"]
 
 
+# ten minutes of play: the dynamics model needs minutes to beat its baselines and to show control (80 s do not;
+# docs/tradeoffs.md, "The demo's ten minutes"); at 160×90 they synthesise in about twice the time 80 s take at 320×180
+DEMO_DATA = {"recordings": 20, "workers": 2, "seconds": 30.0, "width": 160, "height": 90}
+
+
+@dataclass(frozen=True, kw_only=True)
+class DemoOptions:
+    """``marionette demo``'s own options (beside the synthetic data's, ``DEMO_DATA``)."""
+
+    out: Path = option(Path("demo-run"), "directory for everything the demo writes", parse=Path)
+    scan_stride: int = option(4, "scan every Nth depth frame (docs/tradeoffs.md: 4 keeps the RMSE)", parse=positive_int)
+    dynamics_steps: int = option(1000, "training steps of the tiny dynamics model", parse=positive_int)
+    observation_steps: int = option(
+        300, "training steps of each tiny observation model (the pose model and its baseline)", parse=positive_int
+    )
+
+
 def register(sub) -> None:
     """Add demo to ``sub`` (the ``marionette`` subparsers)."""
     s = command("demo", "run the pipeline end to end on synthetic data", sub)
-    s.add_argument("--out", type=Path, default=Path("demo-run"), help="directory for everything the demo writes")
-    # ten minutes of play: the dynamics model needs minutes to beat its baselines and to show control (80 s did not;
-    # docs/tradeoffs.md, "The demo's ten minutes"); at 160×90 they synthesise in about twice the time 80 s took at 320×180
-    synthetic_arguments(s, recordings=20, workers=2, seconds=30.0, size=(160, 90))
-    s.add_argument(
-        "--scan-stride", type=positive_int, default=4, help="scan every Nth depth frame (docs/tradeoffs.md: 4 keeps the RMSE)"
-    )
-    s.add_argument("--dynamics-steps", type=positive_int, default=1000, help="training steps of the tiny dynamics model")
-    s.add_argument(
-        "--observation-steps",
-        type=positive_int,
-        default=300,
-        help="training steps of each tiny observation model (the pose model and its baseline)",
-    )
+    add_options(s, SyntheticData, defaults=DEMO_DATA)
+    add_options(s, DemoOptions)
     s.set_defaults(fn=cmd_demo)

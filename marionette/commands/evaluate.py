@@ -3,15 +3,36 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from marionette.commands import command
 from marionette.eval.config import OVERRIDES, PROTOCOLS, EvalProtocol
-from marionette.knobs import add_config_arguments
+from marionette.knobs import add_config_arguments, add_options, option
 from marionette.options import (
     non_negative_int,
 )
 from marionette.progress import ProgressBars
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalOptions:
+    """``marionette eval``'s options beside the protocol's counts (``eval.config.OVERRIDES``, flags made from
+    ``EvalProtocol``'s knobs)."""
+
+    dynamics: Path = option(MISSING, "a dynamics checkpoint or training directory", parse=Path, positional=True)
+    corpus: Path = option(
+        MISSING, "a corpus directory (its test split, else train, gives the windows)", parse=Path, positional=True
+    )
+    out: Path = option(MISSING, "the report directory", parse=Path)
+    protocol: str = option("paper", "counts and lengths (quick: the demo's)", choices=sorted(PROTOCOLS))
+    observation: Path | None = option(None, "observation checkpoint or training directory (default: no FVD columns)", parse=Path)
+    baseline: Path | None = option(None, "pixel-AR baseline checkpoint (control actions) for Table 1 (default: none)", parse=Path)
+    seed: int = option(0, "seed of the window choice and the samplers", parse=non_negative_int)
+    i3d: Path | None = option(
+        None, "Inception-I3D weights (safetensors) for FVD proper (default: the labelled proxy)", parse=Path
+    )
+    quiet: bool = option(False, "no progress bars", switch=True)
 
 
 def cmd_eval(a: argparse.Namespace) -> int:
@@ -34,14 +55,6 @@ def register(sub) -> None:
     """Add eval to ``sub`` (the ``marionette`` subparsers)."""
     s = command("eval", "evaluate a dynamics checkpoint: the paper's three tables, long-horizon curves, state metrics", sub)
 
-    s.add_argument("dynamics", type=Path, help="a dynamics checkpoint or training directory")
-    s.add_argument("corpus", type=Path, help="a corpus directory (its test split, else train, gives the windows)")
-    s.add_argument("--out", type=Path, required=True, help="the report directory")
-    s.add_argument("--protocol", choices=sorted(PROTOCOLS), default="paper", help="counts and lengths (quick: the demo's)")
-    s.add_argument("--observation", type=Path, help="observation checkpoint or training directory (default: no FVD columns)")
-    s.add_argument("--baseline", type=Path, help="pixel-AR baseline checkpoint (control actions) for Table 1 (default: none)")
+    add_options(s, EvalOptions)
     add_config_arguments(s, EvalProtocol, OVERRIDES, default="the protocol's")
-    s.add_argument("--seed", type=non_negative_int, default=0, help="seed of the window choice and the samplers")
-    s.add_argument("--i3d", type=Path, help="Inception-I3D weights (safetensors) for FVD proper (default: the labelled proxy)")
-    s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.set_defaults(fn=cmd_eval)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from marionette.commands import command
+from marionette.knobs import add_options, option
 from marionette.options import (
     non_negative_int,
     positive_float,
@@ -13,27 +15,36 @@ from marionette.options import (
 )
 
 
+@dataclass(frozen=True, kw_only=True)
+class GenerateOptions:
+    """``marionette generate``'s options."""
+
+    ckpt: Path = option(
+        MISSING,
+        "an observation checkpoint or training directory, or a Wan2.2-Fun-Control model directory (`train wan`'s OUT/model)",
+        parse=Path,
+        positional=True,
+    )
+    pose: Path = option(
+        MISSING, "a pose-control G-buffer video (.mkv), from `marionette export-chunk` or `marionette render`", parse=Path
+    )
+    first_frame: Path = option(MISSING, "the first frame: an image of the pose video's size", parse=Path)
+    out: Path = option(MISSING, "output .mp4", parse=Path)
+    chunks: int | None = option(None, "chunks to relay (default: all the pose video holds)", parse=positive_int)
+    steps: int = option(20, "sampling steps per chunk", parse=positive_int)
+    seed: int = option(0, "seed of the sampling noise", parse=non_negative_int)
+    fps: float = option(30.0, "frame rate of the output video", parse=positive_float)
+    references: bool = option(
+        True,
+        "a model trained with entity references paints without them (each chunk sees only its first frame)",
+        flag="--no-references",
+        switch=True,
+    )
+
+
 def generate_arguments(ap: argparse.ArgumentParser) -> None:
     """The generate command's arguments."""
-    ap.add_argument(
-        "ckpt",
-        type=Path,
-        help="an observation checkpoint or training directory, or a Wan2.2-Fun-Control model directory (`train wan`'s OUT/model)",
-    )
-    pose_help = "a pose-control G-buffer video (.mkv), from `marionette export-chunk` or `marionette render`"
-    ap.add_argument("--pose", type=Path, required=True, help=pose_help)
-    ap.add_argument("--first-frame", type=Path, required=True, help="the first frame: an image of the pose video's size")
-    ap.add_argument("--out", type=Path, required=True, help="output .mp4")
-    ap.add_argument("--chunks", type=positive_int, default=None, help="chunks to relay (default: all the pose video holds)")
-    ap.add_argument("--steps", type=positive_int, default=20, help="sampling steps per chunk")
-    ap.add_argument("--seed", type=non_negative_int, default=0, help="seed of the sampling noise")
-    ap.add_argument("--fps", type=positive_float, default=30.0, help="frame rate of the output video")
-    ap.add_argument(
-        "--no-references",
-        dest="references",
-        action="store_false",
-        help="a model trained with entity references paints without them (each chunk sees only its first frame)",
-    )
+    add_options(ap, GenerateOptions)
 
 
 def cmd_generate(a: argparse.Namespace) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from marionette.bridge.jitter import Jitter
@@ -11,6 +12,7 @@ from marionette.commands import command
 from marionette.commands.summary import segment_row
 from marionette.corpus import Corpus
 from marionette.io import read_ipc
+from marionette.knobs import add_options, option
 from marionette.options import (
     near_ids,
     non_negative_float,
@@ -74,19 +76,28 @@ def cmd_render(a: argparse.Namespace) -> int:
     return 0
 
 
+JITTER = ("jitter", "move the state before it is rendered, as training targets can be (bridge.jitter)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RenderOptions:
+    """``marionette render``'s options."""
+
+    source: Path = option(MISSING, "a corpus directory or a STATES.arrow rollout", parse=Path, positional=True)
+    segment: str | None = option(None, "segment id (required for a corpus; `inspect CORPUS --segments` lists them)")
+    camera: str | None = option(None, "default: recorded for a corpus, follow for a rollout", choices=["recorded", "follow"])
+    out: Path = option(MISSING, "output .mkv", parse=Path)
+    size: tuple[int, int] = option((704, 1280), "output size, HxW", parse=size_hxw, metavar="HxW")
+    fps: float | None = option(None, "output rate (default: the state's)", parse=positive_float)
+    terrain: Path | None = option(None, "a stage directory (default: the segment's stage)", parse=Path)
+    jitter_root: float = option(0.0, "shift each character by M metres", parse=non_negative_float, metavar="M", group=JITTER)
+    jitter_joint_deg: float = option(0.0, "turn each bone by up to D°", parse=non_negative_float, metavar="D", group=JITTER)
+    jitter_time: float = option(0.0, "warp time by up to S seconds", parse=non_negative_float, metavar="S", group=JITTER)
+    jitter_seed: int = option(0, "seed of the jitter's draws", parse=non_negative_int, metavar="N", group=JITTER)
+
+
 def register(sub) -> None:
     """Add render to ``sub`` (the ``marionette`` subparsers)."""
     s = command("render", "render a corpus segment or a rollout table to a lossless G-buffer video", sub)
-    s.add_argument("source", type=Path, help="a corpus directory or a STATES.arrow rollout")
-    s.add_argument("--segment", default=None, help="segment id (required for a corpus; `inspect CORPUS --segments` lists them)")
-    s.add_argument("--camera", choices=["recorded", "follow"], help="default: recorded for a corpus, follow for a rollout")
-    s.add_argument("--out", type=Path, required=True, help="output .mkv")
-    s.add_argument("--size", type=size_hxw, default=(704, 1280), metavar="HxW", help="output size, HxW")
-    s.add_argument("--fps", type=positive_float, default=None, help="output rate (default: the state's)")
-    s.add_argument("--terrain", type=Path, default=None, help="a stage directory (default: the segment's stage)")
-    jit = s.add_argument_group("jitter", "move the state before it is rendered, as training targets can be (bridge.jitter)")
-    jit.add_argument("--jitter-root", type=non_negative_float, default=0.0, metavar="M", help="shift each character by M metres")
-    jit.add_argument("--jitter-joint-deg", type=non_negative_float, default=0.0, metavar="D", help="turn each bone by up to D°")
-    jit.add_argument("--jitter-time", type=non_negative_float, default=0.0, metavar="S", help="warp time by up to S seconds")
-    jit.add_argument("--jitter-seed", type=non_negative_int, default=0, metavar="N", help="seed of the jitter's draws")
+    add_options(s, RenderOptions)
     s.set_defaults(fn=cmd_render)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from marionette.commands import command, strict_status
@@ -11,6 +12,7 @@ from marionette.commands.summary import check_stage
 from marionette.corpus import Corpus, paths
 from marionette.corpus.lock import corpus_lock
 from marionette.io import read_json
+from marionette.knobs import add_options, option
 from marionette.options import mesh_path, positive_float, positive_int
 from marionette.pipeline import refresh
 from terrain_scan.knobs import KNOBS
@@ -78,61 +80,72 @@ def cmd_terrain_export(a: argparse.Namespace) -> int:
     return 0
 
 
+@dataclass(frozen=True, kw_only=True)
+class TerrainScanOptions:
+    """``marionette terrain scan``'s options: which stages, how (the scan's knobs, each left as the corpus last
+    scanned when not given), and the pose pass after it."""
+
+    corpus: Path = option(MISSING, "a corpus directory", parse=Path, positional=True)
+    stage: str | None = option(None, "one stage id (default: every stage)")
+    incremental: bool = option(False, "scan only recordings that are new or changed", switch=True)
+    frame_stride: int | None = option(None, "use every Nth depth frame (default: as last scanned, else 1)", parse=positive_int)
+    depth_subsample: int | None = option(
+        None,
+        "use every Nth depth pixel of every Nth row (a 1280x720 depth video at 4 is scanned at 320x180; default: as "
+        "last scanned, else 1)",
+        parse=positive_int,
+    )
+    voxel: float | None = option(None, "voxel size of the point down-sampling, metres (default: 0.25)", parse=positive_float)
+    max_depth: float | None = option(None, "depth pixels beyond this are dropped, metres (20)", parse=positive_float)
+    depth_decoder: Path | None = option(
+        None, "8-bit depth mapping JSON (default: as last scanned, else the synthetic game's)", parse=Path
+    )
+    scan_config: Path | None = option(None, "a JSON object of scan options (the keys of --scan-option)", parse=Path)
+    scan_option: tuple[tuple[str, float | int], ...] = option(
+        (),
+        "set one scan knob (repeatable): " + ", ".join(KNOBS) + "; the corpus keeps what its last scan used "
+        "(meta/scan.json, shown by `marionette inspect`)",
+        parse=scan_option,
+        metavar="KNOB=VALUE",
+        append=True,
+    )
+    workers: int = option(1, "parallel processes: recordings scanned, video shards rendered", parse=positive_int)
+    pose: bool = option(True, "do not bring the pose-control targets up to date", flag="--no-pose", switch=True)
+    quiet: bool = option(False, "no progress bars", switch=True)
+    strict: bool = option(False, "exit 1 when any recording's scan or any pose target fails", switch=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TerrainImportOptions:
+    """``marionette terrain import``'s options."""
+
+    src: Path = option(MISSING, "a directory of TRN2 chunk files", parse=Path, positional=True)
+    corpus: Path = option(MISSING, "a corpus directory", parse=Path, positional=True)
+    stage: str = option(MISSING, "the stage id they belong to (`marionette inspect CORPUS` lists them)")
+    name: str | None = option(None, "the contribution's name (default: the directory's)", parse=id_string)
+    pose: bool = option(True, "do not bring the pose-control targets up to date", flag="--no-pose", switch=True)
+    quiet: bool = option(False, "no progress bars", switch=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TerrainExportOptions:
+    """``marionette terrain export``'s options."""
+
+    corpus: Path = option(MISSING, "a corpus directory", parse=Path, positional=True)
+    stage: str = option("default", "stage id")
+    out: Path = option(MISSING, "output mesh, .ply or .glb", parse=mesh_path)
+
+
 def register(sub) -> None:
     """Add terrain scan, terrain import, terrain export to ``sub`` (the ``marionette`` subparsers)."""
     t = command("terrain", "terrain scans: scan a corpus's stages, export meshes", sub)
     tsub = t.add_subparsers(dest="terrain_cmd", required=True, metavar="COMMAND")
     s = command("scan", "scan the stages of a corpus into layered height-field chunks", tsub)
-    s.add_argument("corpus", type=Path, help="a corpus directory")
-    s.add_argument("--stage", default=None, help="one stage id (default: every stage)")
-    s.add_argument("--incremental", action="store_true", help="scan only recordings that are new or changed")
-    s.add_argument(
-        "--frame-stride", type=positive_int, default=None, help="use every Nth depth frame (default: as last scanned, else 1)"
-    )
-    s.add_argument(
-        "--depth-subsample",
-        type=positive_int,
-        default=None,
-        help="use every Nth depth pixel of every Nth row (a 1280x720 depth video at 4 is scanned at 320x180; default: as "
-        "last scanned, else 1)",
-    )
-    s.add_argument(
-        "--voxel", type=positive_float, default=None, help="voxel size of the point down-sampling, metres (default: 0.25)"
-    )
-    s.add_argument("--max-depth", type=positive_float, default=None, help="depth pixels beyond this are dropped, metres (20)")
-    s.add_argument(
-        "--depth-decoder",
-        type=Path,
-        default=None,
-        help="8-bit depth mapping JSON (default: as last scanned, else the synthetic game's)",
-    )
-    s.add_argument("--scan-config", type=Path, default=None, help="a JSON object of scan options (the keys of --scan-option)")
-    s.add_argument(
-        "--scan-option",
-        type=scan_option,
-        action="append",
-        default=[],
-        metavar="KNOB=VALUE",
-        help="set one scan knob (repeatable): " + ", ".join(KNOBS) + "; the corpus keeps what its last scan used "
-        "(meta/scan.json, shown by `marionette inspect`)",
-    )
-    s.add_argument(
-        "--workers", type=positive_int, default=1, help="parallel processes: recordings scanned, video shards rendered"
-    )
-    s.add_argument("--no-pose", dest="pose", action="store_false", help="do not bring the pose-control targets up to date")
-    s.add_argument("--quiet", action="store_true", help="no progress bars")
-    s.add_argument("--strict", action="store_true", help="exit 1 when any recording's scan or any pose target fails")
+    add_options(s, TerrainScanOptions)
     s.set_defaults(fn=cmd_terrain_scan)
     s = command("import", "make a directory of TRN2 chunks (upstream c_<cx>_<cz>.bin) part of a corpus's stage", tsub)
-    s.add_argument("src", type=Path, help="a directory of TRN2 chunk files")
-    s.add_argument("corpus", type=Path, help="a corpus directory")
-    s.add_argument("--stage", required=True, help="the stage id they belong to (`marionette inspect CORPUS` lists them)")
-    s.add_argument("--name", type=id_string, default=None, help="the contribution's name (default: the directory's)")
-    s.add_argument("--no-pose", dest="pose", action="store_false", help="do not bring the pose-control targets up to date")
-    s.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_options(s, TerrainImportOptions)
     s.set_defaults(fn=cmd_terrain_import)
     s = command("export", "export a stage's terrain as a PLY or GLB mesh", tsub)
-    s.add_argument("corpus", type=Path, help="a corpus directory")
-    s.add_argument("--stage", default="default", help="stage id")
-    s.add_argument("--out", type=mesh_path, required=True, help="output mesh, .ply or .glb")
+    add_options(s, TerrainExportOptions)
     s.set_defaults(fn=cmd_terrain_export)
