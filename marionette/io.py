@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import hashlib
 import json
 import os
@@ -82,6 +83,19 @@ def atomic_dir(path: Path, exists: str = "replace") -> Iterator[Path]:
         _fsync_dir(path.parent)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def publish_new(tmp: Path, path: Path) -> None:
+    """Give the finished file ``tmp`` the name ``path`` unless a file has it already (``FileExistsError`` naming it,
+    ``tmp`` removed): a hard link is created only where the name is free, so two writers never overwrite each other."""
+    tmp, path = Path(tmp), Path(path)
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(errno.EEXIST, "exists already; choose another name", str(path)) from None
+    finally:
+        tmp.unlink(missing_ok=True)
+    _fsync_dir(path.parent)
 
 
 def write_bytes(path: Path, data: bytes) -> None:

@@ -64,3 +64,15 @@ def test_atomic_dir_refuses_a_file_in_the_way_and_an_unknown_mode(tmp_path):
     assert out.read_text() == "a file" and sorted(p.name for p in tmp_path.iterdir()) == ["x"]
     with pytest.raises(ValueError, match="exists must be"), atomic_dir(tmp_path / "z", exists="merge"):
         pass
+
+
+def test_publish_new_names_a_file_only_where_the_name_is_free(tmp_path):
+    from marionette.io import publish_new
+
+    (tmp_path / "a.tmp").write_bytes(b"new")
+    publish_new(tmp_path / "a.tmp", tmp_path / "a.arrow")
+    assert (tmp_path / "a.arrow").read_bytes() == b"new" and not (tmp_path / "a.tmp").exists()
+    (tmp_path / "b.tmp").write_bytes(b"second")
+    with pytest.raises(FileExistsError, match="a.arrow"):
+        publish_new(tmp_path / "b.tmp", tmp_path / "a.arrow")
+    assert (tmp_path / "a.arrow").read_bytes() == b"new" and not (tmp_path / "b.tmp").exists()

@@ -37,7 +37,8 @@ CHROMIUM_ARGS = [
 def api(base: str, path: str, body: dict | None = None) -> tuple[int, dict]:
     """(status, JSON) of a GET (``body`` None) or a POST with a JSON body."""
     data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(base + path, data=data, method="GET" if body is None else "POST")
+    headers = {} if body is None else {"Content-Type": "application/json"}
+    req = urllib.request.Request(base + path, data=data, method="GET" if body is None else "POST", headers=headers)
     try:
         with urllib.request.urlopen(req, timeout=30) as r:
             return r.status, json.loads(r.read())
@@ -217,7 +218,9 @@ def test_bad_requests_are_400s_naming_what_was_wrong(live):
     assert code == 400 and "../escape" in body["error"]
     code, body = api(base, "/api/fly", {})
     assert code == 404 and "fly" in body["error"]
-    req = urllib.request.Request(base + "/api/control", data=b"{not json", method="POST")
+    req = urllib.request.Request(
+        base + "/api/control", data=b"{not json", method="POST", headers={"Content-Type": "application/json"}
+    )
     with pytest.raises(urllib.error.HTTPError) as err:
         urllib.request.urlopen(req, timeout=30)
     assert err.value.code == 400 and "not JSON" in json.loads(err.value.read())["error"]
@@ -284,6 +287,15 @@ def test_a_recorded_session_reloads(live, corpus, tmp_path):
     assert shown == replay_tokens
     with pytest.raises(ValueError, match="nothing recorded|not recording"):
         session.record({"action": "stop"})
+
+
+def test_a_recording_never_overwrites_one_that_exists(live):
+    session, base = live
+    (session.record_dir / "taken.mkv").write_bytes(b"a recording already there")
+    code, body = api(base, "/api/record", {"action": "start", "name": "taken"})
+    assert code == 409 and "'taken'" in body["error"]
+    assert (session.record_dir / "taken.mkv").read_bytes() == b"a recording already there"
+    assert api(base, "/api/status")[1]["recording"] is None
 
 
 def test_a_client_dropping_mid_stream_leaves_the_server_running(live, page):

@@ -5,6 +5,8 @@ them through the follow camera, ``bridge.targets.render_rows``) — what ``mario
 
 from __future__ import annotations
 
+import os
+import threading
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -15,7 +17,7 @@ import pyarrow as pa
 
 from marionette.bridge.targets import TerrainScene, render_rows
 from marionette.dynamics.engine import Rollout
-from marionette.io import write_ipc
+from marionette.io import publish_new, write_ipc
 from marionette.schema import Layout
 
 MAX_HISTORY = 72_000  # frames kept since the last reset (an hour at 20 fps)
@@ -42,6 +44,12 @@ class History:
         return len(self.states)
 
 
+def name_taken(record_dir: Path, written: list[dict], name: str) -> bool:
+    """Whether a recording ``name`` is written under ``record_dir`` (either file) or being written."""
+    on_disk = any((record_dir / f"{name}{ext}").exists() for ext in (".arrow", ".mkv"))
+    return on_disk or any(w["name"] == name for w in written)
+
+
 def free_name(record_dir: Path, written: list[dict]) -> str:
     """The first ``session-NNN`` neither written under ``record_dir`` nor being written."""
     k = 1
@@ -63,10 +71,16 @@ def write_recording(
     (reported to the page; the session goes on)."""
     try:
         record_dir.mkdir(parents=True, exist_ok=True)
-        write_ipc(Path(out["arrow"]), table)
-        render_rows(layout, table, Path(out["mkv"]), terrain, camera="follow", size=size)
+        arrow, mkv = Path(out["arrow"]), Path(out["mkv"])
+        tmp = f".{out['name']}.{os.getpid()}.{threading.get_ident()}.tmp"  # renamed only to a free name
+        write_ipc(record_dir / f"{tmp}.arrow", table)
+        render_rows(layout, table, record_dir / f"{tmp}.mkv", terrain, camera="follow", size=size)
+        publish_new(record_dir / f"{tmp}.arrow", arrow)
+        publish_new(record_dir / f"{tmp}.mkv", mkv)
         out["done"] = True
         log(f"play: wrote {out['arrow']} and {out['mkv']} ({out['frames']} frames)")
     except Exception as err:  # noqa: BLE001 - reported to the page, the session goes on
+        for f in record_dir.glob(f".{out['name']}.{os.getpid()}.{threading.get_ident()}.tmp.*"):
+            f.unlink(missing_ok=True)
         out["error"] = f"{type(err).__name__}: {err}"
         log(f"play: recording {out['name']} failed: {out['error']}")

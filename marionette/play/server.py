@@ -12,7 +12,9 @@ The page sends controls on the same websocket ({"type": ..., "seq": n, ...}, ``P
 {"type": "reply"} or {"type": "error", "message"} back with the same ``seq``. Scripts use the HTTP API:
 ``GET /api/status``, ``GET /api/actions``, ``GET /api/map``, ``GET /api/segments`` and ``POST /api/<type>`` with the
 message as a JSON body (``control``, ``reset``, ``record``, ``rules``, ``pause``, ``step``, ``camera``, ``bind``,
-``drive``, ``seek``); a bad request is a 400 whose JSON ``error`` names what was wrong, an unknown type a 404.
+``drive``, ``seek``); a bad request is a 400 whose JSON ``error`` names what was wrong, an unknown type a 404, a
+recording name already taken a 409. Only the page's own origin and scripts on this machine get that far
+(``guard.LocalOnly``).
 """
 
 from __future__ import annotations
@@ -28,18 +30,19 @@ from typing import Any
 
 import numpy as np
 from starlette.applications import Starlette
+from starlette.middleware import Middleware
 from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
+from .guard import BodyTooLarge, LocalOnly, parse_message, read_body
 from .playable import Playable
 
 QUEUE_FRAMES = 1
 QUICK = {"control", "move"}  # handled on the event loop itself: they only take the controls' lock, briefly
 QUEUE_PAINTED = 256
 HOST = "127.0.0.1"  # never another interface: the page drives a model on this machine
-MAX_BODY = 64 << 10
 
 
 def percentile(xs, q: float) -> float | None:
@@ -215,17 +218,18 @@ def create_app(session: Playable, fps: float | None = None, log=print) -> Starle
             return JSONResponse(
                 {"error": f"no such action {kind!r}; this {session.kind} session takes {list(session.HANDLERS)}"}, 404
             )
-        raw = await request.body()
-        if len(raw) > MAX_BODY:
-            return JSONResponse({"error": f"a request body is at most {MAX_BODY} bytes"}, 413)
         try:
-            body = json.loads(raw or b"{}")
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
-            return JSONResponse({"error": f"the body is not JSON: {err}"}, 400)
+            body = parse_message(await read_body(request) or b"{}")
+        except BodyTooLarge as err:
+            return JSONResponse({"error": str(err)}, 413)
+        except ValueError as err:
+            return JSONResponse({"error": str(err)}, 400)
         if not isinstance(body, dict):
             return JSONResponse({"error": f"the body is a JSON object, not {type(body).__name__}"}, 400)
         try:
             reply = await handled(session, {**body, "type": kind})
+        except FileExistsError as err:
+            return JSONResponse({"error": str(err)}, 409)
         except ValueError as err:
             return JSONResponse({"error": str(err)}, 400)
         player.asked(reply)
@@ -249,15 +253,19 @@ def create_app(session: Playable, fps: float | None = None, log=print) -> Starle
 
         async def receive() -> None:
             while True:
-                raw = await websocket.receive_text()
+                message = await websocket.receive()
+                if message["type"] == "websocket.disconnect":
+                    raise WebSocketDisconnect(message.get("code", 1000))
                 seq = None
                 try:
-                    msg = json.loads(raw)
+                    if message.get("text") is None:
+                        raise ValueError("a message is JSON text, not binary")
+                    msg = parse_message(message["text"])
                     seq = msg.get("seq") if isinstance(msg, dict) else None
                     reply = await handled(session, msg)
                     player.asked(reply)
                     await websocket.send_text(json.dumps({"type": "reply", "seq": seq, "result": reply}))
-                except (ValueError, json.JSONDecodeError) as err:
+                except (ValueError, FileExistsError) as err:
                     await websocket.send_text(json.dumps({"type": "error", "seq": seq, "message": str(err)}))
 
         tasks = [asyncio.create_task(send()), asyncio.create_task(receive())]
@@ -280,7 +288,7 @@ def create_app(session: Playable, fps: float | None = None, log=print) -> Starle
         Route("/api/{kind}", api_post, methods=["POST"]),
         WebSocketRoute("/ws", ws),
     ]
-    app = Starlette(routes=routes, lifespan=lifespan)
+    app = Starlette(routes=routes, lifespan=lifespan, middleware=[Middleware(LocalOnly)])
     app.state.player = player
     return app
 

@@ -44,7 +44,7 @@ from terrain_scan.store import segment_terrain
 from .bindings import KEYS, action_table, default_bindings
 from .messages import MAX_CONTROL_FRAMES, checked_name, checked_root, checked_turn, int_field
 from .playable import Playable
-from .recording import MAX_HISTORY, History, free_name, write_recording
+from .recording import MAX_HISTORY, History, free_name, name_taken, write_recording
 from .view import FrameView, stage_map
 
 
@@ -493,6 +493,8 @@ class LiveSession(Playable):
                 if self.recording is not None:
                     raise ValueError(f"already recording {self.recording['name']!r}")
                 name = checked_name(msg.get("name") or free_name(self.record_dir, self.written))
+                if name_taken(self.record_dir, self.written, name):
+                    raise FileExistsError(f"recording {name!r} exists in {self.record_dir}; choose another name")
                 self.recording = {"name": name, "from": self.frame}
                 return {"recording": name, "from_frame": self.frame}
             if action == "stop":
