@@ -18,4 +18,4 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     # than they save at 36 × 64 (the dynamics corpus's pose targets: 7.6 s against 11.0 s for 4,300 frames).
     os.environ.setdefault("LP_NUM_THREADS", "0")
 
-pytest_plugins = ["pytester", "fixtures.corpora", "fixtures.models", "fixtures.tiers", "fixtures.budget"]
+pytest_plugins = ["pytester", "fixtures.corpora", "fixtures.models", "fixtures.browser", "fixtures.tiers", "fixtures.budget"]

@@ -22,16 +22,6 @@ from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swing
 pytestmark = pytest.mark.exclusive  # frame rates and key latency are measured with the machine to itself
 
 SEED = 32  # seed frames
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 
 
 def api(base: str, path: str, body: dict | None = None) -> tuple[int, dict]:
@@ -107,17 +97,6 @@ def live(corpus, tiny_dynamics, attack, pose_run, baseline_run, tmp_path_factory
     assert api(base, "/api/bind", {"entity": "hunter", "key": "J", "token": tok})[0] == 200
     yield session, base
     server.stop()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    assert Path(CHROMIUM).exists(), f"{CHROMIUM} is missing: scripts/bootstrap.sh installs Debian's chromium"
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

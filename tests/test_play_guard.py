@@ -1,12 +1,14 @@
 """The play server answers its own page and scripts on this machine only (``play.guard``): a foreign ``Host`` (a
 DNS-rebinding page) is a 421, a foreign ``Origin`` may neither POST nor open the websocket, a body is JSON of at
 most 64 KiB (refused before it is read whole), nesting is bounded, and a binary websocket message is an error reply
-that leaves the connection open. A real server on loopback over a replay session of the test corpus."""
+that leaves the connection open; names from a corpus reach the page as text, never markup. A real server on loopback
+over a replay session of the test corpus, and Debian's Chromium for the page."""
 
 from __future__ import annotations
 
 import http.client
 import json
+import shutil
 
 import pytest
 from websockets.exceptions import InvalidStatus
@@ -16,6 +18,8 @@ from marionette.corpus import Corpus
 from marionette.play import make_session
 from marionette.play.guard import MAX_BODY, parse_message
 from marionette.play.server import Server
+
+pytestmark = pytest.mark.quality  # real servers and a browser
 
 
 @pytest.fixture(scope="module")
@@ -105,3 +109,30 @@ def test_the_websocket_takes_its_own_page_only_and_survives_a_binary_message(ser
                 replies.append(json.loads(msg))
     assert replies[0]["type"] == "error" and "binary" in replies[0]["message"]
     assert replies[1] == {"type": "reply", "seq": 7, "result": {"paused": True}}
+
+
+def test_names_from_a_corpus_reach_the_page_as_text(browser, corpus, tmp_path):
+    evil = '<img src=x onerror="window.pwned = 1"><b>bold</b>'
+    copy = tmp_path / "corpus"
+    shutil.copytree(corpus, copy)
+    vocab_file = copy / "meta" / "vocab.json"
+    vocab = json.loads(vocab_file.read_text())
+    for entity_type in vocab["entity_types"].values():
+        for action in entity_type["actions"]:
+            if action["token"]:
+                action["name"] = evil  # every action the page names is markup now
+    vocab_file.write_text(json.dumps(vocab))
+    segment = Corpus(copy).segment_ids()[0]
+    session = make_session(None, None, replay=copy, segment=segment, size=(36, 64), log=lambda *_: None)
+    srv = Server(session, port=0, fps=10, log=lambda *_: None).start()
+    pg = browser.new_page()
+    try:
+        pg.goto(f"http://127.0.0.1:{srv.port}/")
+        pg.wait_for_function("window.marionette && window.marionette.ready && window.marionette.frames >= 3", timeout=60_000)
+        shown = pg.inner_text("#entities")
+        assert evil in shown  # the name is there, as text
+        assert pg.locator("#entities img, #entities b").count() == 0 and pg.locator("img").count() == 0
+        assert pg.evaluate("window.pwned") is None
+    finally:
+        pg.close()
+        srv.stop()
