@@ -8,7 +8,9 @@ import errno
 import hashlib
 import json
 import os
+import re
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -123,7 +125,8 @@ def write_ipc(path: Path, table: pa.Table, compression: str | None = "zstd") -> 
 
 
 def read_ipc(path: Path) -> pa.Table:
-    """Read a whole Arrow IPC file (memory-mapped)."""
+    """Read a whole Arrow IPC file (memory-mapped; a regular file only, ``regular_file``)."""
+    regular_file(path)
     with pa.memory_map(str(path), "r") as src:
         return pa.ipc.open_file(src).read_all()
 
@@ -149,15 +152,73 @@ def check_json_fields(cls: type, d: dict, what: str) -> None:
         raise ValueError(f"{what} JSON has unknown fields {unknown}")
 
 
-def read_json(path: Path, max_bytes: int = 64 << 20):
-    """A JSON file's value; a ValueError naming the file when it is too large or not JSON."""
+MAX_JSON_DEPTH = 64  # nesting a JSON file from outside may have; the project's deepest is under 10
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "directory"), (stat.S_ISFIFO, "FIFO"), (stat.S_ISCHR, "character device")):
+        if test(mode):
+            return name
+    return {stat.S_ISBLK(mode): "block device", stat.S_ISSOCK(mode): "socket"}.get(True, "special file")
+
+
+def regular_file(path: Path) -> os.stat_result:
+    """The stat of ``path`` (a link followed) if it is a regular file; a ValueError naming it otherwise. A FIFO, device
+    or socket is never opened for a blocking read (one could hang the command, or never end)."""
+    st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode):
+        raise ValueError(f"{path}: a {_kind(st.st_mode)}, not a regular file")
+    return st
+
+
+def read_bounded(path: Path, max_bytes: int) -> bytes:
+    """A regular file's bytes, at most ``max_bytes`` read whatever its size says (a ValueError naming the file past
+    it). Opened without blocking and checked on the open descriptor, so a file swapped for a FIFO is refused too."""
     path = Path(path)
-    size = path.stat().st_size
-    if size > max_bytes:
-        raise ValueError(f"{path}: {size} bytes, over the {max_bytes}-byte limit for a JSON file")
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     try:
-        return json.loads(path.read_bytes())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path}: a {_kind(st.st_mode)}, not a regular file")
+        os.set_blocking(fd, True)
+        chunks, got = [], 0
+        while got <= max_bytes and (chunk := os.read(fd, min(1 << 20, max_bytes + 1 - got))):
+            chunks.append(chunk)
+            got += len(chunk)
+    finally:
+        os.close(fd)
+    if got > max_bytes:
+        raise ValueError(f"{path}: over the {max_bytes}-byte limit for this file")
+    return b"".join(chunks)
+
+
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+_JSON_BRACKET = re.compile(r"[\[\]{}]")
+
+
+def json_depth(text: str) -> int:
+    """The deepest nesting of brackets outside strings in JSON text, counted without recursing (so a value nested
+    too deep for the parser is measured, not parsed)."""
+    depth = deepest = 0
+    for m in _JSON_BRACKET.finditer(_JSON_STRING.sub("", text)):
+        depth += 1 if m.group() in "[{" else -1
+        deepest = max(deepest, depth)
+    return deepest
+
+
+def read_json(path: Path, max_bytes: int = 64 << 20, max_depth: int = MAX_JSON_DEPTH):
+    """A JSON file's value, through ``read_bounded``; a ValueError naming the file when it is not a regular file, too
+    large, nested past ``max_depth`` or not JSON."""
+    raw = read_bounded(path, max_bytes)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+    if (depth := json_depth(text)) > max_depth:
+        raise ValueError(f"{path}: JSON nested {depth} deep, past the limit of {max_depth}")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not JSON ({exc})") from None
 
 
@@ -166,6 +227,7 @@ def read_tensors(path: Path) -> dict:
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
+    regular_file(path)
     try:
         return load_file(str(path))
     except (SafetensorError, OSError) as exc:

@@ -8,7 +8,6 @@ call they feed are one list. Importable without torch: a command's ``--help`` re
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import re
 from collections.abc import Callable, Sequence
@@ -17,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from marionette.distributed import Nodes, host_problem, nodes_problem, port_problem
+from marionette.io import read_json
 from marionette.options import Parser
 
 
@@ -131,8 +131,8 @@ def config_from_args(cls: type, args: argparse.Namespace) -> Any:
     base = {}
     if getattr(args, "config", None):
         try:
-            base = cls.from_json(json.loads(Path(args.config).read_text())).to_json()
-        except (json.JSONDecodeError, TypeError, ValueError) as exc:
+            base = cls.from_json(read_json(Path(args.config))).to_json()
+        except (TypeError, ValueError) as exc:
             raise ValueError(f"{args.config}: not a {cls.__name__} JSON: {exc}") from exc
     over = {f.name: getattr(args, f.name) for f in fields(cls) if getattr(args, f.name, None) is not None}
     return cls.from_json({**base, **over})

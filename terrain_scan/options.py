@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from marionette.corpus import paths
-from marionette.io import text_sha256, write_json
+from marionette.io import read_json, text_sha256, write_json
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.knobs import DERIVE_KNOBS, KNOBS, knob_ok
 from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT
@@ -119,12 +119,7 @@ class ScanOptions:
         path = paths.meta(corpus, paths.SCAN)
         if not path.is_file():
             return None
-        if path.stat().st_size > SCAN_CONFIG_MAX_BYTES:
-            raise ValueError(f"{path}: {path.stat().st_size} bytes, more than scan options take ({SCAN_CONFIG_MAX_BYTES})")
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: not JSON ({exc})") from None
+        data = read_json(path, max_bytes=SCAN_CONFIG_MAX_BYTES)
         return ScanOptions.from_json(data, str(path))
 
     def store(self, corpus: Path) -> None:

@@ -20,7 +20,6 @@ only the chunk files whose bytes change: untouched chunks keep their bytes and m
 from __future__ import annotations
 
 import hashlib
-import json
 import re
 from collections import Counter
 from collections.abc import Iterator
@@ -30,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from marionette.corpus.paths import CorpusPathError, inside, stage_dir
-from marionette.io import atomic_path, write_bytes, write_json
+from marionette.io import atomic_path, read_json, write_bytes, write_json
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT, MAX_LAYERS, Observations, drop_aliases, merge
 from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, find_chunks, read_chunk, split_cell
@@ -165,9 +164,9 @@ class Stage:
         path = self.dir / "manifest.json"
         if path.exists():
             try:
-                self.manifest = check_manifest(json.loads(path.read_text()), path)
-            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-                raise ValueError(f"{path}: not a terrain stage manifest ({exc})") from None
+                self.manifest = check_manifest(read_json(path), path)
+            except ValueError as exc:
+                raise ValueError(f"not a terrain stage manifest: {exc}") from None
         else:
             self.manifest = {
                 "format": MANIFEST_FORMAT,

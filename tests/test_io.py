@@ -76,3 +76,37 @@ def test_publish_new_names_a_file_only_where_the_name_is_free(tmp_path):
     with pytest.raises(FileExistsError, match="a.arrow"):
         publish_new(tmp_path / "b.tmp", tmp_path / "a.arrow")
     assert (tmp_path / "a.arrow").read_bytes() == b"new" and not (tmp_path / "b.tmp").exists()
+
+
+def test_a_special_file_is_refused_by_name_without_a_blocking_read(tmp_path):
+    import os
+
+    from marionette.io import read_bounded, read_ipc, read_json
+
+    fifo = tmp_path / "info.json"
+    os.mkfifo(fifo)  # a read would wait for a writer forever
+    with pytest.raises(ValueError, match="info.json: a FIFO, not a regular file"):
+        read_json(fifo)
+    zero = tmp_path / "stages.json"
+    zero.symlink_to("/dev/zero")  # a read would never end
+    with pytest.raises(ValueError, match="stages.json: a character device"):
+        read_json(zero)
+    with pytest.raises(ValueError, match="a directory"):
+        read_bounded(tmp_path, 10)
+    with pytest.raises(ValueError, match="a FIFO"):
+        read_ipc(fifo)
+
+
+def test_a_bounded_read_stops_at_its_limit_and_json_nesting_is_bounded(tmp_path):
+    from marionette.io import json_depth, read_bounded, read_json
+
+    big = tmp_path / "meta.json"
+    big.write_bytes(b"[" + b"0," * 5000 + b"0]")
+    assert len(read_bounded(big, 1 << 20)) == big.stat().st_size
+    with pytest.raises(ValueError, match="meta.json: over the 1000-byte limit"):
+        read_bounded(big, 1000)
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 3000 + "]" * 3000)  # past what the parser could recurse into
+    with pytest.raises(ValueError, match="deep.json: JSON nested 3000 deep"):
+        read_json(deep)
+    assert json_depth('{"a": [1, {"b": "[[[\\"]]"}]}') == 3 and read_json(big)[0] == 0

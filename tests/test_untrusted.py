@@ -270,3 +270,19 @@ def test_terrain_scan_started_during_an_ingest_is_refused(synth_source, tmp_path
     finally:
         ingest.wait(timeout=300)
     assert ingest.returncode == 0, ingest.stderr.read().decode()
+
+
+@pytest.mark.parametrize("special", ["fifo", "dev-zero"])
+def test_a_special_file_in_a_corpus_is_named_and_never_blocks_a_command(corpus_copy, special):
+    info = paths.meta(corpus_copy, paths.INFO)
+    info.unlink()
+    if special == "fifo":
+        os.mkfifo(info)  # a blocking read would hang the command (and any lock it held) forever
+    else:
+        info.symlink_to("/dev/zero")  # a read trusting its size would never end
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [sys.executable, "-m", "marionette.cli", "inspect", str(corpus_copy)], capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 2 and "info.json: a " in r.stderr and "not a regular file" in r.stderr, r.stderr
+    assert time.monotonic() - t0 < 60

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from functools import cached_property
 from pathlib import Path
 
@@ -14,7 +13,7 @@ import pyarrow.parquet as pq
 from marionette import geometry as geo
 from marionette.corpus import paths
 from marionette.corpus.info import CorpusInfo
-from marionette.io import read_ipc, text_sha256, write_ipc
+from marionette.io import read_ipc, read_json, text_sha256, write_ipc
 from marionette.schema import Layout, SchemaError, check_layout, layout_from_json, load_scene, state_schema
 
 RESAMPLE_VERSION = "1"
@@ -107,7 +106,7 @@ class Corpus:
         return pq.read_table(paths.meta(self.path, paths.QUARANTINE))
 
     def _per_scene(self, name: str) -> dict:
-        d = json.loads(paths.meta(self.path, name).read_text())
+        d = read_json(paths.meta(self.path, name))
         if self.many:
             return d["scenes"][self.layout.scene]  # a corpus of several scenes keeps one per scene
         return d

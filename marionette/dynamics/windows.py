@@ -29,7 +29,7 @@ from marionette.dynamics.config import TERRAIN_FEATURES
 from marionette.dynamics.features import _dynamics_key, relative_of_rows, terrain_feature_path, terrain_feature_shard
 from marionette.dynamics.normalise import Normaliser
 from marionette.dynamics.state import body_index, root_index
-from marionette.io import atomic_dir, text_sha256, write_json
+from marionette.io import atomic_dir, read_json, text_sha256, write_json
 from marionette.schema import Layout, SchemaError
 
 WINDOWS_DIR = "windows"
@@ -103,7 +103,7 @@ def _open_windows(c: Corpus, d: Path, names: list[str]):
     """The arrays of ``d`` memory-mapped and its segment spans, or None when anything disagrees with the layout."""
     expected = _window_dtypes(c.layout)
     try:
-        spans = {str(k): (int(v[0]), int(v[1])) for k, v in json.loads((d / "segments.json").read_text()).items()}
+        spans = {str(k): (int(v[0]), int(v[1])) for k, v in read_json(d / "segments.json").items()}
         arrays: dict[str, np.ndarray | None] = dict.fromkeys(WINDOW_ARRAYS)
         n = None
         for k in names:

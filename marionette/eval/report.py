@@ -20,7 +20,6 @@ The clips and whole-clip proxy-FVD rows are ``eval.clips``, the Markdown ``eval.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
@@ -40,7 +39,7 @@ from marionette.eval.plots import plot_all
 from marionette.eval.probe import controllability_probe
 from marionette.eval.protocol import Progress, Window, model_fps, model_scene, run_windows, select_windows, state_layer
 from marionette.eval.video import long_horizon, long_horizon_curves, video_tables
-from marionette.io import atomic_dir, write_bytes, write_json
+from marionette.io import atomic_dir, read_json, write_bytes, write_json
 
 PLOTS = ("contact_sheet", "ablation", "class_ratios", "compliance", "drift", "fvd_per_chunk")
 
@@ -268,4 +267,4 @@ def _load_models(observation: Path | str | None, baseline: Path | str | None) ->
 
 def load_report(out_dir: Path | str) -> dict[str, Any]:
     """A written report's report.json."""
-    return json.loads((Path(out_dir) / "report.json").read_text())
+    return read_json(Path(out_dir) / "report.json")

@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -25,6 +24,7 @@ from marionette.ingest.sample import (
     sample_key,
     split_of,
 )
+from marionette.io import read_json
 from marionette.recordings.wildworld import (
     RGB_FILE,
     SKELETON_FILE,
@@ -69,9 +69,9 @@ def load_stage_map(source: Path) -> dict[str, str]:
     if not p.exists():
         return {}
     try:
-        d = json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{p}: invalid JSON ({exc})") from None
+        d = read_json(p)
+    except ValueError as exc:
+        raise ValueError(f"invalid JSON: {exc}") from None
     return {str(k): str(v) for k, v in d.items()}
 
 
@@ -79,7 +79,7 @@ def check_corpus_options(corpus: Path, options: IngestOptions) -> None:
     """Refuse to add samples of one scene layout to a corpus built for another."""
     info = paths.meta(corpus, paths.INFO)
     if info.exists():
-        d = json.loads(info.read_text())
+        d = read_json(info)
         have_scene = d.get("ingest", {}).get("scene")
         if options.auto or have_scene == "auto":
             if have_scene != options.scene:

@@ -21,7 +21,7 @@ from marionette.corpus.info import POSE_PATH, STATE_PATH, VIDEO_PATH, CorpusInfo
 from marionette.corpus.stages import UNPLACED, read_placements
 from marionette.corpus.vocab import classify
 from marionette.ingest.sample import INGEST_VERSION, IngestOptions, merge_action_stats, merge_moments
-from marionette.io import text_sha256, write_json, write_parquet
+from marionette.io import read_json, text_sha256, write_json, write_parquet
 from marionette.schema import layout_from_json
 
 
@@ -96,9 +96,9 @@ def build_stats(records: list[dict]) -> dict:
 def _read_record(p: Path) -> dict:
     """A sample record (committed or staged), checked to be a JSON object whose key is its file's own name."""
     try:
-        rec = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{p}: not a sample record ({exc})") from None
+        rec = read_json(p)
+    except ValueError as exc:
+        raise ValueError(f"not a sample record: {exc}") from None
     own = p.stem if p.name != "record.json" else p.parent.name
     if not isinstance(rec, dict) or rec.get("key") != own:
         raise paths.CorpusPathError(f"{p}: record key {rec.get('key') if isinstance(rec, dict) else rec!r} is not {own!r}")
@@ -181,7 +181,7 @@ def _execute(corpus: Path, plan: dict, where: str) -> None:
     for src_p, dst_p, h in moves:
         if src_p.exists():
             staged = src_p.parent / "record.json"
-            if staged.exists() and json.loads(staged.read_text())["input_hash"] != h:
+            if staged.exists() and read_json(staged)["input_hash"] != h:
                 raise RuntimeError(f"{staged}: staged sample changed after {where} was written")
             os.replace(src_p, dst_p)
         elif not dst_p.exists():
@@ -199,9 +199,9 @@ def finish_pending(corpus: Path) -> bool:
     if not plan_path.exists():
         return False
     try:
-        plan = json.loads(plan_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{plan_path}: not a finalize plan ({exc})") from None
+        plan = read_json(plan_path)
+    except ValueError as exc:
+        raise ValueError(f"not a finalize plan: {exc}") from None
     _execute(Path(corpus), plan, str(plan_path))
     plan_path.unlink()
     return True

@@ -20,7 +20,7 @@ import pyarrow as pa
 from marionette import geometry as geo
 from marionette.corpus import paths, state_table
 from marionette.ingest.survey import recording_layout
-from marionette.io import file_sha256, text_sha256, write_ipc, write_json
+from marionette.io import file_sha256, read_json, text_sha256, write_ipc, write_json
 from marionette.recordings.wildworld import (
     DEPTH_FILE,
     MAX_MEMBER_BYTES,
@@ -357,7 +357,7 @@ def known_record(corpus: Path, ref: SampleRef) -> dict | None:
     """The newest record of the sample: staged (ingested, not yet finalized) or committed."""
     for p in (staging_dir(corpus, ref) / "record.json", paths.sample_record(corpus, sample_key(ref))):
         if p.exists():
-            return json.loads(p.read_text())
+            return read_json(p)
     return None
 
 

@@ -18,6 +18,8 @@ from typing import Any
 
 from starlette.requests import Request
 
+from marionette.io import json_depth
+
 LOOPBACK_NAMES = ("127.0.0.1", "localhost")
 MAX_BODY = 64 << 10
 MAX_DEPTH = 32  # JSON nesting a message may have; the page's deepest is 3
@@ -89,29 +91,12 @@ async def read_body(request: Request) -> bytes:
 
 def parse_message(raw: str | bytes) -> Any:
     """A message's JSON, nested at most ``MAX_DEPTH`` deep (a ValueError naming what is wrong otherwise)."""
-    depth = deepest = 0
-    in_string = escaped = False
     try:
         text = raw.decode("utf-8") if isinstance(raw, bytes) else raw
     except UnicodeDecodeError as err:
         raise ValueError(f"the body is not JSON: {err}") from None
-    for ch in text:  # brackets outside strings: the nesting, counted before the parser recurses into it
-        if in_string:
-            if escaped:
-                escaped = False
-            elif ch == "\\":
-                escaped = True
-            elif ch == '"':
-                in_string = False
-        elif ch == '"':
-            in_string = True
-        elif ch in "[{":
-            depth += 1
-            deepest = max(deepest, depth)
-            if deepest > MAX_DEPTH:
-                raise ValueError(f"a message is nested at most {MAX_DEPTH} levels deep")
-        elif ch in "]}":
-            depth -= 1
+    if json_depth(text) > MAX_DEPTH:
+        raise ValueError(f"a message is nested at most {MAX_DEPTH} levels deep")
     try:
         return json.loads(text)
     except json.JSONDecodeError as err:
