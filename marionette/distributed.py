@@ -10,7 +10,6 @@ checkpoints and the summary, and every rank resumes from what it finds there.
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from marionette.io import write_json
+from marionette.io import read_json, write_json
 
 # torch is imported by the functions that use it: a training command's options (``Nodes`` and its checks) are read
 # by its ``--help`` and by the launcher, neither of which needs torch.
@@ -165,4 +164,4 @@ def train_under_torchrun(
         raise RuntimeError(
             f"{out}: torchrun ({where}{nproc} processes) finished but rank 0 wrote no {summary} here; is {out} a directory every node shares?"
         )
-    return json.loads((out / summary).read_text())
+    return read_json(out / summary)

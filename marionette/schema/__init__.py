@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pyarrow as pa
 
+from marionette.io import read_json
+
 SCHEMA_DIR = Path(os.environ.get("MARIONETTE_SCHEMAS", Path(__file__).resolve().parents[2] / "schemas"))
 LAYOUT_METADATA_KEY = b"marionette.layout"
 LAYOUT_HASH_METADATA_KEY = b"marionette.layout_hash"
@@ -195,13 +197,16 @@ class Layout:
         return hashlib.sha256(blob).hexdigest()[:16]
 
 
+MAX_SCHEMA_BYTES = 16 << 20  # a rig or scene file: a few kilobytes; a generated species' rig, tens
+
+
 def _read_json(path: Path) -> dict:
     try:
-        return json.loads(path.read_text())
+        return read_json(path, max_bytes=MAX_SCHEMA_BYTES)
     except FileNotFoundError:
         raise SchemaError(f"{path}: no such schema file") from None
-    except json.JSONDecodeError as exc:
-        raise SchemaError(f"{path}: invalid JSON ({exc})") from None
+    except ValueError as exc:
+        raise SchemaError(f"invalid JSON: {exc}") from None
 
 
 def rig_from_json(d: dict, where: str = "<rig>") -> Rig:
