@@ -171,7 +171,7 @@ def regular_file(path: Path) -> os.stat_result:
     return st
 
 
-def read_bounded(path: Path, max_bytes: int) -> bytes:
+def read_bounded(path: Path, max_bytes: int, what: str = "this file") -> bytes:
     """A regular file's bytes, at most ``max_bytes`` read whatever its size says (a ValueError naming the file past
     it). Opened without blocking and checked on the open descriptor, so a file swapped for a FIFO is refused too."""
     path = Path(path)
@@ -188,7 +188,7 @@ def read_bounded(path: Path, max_bytes: int) -> bytes:
     finally:
         os.close(fd)
     if got > max_bytes:
-        raise ValueError(f"{path}: over the {max_bytes}-byte limit for this file")
+        raise ValueError(f"{path}: over the {max_bytes}-byte limit for {what}")
     return b"".join(chunks)
 
 
@@ -209,7 +209,7 @@ def json_depth(text: str) -> int:
 def read_json(path: Path, max_bytes: int = 64 << 20, max_depth: int = MAX_JSON_DEPTH):
     """A JSON file's value, through ``read_bounded``; a ValueError naming the file when it is not a regular file, too
     large, nested past ``max_depth`` or not JSON."""
-    raw = read_bounded(path, max_bytes)
+    raw = read_bounded(path, max_bytes, "a JSON file")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:

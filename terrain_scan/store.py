@@ -164,9 +164,10 @@ class Stage:
         path = self.dir / "manifest.json"
         if path.exists():
             try:
-                self.manifest = check_manifest(read_json(path), path)
+                raw = read_json(path)
             except ValueError as exc:
                 raise ValueError(f"not a terrain stage manifest: {exc}") from None
+            self.manifest = check_manifest(raw, path)
         else:
             self.manifest = {
                 "format": MANIFEST_FORMAT,
