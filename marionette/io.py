@@ -155,20 +155,27 @@ def check_json_fields(cls: type, d: dict, what: str) -> None:
 MAX_JSON_DEPTH = 64  # nesting a JSON file from outside may have; the project's deepest is under 10
 
 
-def _kind(mode: int) -> str:
-    for test, name in ((stat.S_ISDIR, "directory"), (stat.S_ISFIFO, "FIFO"), (stat.S_ISCHR, "character device")):
-        if test(mode):
-            return name
-    return {stat.S_ISBLK(mode): "block device", stat.S_ISSOCK(mode): "socket"}.get(True, "special file")
+_KINDS = (
+    (stat.S_ISDIR, "directory"),
+    (stat.S_ISFIFO, "FIFO"),
+    (stat.S_ISCHR, "character device"),
+    (stat.S_ISBLK, "block device"),
+    (stat.S_ISSOCK, "socket"),
+)
+
+
+def _check_regular(path: Path, st: os.stat_result) -> os.stat_result:
+    """``st`` if it is a regular file's; a ValueError naming ``path`` and what it is otherwise."""
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((name for test, name in _KINDS if test(st.st_mode)), "special file")
+        raise ValueError(f"{path}: a {kind}, not a regular file")
+    return st
 
 
 def regular_file(path: Path) -> os.stat_result:
     """The stat of ``path`` (a link followed) if it is a regular file; a ValueError naming it otherwise. A FIFO, device
     or socket is never opened for a blocking read (one could hang the command, or never end)."""
-    st = os.stat(path)
-    if not stat.S_ISREG(st.st_mode):
-        raise ValueError(f"{path}: a {_kind(st.st_mode)}, not a regular file")
-    return st
+    return _check_regular(path, os.stat(path))
 
 
 def read_bounded(path: Path, max_bytes: int, what: str = "this file") -> bytes:
@@ -177,9 +184,7 @@ def read_bounded(path: Path, max_bytes: int, what: str = "this file") -> bytes:
     path = Path(path)
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise ValueError(f"{path}: a {_kind(st.st_mode)}, not a regular file")
+        _check_regular(path, os.fstat(fd))
         os.set_blocking(fd, True)
         chunks, got = [], 0
         while got <= max_bytes and (chunk := os.read(fd, min(1 << 20, max_bytes + 1 - got))):

@@ -53,7 +53,7 @@ def name_taken(record_dir: Path, written: list[dict], name: str) -> bool:
 def free_name(record_dir: Path, written: list[dict]) -> str:
     """The first ``session-NNN`` neither written under ``record_dir`` nor being written."""
     k = 1
-    while (record_dir / f"session-{k:03d}.arrow").exists() or any(w["name"] == f"session-{k:03d}" for w in written):
+    while name_taken(record_dir, written, f"session-{k:03d}"):
         k += 1
     return f"session-{k:03d}"
 
@@ -69,10 +69,10 @@ def write_recording(
 ) -> None:
     """Write ``out["arrow"]`` and ``out["mkv"]`` from ``table``; ``out["done"]`` on success, else ``out["error"]``
     (reported to the page; the session goes on)."""
+    tmp = f".{out['name']}.{os.getpid()}.{threading.get_ident()}.tmp"  # renamed only to a free name
     try:
         record_dir.mkdir(parents=True, exist_ok=True)
         arrow, mkv = Path(out["arrow"]), Path(out["mkv"])
-        tmp = f".{out['name']}.{os.getpid()}.{threading.get_ident()}.tmp"  # renamed only to a free name
         write_ipc(record_dir / f"{tmp}.arrow", table)
         render_rows(layout, table, record_dir / f"{tmp}.mkv", terrain, camera="follow", size=size)
         publish_new(record_dir / f"{tmp}.arrow", arrow)
@@ -80,7 +80,7 @@ def write_recording(
         out["done"] = True
         log(f"play: wrote {out['arrow']} and {out['mkv']} ({out['frames']} frames)")
     except Exception as err:  # noqa: BLE001 - reported to the page, the session goes on
-        for f in record_dir.glob(f".{out['name']}.{os.getpid()}.{threading.get_ident()}.tmp.*"):
-            f.unlink(missing_ok=True)
+        for ext in (".arrow", ".mkv"):
+            (record_dir / f"{tmp}{ext}").unlink(missing_ok=True)
         out["error"] = f"{type(err).__name__}: {err}"
         log(f"play: recording {out['name']} failed: {out['error']}")
