@@ -31,7 +31,7 @@ from marionette.corpus import paths
 from marionette.corpus.lock import corpus_lock
 from marionette.fanout import worker_identity
 from marionette.ingest import IngestOptions, SampleRef, VideoSettings
-from marionette.io import write_json
+from marionette.io import printable, write_json
 
 
 def sample_cache_key(context: TaskRunContext, parameters: dict) -> str | None:
@@ -64,8 +64,10 @@ def discover_samples(source: str) -> list[SampleRef]:
     """Every sample under ``source``; an error naming it when there is none. Entries passed over are logged."""
     skipped: list = []
     refs = ingest.discover(Path(source), skipped)
+    refs, clashing = ingest.check_keys(refs)
+    skipped += clashing
     for path, why in skipped:
-        get_run_logger().info("skipped %s: %s", path, why)
+        get_run_logger().info("skipped %s", printable(f"{path}: {why}"))
     ingest.check_source(Path(source), refs)
     return refs
 
@@ -81,7 +83,7 @@ def ingest_one(ref: SampleRef, corpus: str, options: IngestOptions) -> dict:
     """Ingest one sample; a bad sample is a ``quarantined`` result, not an exception (retries are
     for transient failures such as a worker that vanished)."""
     result = ingest.ingest_sample(ref, Path(corpus), options, worker=worker_identity())
-    get_run_logger().info("%s: %s on %s %s", result.sample, result.status, result.worker, result.reason)
+    get_run_logger().info("%s", printable(f"{result.sample}: {result.status} on {result.worker} {result.reason}"))
     return asdict(result)
 
 
@@ -114,7 +116,9 @@ def ingest_samples(source: str, corpus: str, options: dict) -> list[dict]:
         if fut.state.is_completed() and fut.state.name == "Cached":
             r.update(previous_status=r["status"], status="unchanged", reason="Prefect cache hit: input hash unchanged", worker="")
         results.append(r)
-        logger.info("[%d/%d] %s: %s %s", len(results), len(refs), r["sample"], r["status"], r["worker"] or r["reason"])
+        logger.info(
+            "[%d/%d] %s", len(results), len(refs), printable(f"{r['sample']}: {r['status']} {r['worker'] or r['reason']}")
+        )
     return sorted(results, key=lambda r: r["sample"])
 
 
@@ -152,7 +156,7 @@ def report_markdown(report: dict) -> str:
     ]
     for s in report["samples"]:
         reason = (s["reason"] or "").replace("|", "\\|").replace("\n", " ")
-        lines.append(f"| {s['sample']} | {s['status']} | {s['worker']} | {s['segments']} | {s['frames']} | {reason} |")
+        lines.append(printable(f"| {s['sample']} | {s['status']} | {s['worker']} | {s['segments']} | {s['frames']} | {reason} |"))
     return "\n".join(lines)
 
 
@@ -228,6 +232,7 @@ def build_corpus(
         report["failures"] = {
             "quarantined": report["counts"].get("quarantined", 0),
             "terrain": sum(len(r["failed"]) for st, r in terrain.items() if st != "_pose_targets"),
+            "depth_mapping": sum(len(r.get("mapping_failed", {})) for st, r in terrain.items() if st != "_pose_targets"),
             "pose": len(terrain.get("_pose_targets", {}).get("failed", {})),
         }
         path = publish_report(corpus, report)

@@ -155,6 +155,17 @@ def read_meta(ckpt: Path) -> dict:
     return d
 
 
+def read_config(ckpt: Path, meta: dict, key: str, cls: type) -> Any:
+    """``cls.from_json(meta[key])``: a checkpoint's saved model config, checked (sizes within their bounds, the memory
+    the model would take within the machine's) before anything is allocated; every error names the checkpoint."""
+    if not isinstance(meta.get(key), dict):
+        raise ValueError(f"{Path(ckpt) / 'meta.json'}: no {key} object")
+    try:
+        return cls.from_json(meta[key])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{Path(ckpt) / 'meta.json'}: {exc}") from None
+
+
 def shard_like(whole: Tensor, like: Tensor) -> Tensor:
     """``whole`` laid out as ``like``: this rank's shard of it where ``like`` is a DTensor (FSDP; cut locally,
     as every rank read the same ``whole``), else ``whole`` itself."""

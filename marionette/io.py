@@ -12,11 +12,13 @@ import re
 import shutil
 import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from marionette.arrow_footer import ArrowFooterError, declared_batches
 
 
 @contextlib.contextmanager
@@ -124,11 +126,61 @@ def write_ipc(path: Path, table: pa.Table, compression: str | None = "zstd") -> 
         w.write_table(table)
 
 
-def read_ipc(path: Path) -> pa.Table:
-    """Read a whole Arrow IPC file (memory-mapped; a regular file only, ``regular_file``)."""
+MAX_STRING_BYTES = 4096  # bytes a string cell of an Arrow file from outside may take (ids and names: a few dozen)
+
+
+def max_row_bytes(t: pa.DataType | pa.Schema) -> int:
+    """The most bytes one row of a schema (or one value of a type) can take once inflated: fixed widths as they are,
+    a string ``MAX_STRING_BYTES``, each with its validity bit (a byte, to be safe) and its offset."""
+    if isinstance(t, pa.Schema):
+        return sum(max_row_bytes(f.type) for f in t)
+    if pa.types.is_fixed_size_list(t):
+        return 1 + t.list_size * max_row_bytes(t.value_type)
+    if pa.types.is_struct(t):
+        return 1 + sum(max_row_bytes(t.field(i).type) for i in range(t.num_fields))
+    if pa.types.is_string(t) or pa.types.is_binary(t) or pa.types.is_large_string(t) or pa.types.is_large_binary(t):
+        return 1 + 8 + MAX_STRING_BYTES
+    if pa.types.is_boolean(t):
+        return 2
+    try:
+        return 1 + t.bit_width // 8
+    except ValueError:  # a variable-size type the project never writes: as much as a string
+        return 1 + 8 + MAX_STRING_BYTES
+
+
+def read_ipc(path: Path, rows: int | None = None, check_schema: Callable[[pa.Schema], None] | None = None) -> pa.Table:
+    """Read a whole Arrow IPC file (memory-mapped; a regular file only, ``regular_file``), its declarations checked
+    before anything is inflated (``arrow_footer.declared_batches``): the schema by ``check_schema`` (a layout check),
+    the batches' rows against ``rows`` where the caller knows how many the file holds, and the bytes they inflate to
+    against what that many rows of the schema can take (``max_row_bytes``)."""
     regular_file(path)
+    try:
+        declared = declared_batches(path)
+    except ArrowFooterError as exc:
+        raise ValueError(str(exc)) from None
     with pa.memory_map(str(path), "r") as src:
-        return pa.ipc.open_file(src).read_all()
+        try:
+            reader = pa.ipc.open_file(src)
+        except (pa.ArrowException, OSError) as exc:
+            raise ValueError(f"{path}: unreadable Arrow IPC file ({type(exc).__name__}: {exc})") from None
+        if check_schema is not None:
+            check_schema(reader.schema)
+        n = sum(b.rows for b in declared)
+        if len(declared) != reader.num_record_batches:
+            raise ValueError(f"{path}: {reader.num_record_batches} record batches, its footer read as {len(declared)}")
+        if rows is not None and n != rows:
+            raise ValueError(f"{path}: its batches declare {n:,} rows; the corpus says it holds {rows:,}")
+        limit = n * max_row_bytes(reader.schema) + (1 << 20)
+        inflated = sum(b.inflated_bytes for b in declared)
+        if inflated > limit:
+            raise ValueError(
+                f"{path}: its batches declare {inflated:,} bytes once inflated, more than {n:,} rows of its schema can take "
+                f"({limit:,}): refused before it is inflated"
+            )
+        try:
+            return reader.read_all()
+        except (pa.ArrowException, OSError) as exc:  # a damaged body (a bad codec frame, a buffer past the end)
+            raise ValueError(f"{path}: unreadable Arrow IPC file ({type(exc).__name__}: {exc})") from None
 
 
 def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
@@ -150,6 +202,12 @@ def check_json_fields(cls: type, d: dict, what: str) -> None:
     unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
     if unknown:
         raise ValueError(f"{what} JSON has unknown fields {unknown}")
+
+
+def printable(s: str) -> str:
+    """``s`` with every character a terminal would act on or hide (control characters, undecodable bytes) written as
+    its escape, for a name from outside printed in a log line or error."""
+    return "".join(c if c.isprintable() else ascii(c)[1:-1] for c in s)
 
 
 MAX_JSON_DEPTH = 64  # nesting a JSON file from outside may have; the project's deepest is under 10

@@ -27,6 +27,11 @@ class RefreshReport:
         terrain = {f"{st}/{rec}": why for st, r in self.terrain.items() for rec, why in r.get("failed", {}).items()}
         return {"terrain": terrain, "pose": dict((self.pose or {}).get("failed", {}))}
 
+    def mapping_failed(self) -> dict[str, float]:
+        """{recording: how far its scanned ground stood from its feet, m} for each recording kept out of the terrain
+        because the depth mapping does not fit it (``ScanOptions.max_contact_gap_m``)."""
+        return {rec: gap for r in self.terrain.values() for rec, gap in r.get("mapping_failed", {}).items()}
+
     def lines(self) -> list[str]:
         """One summary line per stage and one for the pose pass, then one line per failure."""
         out = []
@@ -46,6 +51,12 @@ class RefreshReport:
             )
         for kind, failed in self.failures().items():
             out += [f"{kind} failed: {name}: {why}" for name, why in sorted(failed.items())]
+        if self.mapping_failed():
+            out.append(
+                f"depth mapping: it does not fit {len(self.mapping_failed())} recording(s), kept out of the terrain (their "
+                "ground is not where their characters stood): calibrate it (`marionette calibrate-depth <recordings> "
+                "--corpus <corpus>`), then scan again (`marionette terrain scan <corpus>`)"
+            )
         return out
 
 
@@ -110,6 +121,7 @@ def build(
     report["failures"] = {
         "quarantined": sum(r["status"] == "quarantined" for r in report["results"]),
         "terrain": len(failed["terrain"]),
+        "depth_mapping": len(done.mapping_failed()),
         "pose": len(failed["pose"]),
     }
     return report

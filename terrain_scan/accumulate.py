@@ -47,6 +47,8 @@ from marionette.schema import Layout
 from .depth import DepthDecoder, depth_edges, smooth_codes
 from .layers import AWAY, MERGE_M, Observations, aliases, layer_labels, merge
 
+MIN_CONTACT_CELLS = 10  # a recording whose feet stood on this many cells, none of them seen as ground, has a wrong mapping
+
 
 @dataclass
 class ScanResult:
@@ -62,6 +64,25 @@ class ScanResult:
     points_kept: int = 0  # after down-sampling, outlier removal, the normal test and the edge-leak test
     points_leaked: int = 0  # dropped as a neighbouring cell's surface leaked across a cell edge (``edge_leaks``)
     contacts_added: int = 0
+    # how far the depth's ground stands above where the characters' feet stood (``contact_gap``), m; nan: no cell
+    # held both. Metres off means the depth mapping is wrong for this recording (``marionette calibrate-depth``).
+    contact_gap_m: float = float("nan")
+    contact_gap_cells: int = 0  # cells where both the depth's ground and a contact were seen
+    contact_cells: int = 0  # cells where a contact was seen
+
+    def mapping_misfit(self, bound_m: float, min_contact_cells: int = MIN_CONTACT_CELLS) -> str | None:
+        """Why the depth mapping does not fit this recording, or None: its ground stands further than ``bound_m``
+        from the contacts, or no ground was seen on any of at least ``min_contact_cells`` contact cells."""
+        gap = self.contact_gap_m
+        if gap == gap and abs(gap) > bound_m:
+            return (
+                f"the scanned ground stands {gap:+.2f} m from where the characters' feet stood "
+                f"({self.contact_gap_cells} cells; the bound is {bound_m:g} m)"
+            )
+        if gap != gap and self.contact_cells >= min_contact_cells:
+            return f"the scan shows no ground on any of the {self.contact_cells} cells where the characters' feet stood"
+        return None
+
     points: np.ndarray | None = field(default=None, repr=False)  # (P, 3) kept world points, if asked for
 
     def counters(self) -> dict[str, int]:
@@ -212,11 +233,48 @@ def contact_positions(
     return np.concatenate(parts) if parts else np.zeros((0, 3))
 
 
+GAP_CELL_M = 0.5  # the depth's ground and the contacts are compared on cells this small
+
+
+def _cell_keys(p: np.ndarray, cell_m: float) -> np.ndarray:
+    gx, gz = (np.floor(p[:, k] / cell_m).astype(np.int64) for k in (0, 2))
+    return gx * 4_294_967_296 + (gz + 2_147_483_648)
+
+
+def contact_gap(ground: np.ndarray, contacts: np.ndarray, cell_m: float = GAP_CELL_M) -> tuple[float, int, int]:
+    """How far the depth's ground points (P, 3) stand above the contacts (C, 3): over the ``cell_m`` cells holding
+    both, the median of (the ground points' median height − the contacts' median height); how many cells held both;
+    and how many held a contact (nan, 0, n when none held both). A right depth mapping puts the gap within
+    centimetres, with ground seen on many contact cells; a wrong one, metres, or no ground where the feet stood."""
+    if not len(contacts):
+        return float("nan"), 0, 0
+    kc = _cell_keys(contacts, cell_m)
+    common = np.intersect1d(kc, _cell_keys(ground, cell_m)) if len(ground) else np.zeros(0, np.int64)
+    if not len(common):
+        return float("nan"), 0, len(np.unique(kc))
+    kg = _cell_keys(ground, cell_m)
+
+    def medians(keys: np.ndarray, y: np.ndarray) -> np.ndarray:
+        m = np.isin(keys, common)
+        order = np.lexsort((y[m], keys[m]))
+        k, v = keys[m][order], y[m][order]
+        starts = np.searchsorted(k, common)
+        ends = np.searchsorted(k, common, side="right")
+        return np.array([np.median(v[a:b]) for a, b in zip(starts, ends)])
+
+    gaps = medians(kg, ground[:, 1]) - medians(kc, contacts[:, 1])
+    return float(np.median(gaps)), len(common), len(np.unique(kc))
+
+
 def contact_observations(
     sample: RecordedSample, layout: Layout, ts: int, speed: float = 0.2, window: int = 2, tol_m: float = 0.05, hits: int = 1
 ) -> Observations:
     """Ground contacts of every articulated entity (``contact_positions``) as observations of their cells."""
-    q = contact_positions(sample, layout, speed, window, tol_m)
+    return contacts_as_observations(contact_positions(sample, layout, speed, window, tol_m), ts, hits)
+
+
+def contacts_as_observations(q: np.ndarray, ts: int, hits: int = 1) -> Observations:
+    """Contact positions (n, 3) as observations of their cells: height exact, normal +Y, weight ``hits``."""
     if not len(q):
         return Observations.empty()
     return Observations(
@@ -502,7 +560,9 @@ def scan_sample(
     )
     contacts = Observations.empty()
     if n and sample.entities:
-        contacts = contact_observations(sample, layout, ts, contact_speed, contact_window, contact_tol_m, contact_hits)
+        q = contact_positions(sample, layout, contact_speed, contact_window, contact_tol_m)
+        res.contact_gap_m, res.contact_gap_cells, res.contact_cells = contact_gap(p, q)
+        contacts = contacts_as_observations(q, ts, contact_hits)
     res.contacts_added = len(contacts)
     res.observations = merge(Observations.concat([depth_obs, contacts]))
     return res

@@ -27,8 +27,14 @@ KNOBS: dict[str, tuple[str, str]] = {
     "alias_fraction": ("a number in [0, 1]", "edge-alias rule by hits: a layer under this share of its cell's strongest ..."),
     "alias_dominance": ("a number ≥ 1", "... that a neighbour holds at its height this many times over ..."),
     "alias_support": ("an int ≥ 0", "... is an alias while it has fewer hits than this (0: the rule by hits off)"),
+    "max_contact_gap_m": (
+        "a number > 0",
+        "a recording whose scanned ground stands further than this (m) from where its characters' feet stood is not "
+        "added to the terrain: the depth mapping does not fit it (marionette calibrate-depth)",
+    ),
 }
 DERIVE_KNOBS = ("alias_fraction", "alias_dominance", "alias_support")  # the stage's rebuild reads them, not a recording's scan
+CHECK_KNOBS = ("max_contact_gap_m",)  # a check of a recording's scan: it changes whether a scan is used, not its bytes
 
 
 def knob_ok(check: str, v) -> bool:

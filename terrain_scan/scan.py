@@ -74,6 +74,7 @@ class ScanOutcome:
     result: ScanResult | None = None
     reason: str | None = None
     worker: str = ""
+    contact_gap_m: float | None = None  # set where the scan failed the depth mapping's check (``reason`` says so)
 
     @property
     def unchanged(self) -> bool:
@@ -95,6 +96,14 @@ def scan_job(job: ScanJob, layouts: dict, options: ScanOptions) -> ScanOutcome:
         out.result = scan_recording(ref, layout, decoder, **options.scan_kwargs())
     except Exception as exc:  # one recording's failure never stops the others
         out.reason = _reason(exc, ref)
+        return out
+    misfit = out.result.mapping_misfit(options.max_contact_gap_m)
+    if misfit is not None:
+        out.reason = (
+            f"{ref.path}: {misfit}: the depth mapping does not fit this recording; run "
+            "`marionette calibrate-depth <recordings> --corpus <corpus>`, then scan again"
+        )
+        out.result, out.contact_gap_m = None, out.result.contact_gap_m
     return out
 
 
@@ -305,17 +314,28 @@ def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
     st, sample = out.job.stage, out.job.sample
     if out.reason is not None:
         report["failed"][sample] = out.reason
+        if out.contact_gap_m is not None:
+            gap = out.contact_gap_m
+            report.setdefault("mapping_failed", {})[sample] = None if gap != gap else round(gap, 4)
         log(f"terrain {st}: {sample}: not scanned: {out.reason}")
     elif out.unchanged:
         report["unchanged"].append(sample)
     else:
         res = out.result
         S.put(sample, res.observations, out.input_hash, res.recording_ts)
+        gap = res.contact_gap_m
         report["scanned"].append(
-            {"sample": sample, **res.counters(), "observations": len(res.observations), "worker": out.worker}
+            {
+                "sample": sample,
+                **res.counters(),
+                "observations": len(res.observations),
+                "contact_gap_m": None if gap != gap else round(gap, 4),
+                "worker": out.worker,
+            }
         )
         log(
-            f"terrain {st}: scanned {sample} on {out.worker}: {res.frames_used} frames, {len(res.observations)} cell observations"
+            f"terrain {st}: scanned {sample} on {out.worker}: {res.frames_used} frames, {len(res.observations)} cell "
+            f"observations, ground {'unseen where the feet stood' if gap != gap else f'{gap:+.3f} m from the feet'}"
         )
 
 

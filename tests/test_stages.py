@@ -5,6 +5,7 @@ share a height field."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -164,3 +165,32 @@ def test_a_source_stages_json_is_the_users_word(two_stage_corpus, tmp_path):
     assert main(["ingest", str(tree), str(corpus), "--quiet", "--no-pose"]) == 0
     assert {r["stage"] for r in pq.read_table(corpus / "meta" / "segments.parquet").to_pylist()} == {"all"}
     assert read_placements(corpus) == {}  # nothing left to place
+
+
+def test_a_depth_mapping_that_does_not_fit_is_named_and_founds_no_stage(tmp_path, capsys):
+    """A tree whose game hid its depth mapping, ingested with the default decoder: every recording is named with
+    how far its ground stood from its feet and the command to run, none founds a stage; calibrated and rescanned, the
+    stages are the truth's."""
+    src, corpus = tmp_path / "src", tmp_path / "corpus"
+    generate(src, recordings=4, seconds=6.0, seed=1, width=128, height=72, workers=2, stages=2, hidden_depth=True)
+    assert main(["ingest", str(src), str(corpus), "--quiet", "--no-pose", "--workers", "2"]) == 0
+    said = capsys.readouterr().out
+    names = [f"{PART}/rec{k:04d}" for k in range(4)]
+    for name in names:
+        line = next(x for x in said.splitlines() if x.startswith(f"terrain failed: default/{name}: "))
+        assert "the depth mapping does not fit this recording" in line and "marionette calibrate-depth" in line, line
+        assert re.search(r"ground stands \+\d+\.\d\d m from where|no ground on any of the \d+ cells", line), line
+    assert "depth mapping: it does not fit 4 recording(s), kept out of the terrain" in said
+    assert read_placements(corpus) == {}  # no stage founded on a recording the mapping does not fit
+    assert not json.loads((corpus / "terrain" / "stage_default" / "manifest.json").read_text())["recordings"]
+    assert main(["terrain", "scan", str(corpus), "--quiet", "--no-pose", "--strict"]) == 1  # --strict fails on them
+    capsys.readouterr()
+
+    assert main(["calibrate-depth", str(src), "--corpus", str(corpus), "--quiet", "--frame-stride", "3"]) == 0
+    assert main(["terrain", "scan", str(corpus), "--quiet", "--no-pose", "--strict"]) == 0
+    placed = read_placements(corpus)
+    truth = {name: load_truth(src, PART, name.split("/")[1])["role"]["stage"]["name"] for name in names}
+    assert set(placed) == set(names)
+    assert {frozenset(r for r in names if placed[r] == st) for st in set(placed.values())} == {
+        frozenset(r for r in names if truth[r] == st) for st in set(truth.values())
+    }

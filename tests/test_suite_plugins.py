@@ -14,9 +14,13 @@ pytestmark = pytest.mark.unit
 
 TESTS = Path(__file__).resolve().parent
 
+# plugins installed beside pytest that these small runs never use (the suite's own addopts leave out the first two)
+UNUSED_PLUGINS = ("-p", "no:dash", "-p", "no:anyio", "-p", "no:hypothesispytest")
+
 INNER = """
 import time
 import pytest
+
 
 @pytest.fixture(scope="module")
 def shared_setup():
@@ -47,7 +51,9 @@ def test_a_test_over_the_budget_fails_the_run_and_is_named(inner):
     """Budget 0.5 s: the test that sleeps 0.7 s fails the run, named with its time; the three tests that share a
     0.9 s fixture are charged 0.3 s each and pass it, though the first of them set it up."""
     report = inner.path / "budget.json"
-    r = inner.runpytest_subprocess("-p", "fixtures.budget", "--test-budget", "0.5", "--budget-report", str(report))
+    r = inner.runpytest_subprocess(
+        *UNUSED_PLUGINS, "-p", "fixtures.budget", "--test-budget", "0.5", "--budget-report", str(report)
+    )
     assert r.ret == pytest.ExitCode.TESTS_FAILED
     r.stdout.fnmatch_lines(["*over 0.5 s: test_inner.py::test_sleeps took 0.7* s*", "*4 passed*"])
     assert "over 0.5 s: test_inner.py::test_a" not in r.stdout.str()
@@ -57,7 +63,7 @@ def test_a_test_over_the_budget_fails_the_run_and_is_named(inner):
 
 
 def test_a_run_within_the_budget_passes_and_names_its_slowest_test(inner):
-    r = inner.runpytest_subprocess("-p", "fixtures.budget", "--test-budget", "2")
+    r = inner.runpytest_subprocess(*UNUSED_PLUGINS, "-p", "fixtures.budget", "--test-budget", "2")
     assert r.ret == pytest.ExitCode.OK
     r.stdout.fnmatch_lines(["*test budget 2 s: the slowest test, test_inner.py::test_sleeps, took 0.7* s*"])
 
@@ -67,13 +73,13 @@ def test_a_fixture_read_by_one_test_is_charged_to_it_whole(pytester, monkeypatch
     pytester.makepyfile(
         test_solo=INNER.replace("def test_b(shared_setup):\n    pass\n", "").replace("def test_c(shared_setup):\n    pass\n", "")
     )
-    r = pytester.runpytest_subprocess("-p", "fixtures.budget", "--test-budget", "0.8", "-k", "test_a")
+    r = pytester.runpytest_subprocess(*UNUSED_PLUGINS, "-p", "fixtures.budget", "--test-budget", "0.8", "-k", "test_a")
     assert r.ret == pytest.ExitCode.TESTS_FAILED
     r.stdout.fnmatch_lines(["*over 0.8 s: test_solo.py::test_a took 0.9* s*"])
 
 
 def test_a_bad_budget_is_refused_where_it_is_parsed(inner):
-    r = inner.runpytest_subprocess("-p", "fixtures.budget", "--test-budget", "-1")
+    r = inner.runpytest_subprocess(*UNUSED_PLUGINS, "-p", "fixtures.budget", "--test-budget", "-1")
     assert r.ret == pytest.ExitCode.USAGE_ERROR
     r.stderr.fnmatch_lines(["*--test-budget*invalid*-1*"])
 
@@ -120,13 +126,15 @@ def test_in_a_corpus_module():
     )
 
     def selected(tier: str) -> set[str]:
-        r = pytester.runpytest_subprocess("--co", "-q", "-m", tier)
+        r = pytester.runpytest_subprocess(*UNUSED_PLUGINS, "--co", "-q", "-m", tier)
         return {line.split("::")[1] for line in r.stdout.lines if "::" in line}
 
     assert selected("unit") == {"test_arrays"}
     assert selected("corpus") == {"test_reads_a_corpus", "test_in_a_corpus_module"}
     assert selected("quality") == {"test_reads_a_model", "test_marked"}
-    order = [line.split("::")[1] for line in pytester.runpytest_subprocess("--co", "-q").stdout.lines if "::" in line]
+    order = [
+        line.split("::")[1] for line in pytester.runpytest_subprocess(*UNUSED_PLUGINS, "--co", "-q").stdout.lines if "::" in line
+    ]
     assert order == ["test_in_a_corpus_module", "test_arrays", "test_reads_a_corpus", "test_reads_a_model", "test_marked"]
 
 

@@ -9,21 +9,25 @@ import json
 import os
 import re
 import shutil
+import struct
 import subprocess
 import sys
 import tarfile
 import time
 from pathlib import Path
 
+import pyarrow as pa
 import pytest
 import torch
 from fixtures.corpora import TEST_OPTIONS
 from safetensors.torch import save_file
 
-from marionette.checkpoint import latest_checkpoint
-from marionette.corpus import paths, video_shards
+from marionette.checkpoint import CHECKPOINT_VERSION, latest_checkpoint, read_meta
+from marionette.corpus import Corpus, paths, video_shards
 from marionette.corpus.lock import CorpusLocked, corpus_lock
-from marionette.ingest import build_corpus
+from marionette.corpus.stages import STAGES_FILE, read_stage_file
+from marionette.ingest import build_corpus, load_stage_map
+from marionette.io import write_ipc
 
 
 def _sentinel(root: Path) -> Path:
@@ -286,3 +290,74 @@ def test_a_special_file_in_a_corpus_is_named_and_never_blocks_a_command(corpus_c
     )
     assert r.returncode == 2 and "info.json: a " in r.stderr and "not a regular file" in r.stderr, r.stderr
     assert time.monotonic() - t0 < 60
+
+
+def _bomb(shard: Path, dim: int) -> None:
+    """Make the first batch's compressed state values declare 2 GiB once inflated (their buffer's int64 prefix), as a
+    crafted shard of kilobytes can; nothing else in the file changes."""
+    with pa.memory_map(str(shard)) as src:
+        rows = pa.ipc.open_file(src).get_batch(0).num_rows
+    data = shard.read_bytes()
+    prefix = struct.pack("<q", rows * dim * 4)  # the float32 state values' uncompressed size
+    assert prefix in data
+    shard.write_bytes(data.replace(prefix, struct.pack("<q", 2 << 30), 1))
+
+
+def test_a_state_shard_bomb_is_refused_before_it_is_inflated(corpus_copy, tmp_path):
+    c = Corpus(corpus_copy)
+    segment = c.segment_ids()[0]
+    shard = c.segment_row(segment)["shard"]
+    path = c.state_path(shard)
+    table = c.read_shard(shard)
+    _bomb(path, c.layout.dim)
+    with pytest.raises(
+        ValueError, match=r"declare 2,1\d\d,\d{3},\d{3} bytes once inflated, more than .* refused before it is inflated"
+    ):
+        Corpus(corpus_copy).read_shard(shard)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "marionette.cli",
+            "render",
+            str(corpus_copy),
+            "--segment",
+            segment,
+            "--out",
+            str(tmp_path / "x.mkv"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2 and path.name in r.stderr and "refused before it is inflated" in r.stderr, r.stderr
+    # a shard holding more rows than the corpus's segments say is refused as well, before it is read
+    write_ipc(path, pa.concat_tables([table] * 3))
+    with pytest.raises(ValueError, match=r"its batches declare [\d,]+ rows; the corpus says it holds [\d,]+"):
+        Corpus(corpus_copy).read_shard(shard)
+
+
+@pytest.mark.parametrize("special", ["fifo", "dev-zero"])
+def test_every_json_a_command_reads_first_is_refused_by_name_as_a_special_file(corpus_copy, tmp_path, special):
+    def plant(p: Path) -> Path:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.unlink(missing_ok=True)
+        os.mkfifo(p) if special == "fifo" else p.symlink_to("/dev/zero")
+        return p
+
+    ckpt = tmp_path / "run" / "step-00000001"
+    ckpt.mkdir(parents=True)
+    (ckpt / "meta.json").write_text(json.dumps({"version": CHECKPOINT_VERSION}))
+    cases = [
+        (plant(paths.meta(corpus_copy, paths.VOCAB)), lambda: Corpus(corpus_copy).vocab),
+        (plant(paths.meta(corpus_copy, STAGES_FILE)), lambda: read_stage_file(corpus_copy)),
+        (plant(tmp_path / "src" / STAGES_FILE), lambda: load_stage_map(tmp_path / "src")),
+        (plant(ckpt / "meta.json"), lambda: read_meta(ckpt)),
+    ]
+    for path, read in cases:
+        t0 = time.monotonic()
+        with pytest.raises(
+            ValueError, match="a FIFO, not a regular file" if special == "fifo" else "a character device, not a"
+        ) as err:
+            read()
+        assert str(path) in str(err.value) and time.monotonic() - t0 < 1.0, err.value

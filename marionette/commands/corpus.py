@@ -14,7 +14,7 @@ from marionette.commands.summary import inspect_text, segment_row, segment_rows,
 from marionette.corpus import Corpus
 from marionette.corpus.paths import chunk_key, parse_chunk_key
 from marionette.corpus.video_shards import CHUNK_KIND, POSE_KIND, RGB_KIND, chunk_record, read_joined
-from marionette.io import write_bytes, write_json
+from marionette.io import printable, write_bytes, write_json
 from marionette.knobs import add_options, option, options_from_args
 from marionette.options import (
     chunk_frames,
@@ -133,7 +133,7 @@ def cmd_calibrate_depth(a: argparse.Namespace) -> int:
     progress = lambda items, total, desc: progress_items(items, total, desc, a.quiet)  # noqa: E731
     cal, failed = calibrate.calibrate_recordings(refs, layout, a.frame_stride, a.family, knobs, progress)
     for why in failed:
-        print(f"skipped: {why}")
+        print(printable(f"skipped: {why}"))
     for line in cal.lines():
         print(line)
     if a.out is not None:
@@ -188,6 +188,11 @@ class IngestCommand:
         "largest skeleton.npz array a sample may declare, bytes (checked before it is inflated)",
         parse=positive_int,
     )
+    max_frame_pixels: int = option(
+        3840 * 2160,
+        "largest video frame a sample may hold, pixels (read from the headers before any frame is decoded)",
+        parse=positive_int,
+    )
     quiet: bool = option(False, "no progress bars", switch=True)
     terrain: bool = option(True, "skip the incremental terrain scan after ingest", flag="--no-terrain", switch=True)
     pose: bool = option(True, "skip rendering the pose-control targets after ingest", flag="--no-pose", switch=True)
@@ -209,6 +214,7 @@ class IngestCommand:
             video=VideoSettings(height=h, width=w, chunk_frames=self.chunk_frames, crf=self.crf),
             compression=self.compression,
             max_member_bytes=self.max_member_bytes,
+            max_frame_pixels=self.max_frame_pixels,
         )
 
 
@@ -222,9 +228,9 @@ def cmd_ingest(a: argparse.Namespace) -> int:
     for r in report["results"]:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
         if r["status"] in ("quarantined", "skipped"):
-            print(f"{r['status']}: {r['sample']}: {r['reason']}")
+            print(printable(f"{r['status']}: {r['sample']}: {r['reason']}"))
     for path, why in report["skipped"]:
-        print(f"not a sample: {path}: {why}")
+        print(printable(f"not a sample: {path}: {why}"))
     info = report["info"]
     print(
         f"corpus {o.corpus}: {info['total_segments']} segments, {info['total_frames']} frames, "

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from marionette.corpus import Corpus, paths
 from marionette.corpus.play_stats import play_stats, play_stats_lines
+from marionette.io import printable
 from marionette.options import near_ids
 
 
@@ -61,12 +62,12 @@ def inspect_text(corpus_path: Path, play_shards: int = 64, scene: str | None = N
     q = c.quarantine.to_pylist()
     lines.append(f"quarantine {len(q)}")
     for r in q:
-        lines.append(f"  {r['sample']}: {r['reason']}")
+        lines.append(printable(f"  {r['sample']}: {r['reason']}"))
     skipped = [r for r in c.samples.to_pylist() if r["status"] == "skipped"]
     if skipped:
         lines.append(f"skipped  {len(skipped)} (outside the requested slice)")
         for r in skipped:
-            lines.append(f"  {r['sample']}: {r['reason']}")
+            lines.append(printable(f"  {r['sample']}: {r['reason']}"))
     return "\n".join(lines)
 
 

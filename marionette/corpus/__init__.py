@@ -143,8 +143,10 @@ class Corpus:
         if shard in self._shard_cache:
             return self._shard_cache[shard]
         path = self.state_path(shard)
-        table = read_ipc(path)
-        check_layout(table.schema, self.layout_of_shard(shard), str(path))
+        layout = self.layout_of_shard(shard)
+        segs = self.all_segments
+        rows = int(pc.sum(segs.filter(pc.equal(segs["shard"], shard))["frames"]).as_py() or 0)
+        table = read_ipc(path, rows, lambda schema: check_layout(schema, layout, str(path)))
         self._shard_cache[shard] = table
         while len(self._shard_cache) > 2:
             self._shard_cache.pop(next(iter(self._shard_cache)))
@@ -189,9 +191,7 @@ class Corpus:
         key = text_sha256(self.shard_hash(shard), f"{fps:g}", method, RESAMPLE_VERSION, self.layout.hash)[:16]
         path = self.dynamics_dir(fps, method) / f"shard-{shard:06d}-{key}.arrow"
         if path.exists():
-            table = read_ipc(path)
-            check_layout(table.schema, self.layout, str(path))
-            return table
+            return read_ipc(path, check_schema=lambda schema: check_layout(schema, self.layout, str(path)))
         src = self.read_shard(shard)
         parts = [
             resample_segment(self.layout, src.filter(pc.equal(src["segment"], s)), fps, method)

@@ -188,8 +188,9 @@ def pose_target(root: Path, key: str, digest: str, jitter: str | None = None) ->
 
 
 def stage_dir(root: Path, stage: str) -> Path:
-    """``<root>/terrain/stage_<id>`` (the stage id made file-safe)."""
-    return terrain_dir(root) / f"stage_{re.sub(r'[^A-Za-z0-9_-]', '-', str(stage))}"
+    """``<root>/terrain/stage_<id>``; a stage id that is not an id (``ID_PATTERN``) is refused, never made one (two
+    ids made alike would share a directory)."""
+    return terrain_dir(root) / f"stage_{check_id(stage, 'stage id')}"
 
 
 def resolve_plan_entry(root: Path, rel: object, where: str) -> Path:

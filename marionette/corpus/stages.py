@@ -22,6 +22,27 @@ MAX_STAGES_BYTES = 64 << 20
 UNPLACED = "default"
 
 
+def is_recording_id(rec: object) -> bool:
+    """Whether ``rec`` is a recording id: ``part/id``, two directory names (never a path: no further ``/``, no NUL,
+    neither ``.`` nor ``..``, each within the file system's 255 bytes)."""
+    if not isinstance(rec, str) or rec.count("/") != 1 or "\0" in rec:
+        return False
+    return all(n not in ("", ".", "..") and len(n.encode("utf-8", "surrogatepass")) <= 255 for n in rec.split("/"))
+
+
+def check_stage_map(d: object, where: str) -> dict[str, str]:
+    """A source tree's ``stages.json`` (recording id → stage id), checked: an object of recording ids to stage ids
+    (``ID_PATTERN``, so that two stages never share one directory)."""
+    if not isinstance(d, dict):
+        raise ValueError(f'{where}: not an object of recording id → stage id ({{"part/id": "stage"}})')
+    for rec, stage in d.items():
+        if not is_recording_id(rec):
+            raise ValueError(f"{where}: {rec!r} is not a recording id (part/id)")
+        if not isinstance(stage, str) or not ID_PATTERN.fullmatch(stage):
+            raise ValueError(f"{where}: recording {rec!r}: stage {stage!r} is not an id ([A-Za-z0-9_-], at most 200)")
+    return dict(d)
+
+
 def _check(d: object, where: str, field: str = "recordings") -> dict[str, str]:
     if not isinstance(d, dict) or not isinstance(d.get(field), dict):
         raise ValueError(f'{where}: not a stage placement (an object {{"recordings": {{"part/id": "stage"}}}})')
@@ -31,8 +52,7 @@ def _check(d: object, where: str, field: str = "recordings") -> dict[str, str]:
             if not isinstance(stage, dict) or not isinstance(stage.get("scan"), str):
                 raise ValueError(f"{where}: found[{rec!r}] is not {{'stage': ..., 'scan': key}}")
             stage = stage.get("stage")
-        part, _, sample = rec.partition("/")
-        if not (ID_PATTERN.fullmatch(part) and ID_PATTERN.fullmatch(sample)):
+        if not is_recording_id(rec):
             raise ValueError(f"{where}: {rec!r} is not a recording id (part/id)")
         if not isinstance(stage, str) or not ID_PATTERN.fullmatch(stage):
             raise ValueError(f"{where}: recording {rec!r}: stage {stage!r} is not an id ([A-Za-z0-9_-], at most 200)")

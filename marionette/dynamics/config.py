@@ -11,6 +11,16 @@ from marionette.corpus import MODEL_FPS
 from marionette.dynamics.state import body_index, root_index, weapon_range
 from marionette.io import check_json_fields
 from marionette.knobs import check_knobs, knob
+from marionette.model_size import (
+    MAX_HEADS,
+    MAX_LAYERS,
+    MAX_VOCAB,
+    MAX_WIDTH,
+    MAX_WINDOW,
+    check_int,
+    check_memory,
+    transformer_parameters,
+)
 from marionette.schema import Layout, SchemaError
 
 PATCH_SIZE = 11  # egocentric height patch, cells per side
@@ -32,9 +42,26 @@ class TransformerSpec:
     terrain_hidden: int = 128
     mlp_ratio: int = 4
 
+    def __post_init__(self) -> None:
+        for name, high in (
+            ("layers", MAX_LAYERS),
+            ("width", MAX_WIDTH),
+            ("heads", MAX_HEADS),
+            ("action_embed", MAX_WIDTH),
+            ("terrain_out", MAX_WIDTH),
+            ("terrain_hidden", MAX_WIDTH),
+            ("mlp_ratio", 16),
+        ):
+            check_int(getattr(self, name), name, 1, high, "transformer spec")
+
     @property
     def head_dim(self) -> int:
         return self.width // self.heads
+
+    @property
+    def parameters(self) -> int:
+        """The blocks' parameters (the encoders' and heads' are small beside them)."""
+        return transformer_parameters(self.layers, self.width, self.mlp_ratio)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -147,17 +174,24 @@ class DynamicsConfig:
             )
         if any(v < 1 for v in self.vocab_sizes):
             raise ValueError(f"dynamics config: vocab sizes {self.vocab_sizes} must be ≥ 1 (token 0 = no valid action)")
-        if self.window < 1:
-            raise ValueError(f"dynamics config: window {self.window} must be ≥ 1 frame")
+        check_int(self.window, "window", 1, MAX_WINDOW, "dynamics config")
+        for v in self.vocab_sizes:
+            check_int(v, "vocab size", 1, MAX_VOCAB, "dynamics config")
+        for name in ("root_dim", "body_dim", "terrain_features"):
+            check_int(getattr(self, name), name, 0, 1 << 20, "dynamics config")
         if self.residual and (self.body_anchor or self.rotation_anchor or self.displacement_gate):
             raise ValueError(
                 "dynamics config: residual (both heads, gain 1) excludes body_anchor, rotation_anchor and displacement_gate"
             )
         for name, spec in (("action_gpt", self.action_gpt), ("pose_gpt", self.pose_gpt)):
+            if not isinstance(spec, TransformerSpec):
+                raise ValueError(f"dynamics config: {name} is not a transformer spec")
             if spec.width % spec.heads or spec.head_dim % 2:
                 raise ValueError(
                     f"dynamics config: {name} width {spec.width} must split into {spec.heads} heads of even size (RoPE)"
                 )
+        embeddings = sum(self.vocab_sizes) * (self.action_gpt.width + self.pose_gpt.width)
+        check_memory(self.action_gpt.parameters + self.pose_gpt.parameters + embeddings, "dynamics config")
 
     @property
     def n_entities(self) -> int:
@@ -221,6 +255,9 @@ class DynamicsConfig:
         kw: dict[str, Any] = {}
         for k, v in d.items():
             if k in ("action_gpt", "pose_gpt"):
+                if not isinstance(v, dict):
+                    raise ValueError(f"dynamics config JSON: {k} is not an object")
+                check_json_fields(TransformerSpec, v, f"dynamics config {k}")
                 v = TransformerSpec(**v)
             elif k == "token_classes" and isinstance(v, list):
                 v = tuple(tuple(int(x) for x in t) for t in v)

@@ -43,7 +43,7 @@ import torch
 
 from marionette import geometry as geo
 from marionette.bridge.rules import RULES, RuleParams, Rules, enabled_rules
-from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_meta
+from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_config, read_meta
 from marionette.corpus import MODEL_FPS, Corpus, as_corpus, fixed_rows, world_of_rows
 from marionette.dynamics.config import DynamicsConfig
 from marionette.dynamics.data import ActionTokens
@@ -157,7 +157,7 @@ class Rollout:
         meta = read_meta(self.ckpt)
         self.corpus = as_corpus(corpus, meta["train_config"].get("scene"))  # the scene the model was trained on
         self.layout = self.corpus.layout
-        self.config = DynamicsConfig.from_json(meta["dynamics_config"])
+        self.config = read_config(self.ckpt, meta, "dynamics_config", DynamicsConfig)
         self.config.check_layout(self.layout)
         self.normaliser = Normaliser.from_json(meta["normaliser"])
         self.tokens = ActionTokens.from_corpus(self.corpus)

@@ -12,10 +12,12 @@ from pathlib import Path
 
 from marionette.corpus import paths
 from marionette.corpus.lock import corpus_lock
+from marionette.corpus.stages import MAX_STAGES_BYTES, check_stage_map
 from marionette.ingest.finalize import finalize, finish_pending
 from marionette.ingest.sample import (
     IngestOptions,
     SampleResult,
+    check_keys,
     file_digests,
     ingest_sample,
     input_hash,
@@ -45,6 +47,7 @@ __all__ = [
     "SampleResult",
     "VideoSettings",
     "build_corpus",
+    "check_keys",
     "check_corpus_options",
     "check_source",
     "corpus_lock",
@@ -68,11 +71,7 @@ def load_stage_map(source: Path) -> dict[str, str]:
     p = Path(source) / STAGES_FILE
     if not p.exists():
         return {}
-    try:
-        d = read_json(p)
-    except ValueError as exc:
-        raise ValueError(f"invalid JSON: {exc}") from None
-    return {str(k): str(v) for k, v in d.items()}
+    return check_stage_map(read_json(p, MAX_STAGES_BYTES), str(p))
 
 
 def check_corpus_options(corpus: Path, options: IngestOptions) -> None:
@@ -128,6 +127,8 @@ def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, pro
     skipped: list[tuple[str, str]] = []
     refs = discover(source, skipped)
     check_source(source, refs)
+    refs, clashing = check_keys(refs)
+    skipped += clashing
     results: list[SampleResult] = []
     bar = None
     if progress:

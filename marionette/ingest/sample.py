@@ -20,9 +20,10 @@ import pyarrow as pa
 from marionette import geometry as geo
 from marionette.corpus import paths, state_table
 from marionette.ingest.survey import recording_layout
-from marionette.io import file_sha256, read_json, text_sha256, write_ipc, write_json
+from marionette.io import file_sha256, printable, read_json, text_sha256, write_ipc, write_json
 from marionette.recordings.wildworld import (
     DEPTH_FILE,
+    MAX_FRAME_PIXELS,
     MAX_MEMBER_BYTES,
     RGB_FILE,
     SKELETON_FILE,
@@ -54,6 +55,7 @@ class IngestOptions:
     compression: str = "zstd"
     split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
     max_member_bytes: int = MAX_MEMBER_BYTES  # a skeleton.npz member declaring more (inflated) is quarantined unread
+    max_frame_pixels: int = MAX_FRAME_PIXELS  # a sample whose video frames are larger is quarantined undecoded
 
     @property
     def auto(self) -> bool:
@@ -100,6 +102,8 @@ class IngestOptions:
         else:
             d["layout_hash"] = self.layout.hash  # what the rigs say, wherever they are
         d.pop("rigs")
+        if d["max_frame_pixels"] == MAX_FRAME_PIXELS:  # left out at its default: a corpus's key names what differs from it
+            d.pop("max_frame_pixels")
         d["ingest_version"] = INGEST_VERSION
         return text_sha256(json.dumps(d, sort_keys=True, default=str))[:16]
 
@@ -108,6 +112,8 @@ class IngestOptions:
         d["split_fractions"] = list(self.split_fractions)
         if d["rigs"] is None:  # as corpora built before user rigs existed have it
             del d["rigs"]
+        if d["max_frame_pixels"] == MAX_FRAME_PIXELS:
+            del d["max_frame_pixels"]
         return d
 
     @staticmethod
@@ -131,13 +137,25 @@ class SampleResult:
     worker: str = ""
 
 
+KEPT_NAME = re.compile(r"[A-Za-z0-9]+(?:_[A-Za-z0-9]+)*")  # a source name used as it is in keys and file names
+MAX_KEPT_NAME = 64  # characters; a longer name is shortened and hashed
+_CLEAN_CHARS = 48  # of a shortened or cleaned name, before its hash
+_NAME_HASH = 12  # hex digits of sha256 appended to a name that had to change
+
+
 def safe_name(s: str) -> str:
-    """A name usable in file names and webdataset keys (no dots, slashes or spaces) that never
-    collides: a name that had to change gets a short hash of the original appended."""
-    clean = re.sub(r"[^A-Za-z0-9_-]", "-", s)
-    if clean == s and "--" not in s:
+    """A source name (a part or sample directory: any characters, up to the file system's 255 bytes) as it appears in
+    sample keys, segment ids and file names: the name itself when it is letters and digits joined by single
+    underscores and at most ``MAX_KEPT_NAME`` long, else its cleaned first ``_CLEAN_CHARS`` characters, ``--`` and a
+    hash of the whole name.
+
+    The output never holds ``__``, never starts or ends with ``_``, and holds ``-`` only in the ``--`` before a hash,
+    so joining two names with ``__`` (``sample_key``) or ``-`` (``segment_id``) is read back one way only: two
+    different sources never share a key or a segment id (``check_keys`` refuses the impossible hash collision)."""
+    if KEPT_NAME.fullmatch(s) and len(s) <= MAX_KEPT_NAME:
         return s
-    return f"{clean}--{hashlib.sha256(s.encode()).hexdigest()[:8]}"
+    clean = re.sub(r"[^A-Za-z0-9]+", "_", s)[:_CLEAN_CHARS].strip("_") or "x"
+    return f"{clean}--{hashlib.sha256(s.encode('utf-8', 'surrogatepass')).hexdigest()[:_NAME_HASH]}"
 
 
 def sample_key(ref: SampleRef) -> str:
@@ -148,6 +166,22 @@ def sample_key(ref: SampleRef) -> str:
 def segment_id(ref: SampleRef, k: int) -> str:
     """Id of the k-th segment of a sample (also a webdataset key prefix: no dots)."""
     return f"{safe_name(ref.part)}-{safe_name(ref.sample_id)}-s{k:03d}"
+
+
+def check_keys(refs: list[SampleRef]) -> tuple[list[SampleRef], list[tuple[str, str]]]:
+    """``refs`` less any two whose sample keys or segment ids would be one (never merged: both are refused), and
+    (path, reason) for each refused."""
+    owners: dict[str, list[SampleRef]] = {}
+    for r in refs:
+        owners.setdefault(sample_key(r), []).append(r)
+        owners.setdefault("segment " + segment_id(r, 0), []).append(r)
+    clash = {id(r): others for others in owners.values() if len(others) > 1 for r in others}
+    refused = [
+        (str(r.path), f"its key is also that of {', '.join(printable(o.name) for o in clash[id(r)] if o is not r)}: both refused")
+        for r in refs
+        if id(r) in clash
+    ]
+    return [r for r in refs if id(r) not in clash], refused
 
 
 def split_of(recording: str, fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> str:
@@ -392,6 +426,7 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
         if digests is None:
             raise OSError(unreadable)
         record.update(_stage_sample(ref, stage, options))
+        _check_finite(record, str(ref.path))  # a value no JSON can hold (an overflowed statistic) costs this sample only
         segs = record["segments"]
         result = SampleResult(ref.name, "ingested", h, segments=len(segs), frames=sum(s["frames"] for s in segs), worker=worker)
     except SampleSkipped as exc:
@@ -413,11 +448,23 @@ def ingest_sample(ref: SampleRef, corpus: Path, options: IngestOptions, worker: 
     return result
 
 
+def _check_finite(value: object, where: str, field: str = "record") -> None:
+    """A SampleError naming the first field of ``value`` (a record about to be written) that is a non-finite float."""
+    if isinstance(value, float) and not np.isfinite(value):
+        raise SampleError(f"{where}: {field} is {value} (a statistic overflowed: a value in the sample is out of range)")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_finite(v, where, f"{field}.{k}")
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            _check_finite(v, where, f"{field}[{i}]")
+
+
 def _stage_sample(ref: SampleRef, stage: Path, options: IngestOptions) -> dict:
     """Read one sample, write its segments' state (``state.arrow``) and video chunks (``video.tar``) under ``stage``;
     returns the record's fields of an ingested sample. A sample with no valid segment is a ``SampleError``."""
     layout = options.layout_for(ref)
-    sample = read_sample(ref, layout, options.type_filter(layout), options.max_member_bytes)
+    sample = read_sample(ref, layout, options.type_filter(layout), options.max_member_bytes, options.max_frame_pixels)
     runs = valid_runs(sample.valid, options.min_segment_frames)
     if not runs:
         raise SampleError(

@@ -9,6 +9,16 @@ from dataclasses import asdict, dataclass
 from marionette.chunks import is_clip_length
 from marionette.io import check_json_fields
 from marionette.knobs import check_knobs, knob
+from marionette.model_size import (
+    MAX_HEADS,
+    MAX_LAYERS,
+    MAX_PIXELS,
+    MAX_VOCAB,
+    MAX_WIDTH,
+    check_int,
+    check_memory,
+    transformer_parameters,
+)
 
 REFERENCE_SWAP = 0.2  # the default under pose control (docs/tradeoffs.md, "Observation: reference swap ...")
 
@@ -45,6 +55,20 @@ class ObservationConfig:
     handoff_noise: float = 0.0
 
     def __post_init__(self) -> None:
+        for name, low, high in (
+            ("frames", 5, 1025),
+            ("height", 1, MAX_PIXELS),
+            ("width_px", 1, MAX_PIXELS),
+            ("patch", 1, 64),
+            ("width", 1, MAX_WIDTH),
+            ("layers", 1, MAX_LAYERS),
+            ("heads", 1, MAX_HEADS),
+            ("mlp_ratio", 1, 16),
+            ("reference_size", 0, MAX_PIXELS),
+        ):
+            check_int(getattr(self, name), name, low, high, "observation config")
+        for v in self.vocab_sizes:
+            check_int(v, "vocab size", 1, MAX_VOCAB, "observation config")
         if self.format != FORMAT:
             raise ValueError(f"observation config: format {self.format}; this version reads format {FORMAT} (retrain the model)")
         if self.control not in CONTROLS:
@@ -79,6 +103,7 @@ class ObservationConfig:
                 raise ValueError("observation config: entity references need pose control (their masks come from it)")
         elif self.reference_size or self.reference_paint:
             raise ValueError("observation config: reference_size or reference_paint without reference_bands")
+        check_memory(transformer_parameters(self.layers, self.width, self.mlp_ratio), "observation config")
 
     @property
     def size(self) -> tuple[int, int]:

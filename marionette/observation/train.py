@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from marionette import training
-from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_meta, save_checkpoint
+from marionette.checkpoint import latest_checkpoint, load_checkpoint, read_config, read_meta, save_checkpoint
 from marionette.corpus import Corpus
 from marionette.distributed import rank_world
 from marionette.observation.config import OBS_PRESETS, ObservationConfig, ObservationTrainConfig
@@ -297,7 +297,7 @@ def load_model(ckpt_dir: Path | str) -> VideoDiT:
     meta = read_meta(ckpt)
     if meta.get("kind") != "observation":
         raise ValueError(f"{ckpt}: not an observation-model checkpoint")
-    model = VideoDiT(ObservationConfig.from_json(meta["observation_config"]))
+    model = VideoDiT(read_config(ckpt, meta, "observation_config", ObservationConfig))
     load_checkpoint(ckpt, model, restore_rng=False)
     return model.eval()
 

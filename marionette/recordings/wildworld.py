@@ -12,13 +12,15 @@ Nothing is trusted: a sample directory, part or input file that is a symlink res
 source root is refused; a skeleton.npz member is inflated only after the zip directory and its .npy
 header declare a float (N, J, 3) array the sample can need (N at most the state.csv rows plus
 ``FRAME_SLACK``, J at most ``MAX_JOINTS``) within the per-member byte cap; depth.mkv must open as a
-video with as many frames as rgb.mp4.
+video with as many frames as rgb.mp4, of the same size, within ``MAX_FRAME_PIXELS``, both
+read from the headers before any frame is decoded.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -30,8 +32,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
-from marionette.io import read_json
-from marionette.schema import Entity, Layout
+from marionette.io import read_json, regular_file
+from marionette.schema import FIELD_RANGES, Entity, Layout
 
 RGB_FILE = "rgb.mp4"  # a sample's files
 DEPTH_FILE = "depth.mkv"
@@ -43,6 +45,7 @@ REQUIRED_FILES = (RGB_FILE, DEPTH_FILE, STATE_FILE, SKELETON_FILE)
 MAX_MEMBER_BYTES = 2 << 30  # default cap on one inflated skeleton.npz member (IngestOptions.max_member_bytes)
 MAX_JOINTS = 1024  # no rig comes near this; a member declaring more joints is refused unread
 MAX_EDGES_BYTES = 16 << 20  # a skeleton_edges.json (a few KiB for WildWorld's 38 types) larger than this is refused unread
+MAX_FRAME_PIXELS = 3840 * 2160  # default cap on a sample's video frame (IngestOptions.max_frame_pixels): 4K UHD
 FRAME_SLACK = 64  # a member may declare this many frames beyond the state.csv rows (and is then reported as a count mismatch)
 _NPY_HEADER_ROOM = 64 << 10  # bytes an .npy member may hold besides its array (magic + header)
 
@@ -124,7 +127,8 @@ def discover(source: Path, skipped: list | None = None) -> list[SampleRef]:
 
 
 def check_in_tree(ref: SampleRef) -> None:
-    """Refuse a sample whose part, directory or input files are symlinks resolving outside the source root."""
+    """Refuse a sample whose part, directory or input files are symlinks resolving outside the source root, or whose
+    input files are not regular files."""
     root = Path(ref.root).resolve()
     for p in (ref.root / ref.part, ref.path, ref.edges_path, *(ref.path / f for f in REQUIRED_FILES)):
         if p.is_symlink():
@@ -134,6 +138,12 @@ def check_in_tree(ref: SampleRef) -> None:
                 raise SampleError(f"{p}: symlink cannot be resolved ({exc})") from None
             if not target.is_relative_to(root):
                 raise SampleError(f"symlink leaves the source tree: {p} → {target}")
+    for p in (ref.edges_path, *(ref.path / f for f in REQUIRED_FILES)):
+        if p.exists():  # a FIFO or device would hang or never end the reads that follow: refused from its stat
+            try:
+                regular_file(p)
+            except ValueError as exc:
+                raise SampleError(str(exc)) from None
 
 
 @dataclass
@@ -298,7 +308,20 @@ def read_state_csv(path: Path, columns: list[str]) -> tuple[dict[str, pa.Chunked
 
 
 # what reading a damaged zip member can raise (RuntimeError: encrypted; NotImplementedError: unknown compression)
-_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, RuntimeError, NotImplementedError)
+# what a damaged archive or .npy header raises (numpy parses the header as a Python literal: SyntaxError, TokenError)
+_ZIP_ERRORS = (
+    zipfile.BadZipFile,
+    zlib.error,
+    ValueError,
+    OSError,
+    EOFError,
+    RuntimeError,
+    NotImplementedError,
+    SyntaxError,
+    tokenize.TokenError,
+    TypeError,
+    KeyError,
+)
 
 
 class SkeletonArchive:
@@ -310,8 +333,13 @@ class SkeletonArchive:
         self.max_member_bytes = int(max_member_bytes)
         if not self.path.exists():
             raise SampleError(f"{self.path}: missing")
-        with self._open() as z:
-            self._members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}
+        try:
+            with self._open() as z:
+                self._members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}
+        except SampleError:
+            raise
+        except _ZIP_ERRORS as exc:
+            raise SampleError(f"{self.path}: unreadable, truncated or corrupt ({type(exc).__name__}: {exc})") from None
 
     @property
     def keys(self) -> list[str]:
@@ -324,7 +352,7 @@ class SkeletonArchive:
     def _open(self) -> zipfile.ZipFile:
         try:
             return zipfile.ZipFile(self.path)
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        except _ZIP_ERRORS as exc:
             raise SampleError(f"{self.path}: unreadable, truncated or corrupt ({type(exc).__name__}: {exc})") from None
 
     def _bad(self, key: str, exc: BaseException) -> SampleError:
@@ -456,6 +484,18 @@ def _check_edges(path: Path, edges: dict, e: Entity) -> None:
         )
 
 
+def check_range(values: np.ndarray, field: str, where: str, column: str = "") -> None:
+    """A SampleError naming ``where``, the row (or frame and joint) and the value when a finite value of ``values`` lies
+    outside its field's declared range (``schema.FIELD_RANGES``); ``column`` names a state.csv column (rows are
+    1-based there), else ``values`` are a skeleton.npz member's (N, J, 3) joints."""
+    rng = FIELD_RANGES[field]
+    at = rng.first_outside(values)
+    if at is None:
+        return
+    place = f"row {at[0] + 1}, column {column!r}" if column else f"frame {at[0]}, joint {at[1]}"
+    raise SampleError(f"{where}: {place}: {values[at]:g} is outside the {field} range [{rng.low:g}, {rng.high:g}] {rng.unit}")
+
+
 def mode_type(type_id: np.ndarray) -> int | None:
     """The type id recorded on most rows (nan rows aside), or None when every row is nan."""
     v = type_id[np.isfinite(type_id)]
@@ -466,13 +506,18 @@ def mode_type(type_id: np.ndarray) -> int | None:
 
 
 def read_sample(
-    ref: SampleRef, layout: Layout, type_filter: dict[str, set[int]] | None = None, max_member_bytes: int = MAX_MEMBER_BYTES
+    ref: SampleRef,
+    layout: Layout,
+    type_filter: dict[str, set[int]] | None = None,
+    max_member_bytes: int = MAX_MEMBER_BYTES,
+    max_frame_pixels: int = MAX_FRAME_PIXELS,
 ) -> RecordedSample:
     """Read a sample for ``layout``: every entity's kept joints, rotations, actions, and the camera.
 
     ``type_filter`` maps an entity name to the type ids to accept (default: its rig's ``type_ids``);
     a sample whose entity has another type raises SampleSkipped. ``max_member_bytes`` caps one
-    inflated skeleton.npz member.
+    inflated skeleton.npz member, ``max_frame_pixels`` a video frame; depth.mkv's frames must be
+    rgb.mp4's size. Every field's values are checked against its declared range (``schema.FIELD_RANGES``).
     """
     check_in_tree(ref)
     d = ref.path
@@ -496,12 +541,22 @@ def read_sample(
     skel = SkeletonArchive(npz, max_member_bytes)
     edges = load_edges(ref.edges_path)
     n_video, fps, vh, vw = video_info(d / RGB_FILE)
-    n_depth = video_info(d / DEPTH_FILE)[0]
+    n_depth, _, dh, dw = video_info(d / DEPTH_FILE)
+    if vh * vw > max_frame_pixels:
+        raise SampleError(
+            f"{d / RGB_FILE}: {vw}×{vh} frames, more than the {max_frame_pixels:,}-pixel limit (--max-frame-pixels)"
+        )
+    if (dh, dw) != (vh, vw):  # checked from the headers: nothing is decoded
+        raise SampleError(f"{d / DEPTH_FILE}: {dw}×{dh} frames; {RGB_FILE}'s are {vw}×{vh} (a depth video matches its RGB)")
 
     sample = RecordedSample(ref=ref, n_frames=n, fps=fps, video_size=(vh, vw))
     sample.camera_K = tup("camera.K", 4)
     sample.camera_pos = tup("camera.pos", 3)
     sample.camera_rot = tup("camera.rot", 4)
+    check_range(sample.camera_K[:, :2], "focal", str(csv_path), "camera.K")
+    check_range(sample.camera_K[:, 2:], "principal", str(csv_path), "camera.K")
+    check_range(sample.camera_pos, "position", str(csv_path), "camera.pos")
+    check_range(sample.camera_rot, "quaternion", str(csv_path), "camera.rot")
     sample.camera_valid = (
         np.isfinite(sample.camera_K).all(1) & np.isfinite(sample.camera_pos).all(1) & np.isfinite(sample.camera_rot).all(1)
     )
@@ -525,6 +580,7 @@ def read_sample(
             )
         _check_edges(ref.edges_path, edges, e)
         arr = skel.read(key, max_frames=n + FRAME_SLACK)
+        check_range(arr, "position", f"{npz}: key {key!r}")
         counts[f"skeleton.npz {key} frames"] = arr.shape[0]
         joints = arr[:, list(e.rig.keep_source_index), :].astype(np.float64) if arr.shape[0] == n else None
         if joints is None:
@@ -535,10 +591,19 @@ def read_sample(
             track.rot = tup(c["rot"], 4)
             track.pos = tup(c["pos"], 3)
             bank, motion, mf = num(c["motion_bank_id"]), num(c["motion_id"]), num(c["motion_frame"])
+            hp = num(c["hp"])
+            for name, field, values in (
+                ("pos", "position", track.pos),
+                ("motion_bank_id", "motion_bank_id", bank),
+                ("motion_id", "motion_id", motion),
+                ("motion_frame", "motion_frame", mf),
+                ("hp", "hp", hp),
+            ):
+                check_range(values, field, str(csv_path), c[name])
             ok = np.isfinite(bank) & np.isfinite(motion) & (bank >= 0) & (motion >= 0)
             track.action = np.where(ok, np.nan_to_num(bank) * 1000 + np.nan_to_num(motion) + 1, 0).astype(np.int32)
             track.motion_frame = np.where(np.isfinite(mf), np.nan_to_num(mf, nan=-1), -1).astype(np.int32)
-            track.hp = num(c["hp"]).astype(np.float32)
+            track.hp = hp.astype(np.float32)
             rn = np.linalg.norm(np.nan_to_num(track.rot), axis=1)
             track.valid &= np.isfinite(track.rot).all(1) & (rn > 0.5)
             bad_rot = np.isfinite(track.rot).all(1) & present & ((rn < 0.9) | (rn > 1.1))

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from functools import cache, cached_property
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 
 from marionette.io import read_json
@@ -195,6 +196,36 @@ class Layout:
         """sha256 (hex, 16 chars) of the canonical layout JSON."""
         blob = json.dumps(self.to_json(), sort_keys=True, separators=(",", ":")).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class FieldRange:
+    """The values a recorded field may take: ``low`` ≤ v ≤ ``high`` where it is finite (nan marks an invalid frame)."""
+
+    low: float
+    high: float
+    unit: str
+
+    def first_outside(self, values: np.ndarray) -> tuple[int, ...] | None:
+        """The index of the first finite value of ``values`` outside the range, or None."""
+        v = np.asarray(values, dtype=np.float64)
+        bad = np.isfinite(v) & ((v < self.low) | (v > self.high))
+        return tuple(int(i) for i in np.argwhere(bad)[0]) if bad.any() else None
+
+
+INT32_MAX = 2**31 - 1
+# Every recorded field's physical range; a sample holding a finite value outside it is quarantined, naming the file,
+# field, frame and value. Negative motion ids mean "no action" (the composite id 0).
+FIELD_RANGES: dict[str, FieldRange] = {
+    "position": FieldRange(-1e6, 1e6, "m (joints, entity positions, the camera: within 1,000 km of the origin)"),
+    "focal": FieldRange(1e-3, 1e6, "px (camera fx, fy: positive)"),
+    "principal": FieldRange(-1e6, 1e6, "px (camera cx, cy)"),
+    "quaternion": FieldRange(-1.1, 1.1, "(each rotation component; the norm is checked on its own)"),
+    "motion_bank_id": FieldRange(-INT32_MAX, INT32_MAX // 1000 - 1, "(bank × 1000 + motion + 1 stays within int32)"),
+    "motion_id": FieldRange(-INT32_MAX, 999, "(the composite action id bank × 1000 + motion + 1 needs motion < 1000)"),
+    "motion_frame": FieldRange(-INT32_MAX, INT32_MAX, "frames (stored as int32)"),
+    "hp": FieldRange(-1e7, 1e7, "hit points"),
+}
 
 
 MAX_SCHEMA_BYTES = 16 << 20  # a rig or scene file: a few kilobytes; a generated species' rig, tens
