@@ -92,13 +92,16 @@ def _write(tmp_path: Path, name: str, data: bytes) -> Path:
     return p
 
 
+@pytest.mark.parametrize(
+    "seed, name, read", [("json", "meta.json", read_json), ("edges", "skeleton_edges.json", load_edges)], ids=["json", "edges"]
+)
 @FUZZ
 @given(data=st.data())
-def test_read_json_answers_or_names_the_file(seeds, tmp_path, data):
-    p = _write(tmp_path, "meta.json", data.draw(damage(seeds["json"])))
+def test_a_json_reader_answers_or_names_the_file(seeds, tmp_path, data, seed, name, read):
+    p = _write(tmp_path, name, data.draw(damage(seeds[seed])))
     try:
-        read_json(p)
-    except ValueError as exc:
+        read(p)
+    except ValueError as exc:  # SampleError is one
         _named(exc, p)
 
 
@@ -126,16 +129,6 @@ def test_a_skeleton_archive_answers_or_names_the_file(seeds, tmp_path, data):
         archive = SkeletonArchive(p, max_member_bytes=1 << 20)
         for key in archive.keys:
             archive.read(key, max_frames=64)
-    except SampleError as exc:
-        _named(exc, p)
-
-
-@FUZZ
-@given(data=st.data())
-def test_skeleton_edges_answer_or_name_the_file(seeds, tmp_path, data):
-    p = _write(tmp_path, "skeleton_edges.json", data.draw(damage(seeds["edges"])))
-    try:
-        load_edges(p)
     except SampleError as exc:
         _named(exc, p)
 
