@@ -69,6 +69,7 @@ def discover_samples(source: str) -> list[SampleRef]:
     for path, why in skipped:
         get_run_logger().info("skipped %s", printable(f"{path}: {why}"))
     ingest.check_source(Path(source), refs)
+    ingest.load_stage_map(Path(source))  # a tree's stages.json that cannot be read fails the run before any sample's work
     return refs
 
 

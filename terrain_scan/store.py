@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from marionette.corpus.paths import CorpusPathError, inside, stage_dir
-from marionette.io import atomic_path, read_json, write_bytes, write_json
+from marionette.io import atomic_path, read_json, regular_file, write_bytes, write_json
 from terrain_scan.fill import fill_holes
 from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT, MAX_LAYERS, Observations, drop_aliases, merge
 from terrain_scan.trn2 import CELLS, FLAG_FILLED, FLAG_VALID, Chunk, chunk_filename, find_chunks, read_chunk, split_cell
@@ -240,7 +240,9 @@ class Stage:
         return self._load(self.manifest["recordings"][recording])
 
     def _load(self, rec: dict) -> Observations:
-        with np.load(self.file(rec["file"]), allow_pickle=False) as z:
+        path = self.file(rec["file"])
+        regular_file(path)
+        with np.load(path, allow_pickle=False) as z:
             hugs = z["hugs"] if "hugs" in z.files else None  # stored before scans measured it: never an alias
             return Observations(z["gx"], z["gz"], z["h"], z["n"], z["hits"], z["ts"], hugs)
 

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from marionette.io import regular_file, write_bytes
+
 MAGIC = b"TRN2"
 VERSION = 2
 CHUNK_M = 100
@@ -137,6 +139,7 @@ def read_chunk(path: Path, at: tuple[int, int] | None = None) -> Chunk:
     path = Path(path)
     where = str(path)
     try:
+        regular_file(path)  # a FIFO would block the read
         with open(path, "rb") as fh:
             size = os.fstat(fh.fileno()).st_size
             cx, cz, max_layers = _header(fh.read(HEADER.size), where)
@@ -144,6 +147,8 @@ def read_chunk(path: Path, at: tuple[int, int] | None = None) -> Chunk:
             body = fh.read(size - HEADER.size)
     except FileNotFoundError:
         raise TerrainFormatError(f"{path}: no such chunk file") from None
+    except ValueError as exc:  # not a regular file
+        raise TerrainFormatError(str(exc)) from None
     _check_size(HEADER.size + len(body), max_layers, where)  # the file changed while it was read
     if at is not None and (cx, cz) != tuple(at):
         raise TerrainFormatError(f"{path}: header says chunk ({cx}, {cz}), the file name ({at[0]}, {at[1]})")
@@ -152,7 +157,6 @@ def read_chunk(path: Path, at: tuple[int, int] | None = None) -> Chunk:
 
 def write_chunk(path: Path, chunk: Chunk) -> None:
     """Write one chunk file atomically."""
-    from marionette.io import write_bytes
 
     write_bytes(path, chunk.to_bytes())
 

@@ -11,7 +11,7 @@ import pytest
 
 from marionette.bridge.gbuffer import decode_gbuffer
 from marionette.bridge.targets import render_pose_targets
-from marionette.corpus import Corpus
+from marionette.corpus import Corpus, paths
 from marionette.corpus.paths import stage_dir
 from marionette.corpus.video_shards import pose_matches
 from terrain_scan.layers import Observations
@@ -82,12 +82,17 @@ def test_every_chunk_gets_a_pose_target_of_equal_length(scanned, tmp_path):
     assert seen_bones > 100
 
 
-def test_a_second_pass_does_nothing(scanned):
+def test_a_second_pass_does_nothing_but_sweep_what_a_killed_pass_left(scanned):
     render_pose_targets(scanned)
     before = {kind: snapshot(scanned, kind) for kind in ("video", "pose")}
+    targets = paths.pose_targets_dir(scanned)
+    left = [targets / ".data_part1-rec0000-s000__c00000-0123456789abcdef.mkv.k1ll3d.tmp", targets / ".x.mkv.tmp"]
+    for p in left:  # what a pass killed mid-write leaves
+        p.write_bytes(b"")
     report = render_pose_targets(scanned)
     assert report.rendered == [] and report.shards_rewritten == [] and report.frames_rendered == 0
     assert {kind: snapshot(scanned, kind) for kind in ("video", "pose")} == before
+    assert not any(p.exists() for p in left)
 
 
 def test_a_rescan_rerenders_only_the_chunks_that_see_the_change_and_no_rgb_byte(scanned):

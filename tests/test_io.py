@@ -110,3 +110,32 @@ def test_a_bounded_read_stops_at_its_limit_and_json_nesting_is_bounded(tmp_path)
     with pytest.raises(ValueError, match="deep.json: JSON nested 3000 deep"):
         read_json(deep)
     assert json_depth('{"a": [1, {"b": "[[[\\"]]"}]}') == 3 and read_json(big)[0] == 0
+
+
+def test_every_reader_of_a_shard_chunk_video_or_archive_refuses_a_fifo_by_name(tmp_path):
+    import os
+
+    from marionette.bridge.gbuffer import read_gbuffer_meta
+    from marionette.corpus.video_shards import PoseShard, member_index, read_at, read_chunks, read_members
+    from marionette.recordings.wildworld import SampleError, SkeletonArchive, video_info
+    from marionette.video import decode_frames
+    from terrain_scan.trn2 import TerrainFormatError, read_chunk
+
+    fifo = tmp_path / "shard-000000.tar"
+    os.mkfifo(fifo)  # each of these would block on it for ever
+    for read in (
+        read_members,
+        read_chunks,
+        member_index,
+        PoseShard,
+        lambda p: read_at(p, 0, 1),
+        read_gbuffer_meta,
+        decode_frames,
+    ):
+        with pytest.raises(ValueError, match="shard-000000.tar: a FIFO, not a regular file"):
+            read(fifo)
+    for read in (video_info, SkeletonArchive):
+        with pytest.raises(SampleError, match="a FIFO, not a regular file"):
+            read(fifo)
+    with pytest.raises(TerrainFormatError, match="a FIFO, not a regular file"):
+        read_chunk(fifo)

@@ -14,8 +14,10 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
+from marionette.cli import main
 from marionette.corpus import Corpus
-from marionette.play import make_session
+from marionette.play import TOKEN as TOKEN_PATTERN
+from marionette.play import access, make_session
 from marionette.play.guard import MAX_BODY, parse_message
 from marionette.play.server import Server
 
@@ -136,3 +138,63 @@ def test_names_from_a_corpus_reach_the_page_as_text(browser, corpus, tmp_path):
     finally:
         pg.close()
         srv.stop()
+
+
+TOKEN = "a-test-token-0123456789"
+
+
+@pytest.fixture(scope="module")
+def tokened(corpus):
+    """A server bound to every interface, as ``marionette play --host 0.0.0.0 --token ...`` starts it."""
+    segment = Corpus(corpus).segment_ids()[0]
+    session = make_session(None, None, replay=corpus, segment=segment, size=(36, 64), log=lambda *_: None)
+    srv = Server(session, port=0, fps=5, log=lambda *_: None, host="0.0.0.0", token=TOKEN).start()
+    yield srv
+    srv.stop()
+
+
+def raw(srv, method: str, path: str, headers: dict | None = None, body: bytes | None = None) -> http.client.HTTPResponse:
+    conn = http.client.HTTPConnection("127.0.0.1", srv.port, timeout=30)
+    conn.request(method, path, body=body, headers=headers or {})
+    r = conn.getresponse()
+    r.read()
+    conn.close()
+    return r
+
+
+def test_off_loopback_every_request_carries_the_token(tokened):
+    assert TOKEN in tokened.url and any(TOKEN in u for u in tokened.urls)
+    r = raw(tokened, "GET", "/api/status")
+    assert r.status == 401
+    assert raw(tokened, "GET", "/api/status", {"Authorization": "Bearer wrong-token-0123456789"}).status == 401
+    assert raw(tokened, "GET", "/api/status", {"Authorization": f"Bearer {TOKEN}"}).status == 200
+    assert raw(tokened, "GET", "/api/status", {"Authorization": f"Bearer {TOKEN}", "Host": "player.lan:1"}).status == 200
+    page = raw(tokened, "GET", f"/?token={TOKEN}")  # the printed URL: the page, and the token as its cookie
+    cookie = page.getheader("set-cookie")
+    assert page.status == 200 and TOKEN in cookie and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    jar = {"Cookie": cookie.split(";")[0]}
+    assert raw(tokened, "GET", "/api/status", jar).status == 200
+    pause = json.dumps({"paused": True}).encode()
+    kinds = {**jar, "Content-Type": "application/json"}
+    assert raw(tokened, "POST", "/api/pause", {**kinds, "Origin": "http://evil.example"}, pause).status == 403
+    assert raw(tokened, "POST", "/api/pause", {**kinds, "Origin": f"http://127.0.0.1:{tokened.port}"}, pause).status == 200
+    url = f"ws://127.0.0.1:{tokened.port}/ws"
+    with pytest.raises(InvalidStatus) as err:
+        connect(url, open_timeout=30).close()
+    assert err.value.response.status_code == 403
+    with connect(url, additional_headers=jar, open_timeout=30, max_size=None) as ws:
+        ws.send(json.dumps({"type": "pause", "seq": 1, "paused": False}))
+        while not (isinstance(msg := ws.recv(timeout=30), str) and json.loads(msg)["type"] == "reply"):
+            pass
+
+
+def test_another_interface_without_a_token_is_refused_before_anything_loads(corpus, capsys):
+    assert access("127.0.0.1", None) is None and access("localhost", TOKEN) == TOKEN
+    assert TOKEN_PATTERN.fullmatch(access("0.0.0.0", "auto"))
+    with pytest.raises(ValueError, match="--host 0.0.0.0 serves other machines: give --token"):
+        access("0.0.0.0", None)
+    assert main(["play", "--replay", str(corpus), "--host", "0.0.0.0", "--port", "0"]) == 2
+    assert "--token" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["play", "--replay", str(corpus), "--host", "0.0.0.0", "--token", "short"])
+    assert "16 to 256" in capsys.readouterr().err

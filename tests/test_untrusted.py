@@ -361,3 +361,17 @@ def test_every_json_a_command_reads_first_is_refused_by_name_as_a_special_file(c
         ) as err:
             read()
         assert str(path) in str(err.value) and time.monotonic() - t0 < 1.0, err.value
+
+
+def test_a_trees_stages_json_that_cannot_be_read_ends_the_ingest_before_any_sample(synth_source, tmp_path):
+    src = tmp_path / "src"
+    shutil.copytree(synth_source / "data_part1", src / "data_part1")
+    os.mkfifo(src / STAGES_FILE)  # read whole, it would hang the build forever
+    r = subprocess.run(
+        [sys.executable, "-m", "marionette.cli", "ingest", str(src), str(tmp_path / "corpus"), "--quiet", "--no-terrain"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2 and f"{src / STAGES_FILE}: a FIFO, not a regular file" in r.stderr, r.stderr
+    assert not list((tmp_path / "corpus").glob("staging/*"))  # no sample's work was done

@@ -35,7 +35,7 @@ from typing import Any
 import av
 import numpy as np
 
-from marionette.io import atomic_path
+from marionette.io import atomic_path, regular_file
 
 GBUFFER_VERSION = 1
 TAG = "MARIONETTE_GBUFFER"
@@ -212,6 +212,7 @@ def _source(data: Path | bytes, name: str | None) -> tuple[Any, Any]:
     """What ``av.open`` reads (a path, or a file's bytes, e.g. a webdataset member) and what errors call it."""
     if isinstance(data, bytes | bytearray):
         return io.BytesIO(data), name or "<bytes>"
+    regular_file(Path(data))  # a FIFO would block the decoder
     return str(data), name or data
 
 

@@ -392,6 +392,9 @@ def render_pose_targets(
     jitter_key = None if jitter is None else jitter.key()
     out_dir = paths.pose_targets_dir(corpus.path, jitter_key)
     with corpus_lock(corpus.path, "pose targets"):
+        if out_dir.is_dir():  # no other pass writes here while this one holds the lock: a temp file is a killed pass's
+            for stale in out_dir.glob(".*.tmp"):
+                stale.unlink(missing_ok=True)
         bar = None
         if progress:
             from tqdm import tqdm

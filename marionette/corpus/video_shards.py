@@ -28,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from marionette.corpus.paths import CorpusPathError, chunk_key, parse_chunk_key
-from marionette.io import atomic_path
+from marionette.io import atomic_path, regular_file
 
 RGB_KIND = "rgb.mp4"  # a chunk's recorded RGB (H.264)
 CHUNK_KIND = "json"  # a chunk's record: its source frames, cameras, keys
@@ -80,6 +80,7 @@ def _checked(tar: tarfile.TarFile, path: Path) -> Iterator[tuple[tarfile.TarInfo
 def read_members(path: Path) -> list[tuple[str, bytes]]:
     """Every member (name, bytes) of a shard, in order, each checked (module docstring)."""
     path = Path(path)
+    regular_file(path)
     try:
         with tarfile.open(path) as tar:
             return [(m.name, tar.extractfile(m).read()) for m, _, _ in _checked(tar, path)]
@@ -91,6 +92,7 @@ def read_chunks(path: Path, segment: str | None = None, kinds: tuple[str, ...] =
     """Chunk key → {kind: bytes} of a shard's chunks (of one ``segment``, if given), reading only ``kinds``."""
     path = Path(path)
     out: dict[str, dict[str, bytes]] = {}
+    regular_file(path)
     try:
         with tarfile.open(path) as tar:
             for m, key, kind in _checked(tar, path):
@@ -141,6 +143,7 @@ def member_digests(path: Path) -> list[tuple[str, str]]:
     """(name, sha256) of every member of a shard, in order, each checked; the bytes are streamed, never held."""
     path = Path(path)
     out = []
+    regular_file(path)
     try:
         with tarfile.open(path) as tar:
             for m, _, _ in _checked(tar, path):
@@ -158,6 +161,7 @@ def member_index(path: Path) -> dict[str, dict[str, tarfile.TarInfo]]:
     are read. ``offset_data`` and ``size`` of a header locate its bytes in the file (``read_at``)."""
     path = Path(path)
     out: dict[str, dict[str, tarfile.TarInfo]] = {}
+    regular_file(path)
     try:
         with tarfile.open(path) as tar:
             for m, key, kind in _checked(tar, path):
@@ -170,6 +174,7 @@ def member_index(path: Path) -> dict[str, dict[str, tarfile.TarInfo]]:
 def read_at(path: Path, offset: int, size: int) -> bytes:
     """``size`` bytes of a shard from ``offset`` (a member located by ``member_index``), or a ValueError naming the
     shard when it holds fewer (it changed since it was indexed)."""
+    regular_file(path)
     with open(path, "rb") as f:
         f.seek(offset)
         data = f.read(size)
@@ -188,6 +193,7 @@ class PoseShard:
         self._index: dict[str, tarfile.TarInfo] = {}
         if not self.path.exists():
             return
+        regular_file(self.path)
         try:
             tar = tarfile.open(self.path)  # noqa: SIM115 (held open for ``get``; ``close`` closes it)
         except tarfile.TarError as exc:

@@ -127,6 +127,7 @@ def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, pro
     skipped: list[tuple[str, str]] = []
     refs = discover(source, skipped)
     check_source(source, refs)
+    stage_map = load_stage_map(source)  # read (and checked) before any sample's work
     refs, clashing = check_keys(refs)
     skipped += clashing
     results: list[SampleResult] = []
@@ -149,6 +150,6 @@ def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, pro
                     bar.update(1)
     if bar:
         bar.close()
-    info = finalize(corpus, options, load_stage_map(source))
+    info = finalize(corpus, options, stage_map)
     results.sort(key=lambda r: r.sample)
     return {"info": info, "results": [r.__dict__ for r in results], "skipped": [[str(p), why] for p, why in skipped]}

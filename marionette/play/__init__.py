@@ -10,12 +10,44 @@ bridge's rendering of one frame and the stage map, ``page.html`` the page.
 from __future__ import annotations
 
 import argparse
+import re
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
 from marionette.dynamics.controls import parse_rules
 from marionette.knobs import add_options, option
 from marionette.options import int_in, non_negative_float, non_negative_int, positive_int, size_hxw
+
+LOOPBACK_NAMES = ("127.0.0.1", "localhost")  # the names a server that only this machine reaches answers to
+
+
+def serve_host(s: str) -> str:
+    """An argparse type: an interface to bind, a host name or an IP address."""
+    if not s or any(c.isspace() for c in s) or "/" in s or s.count(":") == 1:
+        raise argparse.ArgumentTypeError(f"expected a host name or an IP address (no scheme, port or path), not {s!r}")
+    return s
+
+
+TOKEN = re.compile(r"[A-Za-z0-9_-]{16,256}")
+
+
+def token_value(s: str) -> str:
+    """An argparse type: a server token (``TOKEN``), or ``auto``."""
+    if s != "auto" and not TOKEN.fullmatch(s):
+        raise argparse.ArgumentTypeError("a token is 16 to 256 of A-Z a-z 0-9 _ -, or 'auto' to draw one")
+    return s
+
+
+def access(host: str, token: str | None) -> str | None:
+    """The token a server on ``host`` runs with: None on loopback unless one is given; elsewhere the one given, drawn
+    for ``auto``; a ValueError naming ``--token`` where a non-loopback host has none."""
+    if token is None and host not in LOOPBACK_NAMES:
+        raise ValueError(
+            f"--host {host} serves other machines: give --token SECRET (or --token auto to draw one); every request "
+            "must then carry it"
+        )
+    return secrets.token_urlsafe(24) if token == "auto" else token
 
 
 def port_number(s: str) -> int:
@@ -43,7 +75,18 @@ class PlayOptions:
         metavar="CORPUS",
     )
     segment: str | None = option(None, "segment to seed from (live; default the longest held-out one) or to replay")
-    port: int = option(8765, "port on 127.0.0.1 (0: any free port)", parse=port_number)
+    port: int = option(8765, "port to serve on (0: any free port)", parse=port_number)
+    host: str = option(
+        "127.0.0.1",
+        "interface to serve on; another than 127.0.0.1 or localhost reaches other machines and needs --token",
+        parse=serve_host,
+    )
+    token: str | None = option(
+        None,
+        "the secret every request must carry when --host is not loopback (16 or more of A-Z a-z 0-9 _ -, or 'auto' to "
+        "draw one); the URL printed at start-up holds it",
+        parse=token_value,
+    )
     size: tuple[int, int] = option((176, 320), "the view's size, HxW", parse=size_hxw, metavar="HxW")
     fps: float | None = option(
         None,
@@ -124,13 +167,16 @@ def make_session(
     )
 
 
-def serve(port: int = 8765, fps: float | None = None, log=print, **session_args) -> None:
-    """Serve the play page on 127.0.0.1:``port`` until interrupted."""
+def serve(
+    port: int = 8765, fps: float | None = None, log=print, host: str = "127.0.0.1", token: str | None = None, **session_args
+) -> None:
+    """Serve the play page on ``host``:``port`` until interrupted (another host than loopback with a token: ``access``)."""
     from .server import Server
 
+    token = access(host, token)  # before the session is made: a missing token costs nothing
     session = make_session(log=log, **session_args)
-    server = Server(session, port=port, fps=fps, log=log).start()
-    log(f"play: {session.kind} session on {server.url} (open it in a browser; Ctrl-C stops)")
+    server = Server(session, port=port, fps=fps, log=log, host=host, token=token).start()
+    log(f"play: {session.kind} session on {' and '.join(server.urls)} (open it in a browser; Ctrl-C stops)")
     try:
         server.wait()
     finally:

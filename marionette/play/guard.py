@@ -2,7 +2,10 @@
 in front of the app refuses, before any route runs,
 
 - a request whose ``Host`` is not one of the loopback names with the served port (421): a page on another site that
-  rebinds its DNS name to 127.0.0.1 reaches the port, but with its own name in ``Host``;
+  rebinds its DNS name to 127.0.0.1 reaches the port, but with its own name in ``Host``; a server bound to another
+  interface has a token instead (``marionette play --host ... --token``), and every request must carry it (401): as
+  ``?token=`` in the URL printed at start-up (the page's answer then sets it as a cookie for its later requests), as
+  that cookie, or as ``Authorization: Bearer <token>`` from a script;
 - a websocket, or a request other than GET and HEAD, whose ``Origin`` is not the served origin (403; a client
   that sends no ``Origin``, as scripts do, is let through): another site's page may not drive the model;
 - a POST whose body is not ``application/json`` (415: a browser sends ``text/plain`` from any page without asking
@@ -12,6 +15,7 @@ A body sent without a length (chunked) is cut off by the route at ``MAX_BODY`` a
 
 from __future__ import annotations
 
+import hmac
 import json
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
@@ -19,8 +23,8 @@ from typing import Any
 from starlette.requests import Request
 
 from marionette.io import json_depth
+from marionette.play import LOOPBACK_NAMES
 
-LOOPBACK_NAMES = ("127.0.0.1", "localhost")
 MAX_BODY = 64 << 10
 MAX_DEPTH = 32  # JSON nesting a message may have; the page's deepest is 3
 
@@ -33,28 +37,72 @@ class BodyTooLarge(ValueError):
 
 
 class LocalOnly:
-    """The checks of the module docstring, around ``app``."""
+    """The checks of the module docstring, around ``app``; ``token``: the secret of a server bound to another
+    interface than loopback (None: loopback, the ``Host`` allow-list instead)."""
 
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
+    def __init__(self, app: ASGIApp, token: str | None = None) -> None:
+        self.app, self.token = app, token
 
     async def __call__(self, scope: Scope, receive, send) -> None:
         if scope["type"] in ("http", "websocket"):
-            problem = refusal(scope)
+            problem = refusal(scope, self.token)
             if problem is not None:
                 await _refuse(scope, receive, send, *problem)
                 return
+            if self.token is not None and scope["type"] == "http" and _query_token(scope) is not None:
+                send = _setting_cookie(send, _cookie_name(scope), self.token)
         await self.app(scope, receive, send)
 
 
-def refusal(scope: Scope) -> tuple[int, str] | None:
+def _cookie_name(scope: Scope) -> str:
+    port = scope["server"][1] if scope.get("server") else 0
+    return f"marionette-token-{port}"  # a cookie is per host, not per port: one per server
+
+
+def _query_token(scope: Scope) -> str | None:
+    for pair in scope.get("query_string", b"").decode("latin-1").split("&"):
+        name, _, value = pair.partition("=")
+        if name == "token":
+            return value
+    return None
+
+
+def _tokens(scope: Scope, headers: dict[str, str]) -> list[str]:
+    """The tokens a request carries: in its query, its cookie, its Authorization header."""
+    out = [t for t in [_query_token(scope)] if t is not None]
+    name = _cookie_name(scope)
+    for part in headers.get("cookie", "").split(";"):
+        key, _, value = part.strip().partition("=")
+        if key == name:
+            out.append(value)
+    kind, _, value = headers.get("authorization", "").partition(" ")
+    if kind.lower() == "bearer":
+        out.append(value.strip())
+    return out
+
+
+def _setting_cookie(send, name: str, token: str):
+    """``send`` with the token set as an HttpOnly, same-site cookie on the response it starts."""
+
+    async def wrapped(message: dict) -> None:
+        if message["type"] == "http.response.start":
+            cookie = f"{name}={token}; Path=/; HttpOnly; SameSite=Strict".encode("latin-1")
+            message = {**message, "headers": [*message.get("headers", []), (b"set-cookie", cookie)]}
+        await send(message)
+
+    return wrapped
+
+
+def refusal(scope: Scope, token: str | None = None) -> tuple[int, str] | None:
     """(status, why) for a request ``LocalOnly`` refuses, else None."""
     headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
     port = scope["server"][1] if scope.get("server") else None
     allowed = [f"{name}:{port}" for name in LOOPBACK_NAMES]
     host = headers.get("host", "")
-    if host not in allowed:
+    if token is None and host not in allowed:
         return 421, f"host {host!r} is not this server's (it answers {' or '.join(allowed)})"
+    if token is not None and not any(hmac.compare_digest(t.encode(), token.encode()) for t in _tokens(scope, headers)):
+        return 401, "this server asks for its token: open the URL it printed at start-up, or send Authorization: Bearer <token>"
     method = scope.get("method", "GET")
     origin = headers.get("origin")
     if (scope["type"] == "websocket" or method not in ("GET", "HEAD")) and origin is not None and origin != f"http://{host}":

@@ -1,4 +1,5 @@
-"""The play page's server: a Starlette app on uvicorn, bound to 127.0.0.1, with a websocket for frames and control.
+"""The play page's server: a Starlette app on uvicorn, bound to 127.0.0.1 (another interface only with a token), with
+a websocket for frames and control.
 
 One thread (``Player``) owns the session and its GL context: it calls ``session.advance()`` at the session's
 frame rate (``fps`` 0: as fast as it can) and hands each frame to every connected page. A page that cannot keep
@@ -22,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import socket
 import threading
 import time
 from collections import deque
@@ -36,6 +38,7 @@ from starlette.responses import HTMLResponse, JSONResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
+from . import LOOPBACK_NAMES
 from .guard import BodyTooLarge, LocalOnly, parse_message, read_body
 from .playable import Playable
 
@@ -173,8 +176,9 @@ def _page() -> str:
     return resources.files("marionette.play").joinpath("page.html").read_text(encoding="utf-8")
 
 
-def create_app(session: Playable, fps: float | None = None, log=print) -> Starlette:
-    """The play app over ``session``; its ``Player`` starts with the app and stops (closing the session) with it."""
+def create_app(session: Playable, fps: float | None = None, log=print, token: str | None = None) -> Starlette:
+    """The play app over ``session``; its ``Player`` starts with the app and stops (closing the session) with it.
+    ``token``: the secret every request must carry (``guard.LocalOnly``; None on loopback)."""
     player = Player(session, fps, log)
 
     @contextlib.asynccontextmanager
@@ -288,20 +292,26 @@ def create_app(session: Playable, fps: float | None = None, log=print) -> Starle
         Route("/api/{kind}", api_post, methods=["POST"]),
         WebSocketRoute("/ws", ws),
     ]
-    app = Starlette(routes=routes, lifespan=lifespan, middleware=[Middleware(LocalOnly)])
+    app = Starlette(routes=routes, lifespan=lifespan, middleware=[Middleware(LocalOnly, token=token)])
     app.state.player = player
     return app
 
 
 class Server:
-    """The app on uvicorn at 127.0.0.1:``port`` (0: a free port) in a background thread: ``start``, ``wait``, ``stop``."""
+    """The app on uvicorn at ``host``:``port`` (0: a free port) in a background thread: ``start``, ``wait``, ``stop``.
+    ``host`` is 127.0.0.1 unless ``token`` is given (``marionette.play.access``): then every request must carry it."""
 
-    def __init__(self, session: Playable, port: int = 8765, fps: float | None = None, log=print) -> None:
+    def __init__(
+        self, session: Playable, port: int = 8765, fps: float | None = None, log=print, host: str = HOST, token: str | None = None
+    ) -> None:
         import uvicorn
 
-        self.app = create_app(session, fps, log)
+        if token is None and host not in LOOPBACK_NAMES:
+            raise ValueError(f"the play server binds {host} only with a token")
+        self.host, self.token = host, token
+        self.app = create_app(session, fps, log, token)
         self.server = uvicorn.Server(
-            uvicorn.Config(self.app, host=HOST, port=int(port), log_level="warning", ws="websockets-sansio", lifespan="on")
+            uvicorn.Config(self.app, host=host, port=int(port), log_level="warning", ws="websockets-sansio", lifespan="on")
         )
         self._thread: threading.Thread | None = None
 
@@ -311,7 +321,16 @@ class Server:
 
     @property
     def url(self) -> str:
-        return f"http://{HOST}:{self.port}/"
+        """The page's address: on this machine, with the token in it where the server has one."""
+        return f"http://{HOST}:{self.port}/" + (f"?token={self.token}" if self.token is not None else "")
+
+    @property
+    def urls(self) -> list[str]:
+        """The page's addresses to print: ``url``, and where the server binds another interface, that one's."""
+        if self.host in LOOPBACK_NAMES:
+            return [self.url]
+        shown = socket.gethostname() if self.host in ("0.0.0.0", "::") else self.host
+        return [f"http://{shown}:{self.port}/?token={self.token}", self.url]
 
     def wait(self) -> None:
         """Block until the server stops (Ctrl-C in this thread stops it: ``serve``)."""
@@ -324,7 +343,7 @@ class Server:
         t0 = time.monotonic()
         while not self.server.started:
             if not self._thread.is_alive() or time.monotonic() - t0 > timeout:
-                raise RuntimeError(f"the play server did not start on {HOST} within {timeout:g} s")
+                raise RuntimeError(f"the play server did not start on {self.host} within {timeout:g} s")
             time.sleep(0.05)
         return self
 

@@ -334,6 +334,10 @@ class SkeletonArchive:
         if not self.path.exists():
             raise SampleError(f"{self.path}: missing")
         try:
+            regular_file(self.path)  # a FIFO would block the zip reader
+        except ValueError as exc:
+            raise SampleError(str(exc)) from None
+        try:
             with self._open() as z:
                 self._members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}
         except SampleError:
@@ -451,6 +455,10 @@ def video_info(path: Path) -> tuple[int, float, int, int]:
     path = Path(path)
     if not path.exists():
         raise SampleError(f"{path}: missing")
+    try:
+        regular_file(path)  # a FIFO would block the demuxer
+    except ValueError as exc:
+        raise SampleError(str(exc)) from None
     try:
         with av.open(str(path)) as c:
             s = c.streams.video[0]
