@@ -33,7 +33,7 @@ import torch
 from safetensors.torch import save_file
 from torch import Tensor
 
-from marionette.io import atomic_dir, read_json, read_tensors, write_bytes
+from marionette.io import atomic_dir, read_bounded, read_json, read_tensors, regular_file, write_bytes
 
 CHECKPOINT_VERSION = 1
 STEP_DIR = re.compile(r"step-\d{8}")
@@ -137,13 +137,12 @@ def latest_checkpoint(out: Path) -> Path | None:
     p = Path(out) / "latest"
     if not p.exists():
         return None
-    if p.stat().st_size > 64:
-        raise ValueError(f"{p}: {p.stat().st_size} bytes, not a one-line checkpoint name")
-    name = p.read_text(errors="replace").strip()
+    name = read_bounded(p, 64, "a one-line checkpoint name").decode(errors="replace").strip()
     d = Path(out) / name
-    if not STEP_DIR.fullmatch(name) or d.is_symlink() or not (d / "meta.json").is_file():
-        raise ValueError(f"{p}: names {name!r}, which is not a complete checkpoint step-NNNNNNNN in {out}")
-    return d
+    if STEP_DIR.fullmatch(name) and not d.is_symlink() and (d / "meta.json").exists():
+        regular_file(d / "meta.json")  # a FIFO or a device is named as such
+        return d
+    raise ValueError(f"{p}: names {name!r}, which is not a complete checkpoint step-NNNNNNNN in {out}")
 
 
 def read_meta(ckpt: Path) -> dict:

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from marionette.corpus.lock import corpus_lock
+from marionette.io import printable
 
 
 @dataclass
@@ -57,7 +58,7 @@ class RefreshReport:
                 "ground is not where their characters stood): calibrate it (`marionette calibrate-depth <recordings> "
                 "--corpus <corpus>`), then scan again (`marionette terrain scan <corpus>`)"
             )
-        return out
+        return [printable(line) for line in out]  # recording names from outside, control characters escaped
 
 
 def refresh(

@@ -19,7 +19,7 @@ from marionette.corpus.lock import corpus_lock
 from marionette.corpus.stages import UNPLACED, read_stage_file, write_placements
 from marionette.fanout import Mapper, pool_mapper, worker_identity
 from marionette.ingest.finalize import write_metadata
-from marionette.io import file_sha256, text_sha256
+from marionette.io import file_sha256, printable, text_sha256
 from marionette.recordings.wildworld import DEPTH_FILE, SampleError, SampleRef
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
@@ -290,7 +290,7 @@ def _place_recordings(
         near = {st: _near(Stage(paths.stage_dir(corpus, st))) for st in existing}
         placements = place(list(seen.items()), near, _new_stage_name)
         for p in placements:
-            log(f"terrain: placed {p.line()}")
+            log(printable(f"terrain: placed {p.line()}"))
             o = outcomes[p.recording]
             placed[p.recording] = p.stage
             found[p.recording] = {"stage": p.stage, "scan": key}
@@ -317,7 +317,7 @@ def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
         if out.contact_gap_m is not None:
             gap = out.contact_gap_m
             report.setdefault("mapping_failed", {})[sample] = None if gap != gap else round(gap, 4)
-        log(f"terrain {st}: {sample}: not scanned: {out.reason}")
+        log(printable(f"terrain {st}: {sample}: not scanned: {out.reason}"))
     elif out.unchanged:
         report["unchanged"].append(sample)
     else:
@@ -334,8 +334,10 @@ def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
             }
         )
         log(
-            f"terrain {st}: scanned {sample} on {out.worker}: {res.frames_used} frames, {len(res.observations)} cell "
-            f"observations, ground {'unseen where the feet stood' if gap != gap else f'{gap:+.3f} m from the feet'}"
+            printable(
+                f"terrain {st}: scanned {sample} on {out.worker}: {res.frames_used} frames, {len(res.observations)} cell "
+                f"observations, ground {'unseen where the feet stood' if gap != gap else f'{gap:+.3f} m from the feet'}"
+            )
         )
 
 

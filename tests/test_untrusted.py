@@ -354,13 +354,20 @@ def test_every_json_a_command_reads_first_is_refused_by_name_as_a_special_file(c
         (plant(tmp_path / "src" / STAGES_FILE), lambda: load_stage_map(tmp_path / "src")),
         (plant(ckpt / "meta.json"), lambda: read_meta(ckpt)),
     ]
-    for path, read in cases:
+
+    def refused(path: Path, read) -> None:
         t0 = time.monotonic()
         with pytest.raises(
             ValueError, match="a FIFO, not a regular file" if special == "fifo" else "a character device, not a"
         ) as err:
             read()
         assert str(path) in str(err.value) and time.monotonic() - t0 < 1.0, err.value
+
+    for path, read in cases:
+        refused(path, read)
+    (ckpt.parent / "latest").write_text(ckpt.name)
+    refused(ckpt / "meta.json", lambda: latest_checkpoint(ckpt.parent))  # named by a training directory's latest
+    refused(plant(ckpt.parent / "latest"), lambda: latest_checkpoint(ckpt.parent))
 
 
 def test_a_trees_stages_json_that_cannot_be_read_ends_the_ingest_before_any_sample(synth_source, tmp_path):
