@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import os
 import shutil
 from pathlib import Path
@@ -133,3 +134,25 @@ def test_each_bad_value_costs_only_its_sample_and_every_name_gets_a_key_of_its_o
     info = c.info
     assert (info.total_samples, info.total_ingested, info.total_quarantined) == (len(records), len(ingested), len(reasons))
     assert info.total_frames == sum(s["frames"] for s in segments)
+
+
+def test_a_recording_committed_under_another_key_is_held_once(synth_source, tmp_path):
+    """A corpus whose record of a recording carries a key another version's naming made: the next ingest commits the
+    recording under today's key and drops the other record and its shard, so the recording is never held twice."""
+    src = tmp_path / "src"
+    _copy(synth_source, src, "data_part1", "rec0000")
+    corpus = tmp_path / "corpus"
+    build_corpus(src, corpus, TEST_OPTIONS, workers=1, progress=False)
+    samples = corpus / "meta" / "samples"
+    (record,) = samples.glob("*.json")
+    rec = json.loads(record.read_text())
+    old_shard = corpus / "state" / f"shard-{rec['shard']:06d}.arrow"
+    rec["key"] = "data_part1__rec0000--0123456789ab"  # as an older naming would have keyed it
+    record.unlink()
+    (samples / f"{rec['key']}.json").write_text(json.dumps(rec))
+    build_corpus(src, corpus, TEST_OPTIONS, workers=1, progress=False)
+    assert sorted(p.stem for p in samples.glob("*.json")) == ["data_part1__rec0000"]
+    c = Corpus(corpus)
+    assert c.samples["sample"].to_pylist() == ["data_part1/rec0000"]
+    assert len(set(c.segments["segment"].to_pylist())) == c.segments.num_rows
+    assert not old_shard.exists() and c.info.total_frames == sum(c.segments["frames"].to_pylist())

@@ -127,8 +127,19 @@ def _plan(corpus: Path, options_key: str | None) -> dict:
     # a shard number is never given to another recording, even after its own was retired
     used = [n for r in committed.values() for n in (r.get("shard"), r.get("retired_shard")) if n is not None]
     next_shard = max(used) + 1 if used else 0
-    moves, deletes, records = [], [], []
+    moves, deletes, records, drops = [], [], [], []
+    keys_of: dict[str, list[str]] = {}
+    for key, r in committed.items():
+        keys_of.setdefault(r.get("sample"), []).append(key)
     for rec in staged:
+        # the same recording committed under another key (a key made by another version's naming): it goes, its
+        # shard with it, so a recording is never held twice
+        for key in keys_of.get(rec["sample"], []):
+            if key != rec["key"]:
+                drops.append(key)
+                if committed[key].get("shard") is not None:
+                    name = paths.shard_name(committed[key]["shard"])
+                    deletes += [f"state/{name}.arrow", f"video/{name}.tar"]
         old = committed.get(rec["key"]) or {}
         own = old.get("shard") if old.get("shard") is not None else old.get("retired_shard")
         stage = f"staging/{rec['key']}"
@@ -144,11 +155,11 @@ def _plan(corpus: Path, options_key: str | None) -> dict:
                 rec["retired_shard"] = own
                 deletes += [f"state/{paths.shard_name(own)}.arrow", f"video/{paths.shard_name(own)}.tar"]
         records.append(rec)
-    return {"records": records, "moves": moves, "deletes": deletes}
+    return {"records": records, "moves": moves, "deletes": deletes, "drops": drops}
 
 
-def _checked_plan(corpus: Path, plan: object, where: str) -> tuple[list, list, list]:
-    """(moves, deletes, records) of a plan, every entry checked to name a path of this corpus: a plan is
+def _checked_plan(corpus: Path, plan: object, where: str) -> tuple[list, list, list, list]:
+    """(moves, deletes, records, drops) of a plan, every entry checked to name a path of this corpus: a plan is
     read back from disk, so nothing in it is trusted, and nothing is touched unless all of it is valid."""
     if not isinstance(plan, dict) or not all(isinstance(plan.get(k), list) for k in ("moves", "deletes", "records")):
         raise ValueError(f"{where}: not a finalize plan (moves, deletes, records)")
@@ -172,12 +183,15 @@ def _checked_plan(corpus: Path, plan: object, where: str) -> tuple[list, list, l
             raise ValueError(f"{where}: records[{i}] is not a sample record")
         paths.check_id(rec.get("key"), "sample key", f"{where}: records[{i}]")
         records.append(rec)
-    return moves, deletes, records
+    if not isinstance(plan.get("drops", []), list):
+        raise ValueError(f"{where}: drops is not a list of sample keys")
+    drops = [paths.sample_record(corpus, k, f"{where}: drops") for k in plan.get("drops", [])]
+    return moves, deletes, records, drops
 
 
 def _execute(corpus: Path, plan: dict, where: str) -> None:
     """Carry out a plan; every step is safe to repeat after a crash."""
-    moves, deletes, records = _checked_plan(corpus, plan, where)
+    moves, deletes, records, drops = _checked_plan(corpus, plan, where)
     for src_p, dst_p, h in moves:
         if src_p.exists():
             staged = src_p.parent / "record.json"
@@ -191,6 +205,8 @@ def _execute(corpus: Path, plan: dict, where: str) -> None:
     for rec in records:
         write_json(paths.sample_record(corpus, rec["key"]), rec)
         shutil.rmtree(paths.staging_dir(corpus, rec["key"]), ignore_errors=True)
+    for p in drops:
+        p.unlink(missing_ok=True)
 
 
 def finish_pending(corpus: Path) -> bool:
