@@ -16,8 +16,9 @@ from websockets.sync.client import connect
 
 from marionette.cli import main
 from marionette.corpus import Corpus
-from marionette.play import TOKEN as TOKEN_PATTERN
-from marionette.play import access, make_session
+from marionette.play import make_session
+from marionette.play.access import TOKEN as TOKEN_PATTERN
+from marionette.play.access import access
 from marionette.play.guard import MAX_BODY, parse_message
 from marionette.play.server import Server
 

@@ -23,7 +23,7 @@ from typing import Any
 from starlette.requests import Request
 
 from marionette.io import json_depth
-from marionette.play import LOOPBACK_NAMES
+from marionette.play.access import LOOPBACK_NAMES
 
 MAX_BODY = 64 << 10
 MAX_DEPTH = 32  # JSON nesting a message may have; the page's deepest is 3

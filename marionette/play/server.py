@@ -38,7 +38,7 @@ from starlette.responses import HTMLResponse, JSONResponse
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from . import LOOPBACK_NAMES
+from .access import LOOPBACK_NAMES
 from .guard import BodyTooLarge, LocalOnly, parse_message, read_body
 from .playable import Playable
 
@@ -299,7 +299,7 @@ def create_app(session: Playable, fps: float | None = None, log=print, token: st
 
 class Server:
     """The app on uvicorn at ``host``:``port`` (0: a free port) in a background thread: ``start``, ``wait``, ``stop``.
-    ``host`` is 127.0.0.1 unless ``token`` is given (``marionette.play.access``): then every request must carry it."""
+    ``host`` is 127.0.0.1 unless ``token`` is given (``play.access``): then every request must carry it."""
 
     def __init__(
         self, session: Playable, port: int = 8765, fps: float | None = None, log=print, host: str = HOST, token: str | None = None
