@@ -21,7 +21,7 @@ from av.video.reformatter import VideoReformatter
 
 from marionette.corpus import video_shards
 from marionette.io import regular_file
-from marionette.recordings.wildworld import SampleError
+from marionette.recordings.errors import SampleError
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,8 @@ import open3d as o3d
 from av.video.reformatter import VideoReformatter
 
 from marionette.geometry import quat_to_matrix
-from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, RecordedSample, SampleError, SampleRef, read_sample
+from marionette.recordings.errors import SampleError
+from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, RecordedSample, SampleRef, read_sample
 from marionette.schema import Layout
 
 from .depth import DepthDecoder, depth_edges, smooth_codes

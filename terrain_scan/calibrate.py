@@ -16,7 +16,8 @@ from typing import TypeVar
 import numpy as np
 
 from marionette.io import atomic_path
-from marionette.recordings.wildworld import SampleError, SampleRef, SampleSkipped
+from marionette.recordings.errors import SampleError, SampleSkipped
+from marionette.recordings.wildworld import SampleRef
 from marionette.schema import Layout
 from terrain_scan.contact_scale import ContactPoints, contact_points, fit_contact_scale
 from terrain_scan.depth import CODES, DepthDecoder

@@ -20,7 +20,8 @@ from marionette.corpus.stages import UNPLACED, read_stage_file, write_placements
 from marionette.fanout import Mapper, pool_mapper, worker_identity
 from marionette.ingest.finalize import write_metadata
 from marionette.io import file_sha256, printable, text_sha256
-from marionette.recordings.wildworld import DEPTH_FILE, SampleError, SampleRef
+from marionette.recordings.errors import SampleError
+from marionette.recordings.wildworld import DEPTH_FILE, SampleRef
 from terrain_scan.accumulate import ScanResult, scan_recording
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.grouping import place

@@ -23,7 +23,9 @@ from marionette.dynamics.config import DynamicsConfig
 from marionette.io import read_ipc, read_json, write_ipc
 from marionette.observation.config import OBS_PRESETS, ObservationConfig
 from marionette.play.guard import parse_message
-from marionette.recordings.wildworld import SampleError, SkeletonArchive, load_edges
+from marionette.recordings.errors import SampleError
+from marionette.recordings.skeleton_archive import SkeletonArchive
+from marionette.recordings.wildworld import load_edges
 from marionette.schema import load_scene
 
 # the suite's examples are drawn the same way every run (derandomized); MARIONETTE_FUZZ_EXAMPLES=5000 searches afresh

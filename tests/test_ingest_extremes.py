@@ -18,7 +18,8 @@ from fixtures.corpora import TEST_OPTIONS
 
 from marionette.corpus import Corpus
 from marionette.ingest import build_corpus
-from marionette.recordings.wildworld import SampleError, SampleRef
+from marionette.recordings.errors import SampleError
+from marionette.recordings.wildworld import SampleRef
 from marionette.schema import load_scene
 from terrain_scan.accumulate import scan_recording
 from terrain_scan.depth import DepthDecoder

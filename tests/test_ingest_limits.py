@@ -22,7 +22,8 @@ import pytest
 from fixtures.corpora import TEST_OPTIONS
 
 from marionette.ingest import build_corpus, discover
-from marionette.recordings.wildworld import SampleError, SkeletonArchive
+from marionette.recordings.errors import SampleError
+from marionette.recordings.skeleton_archive import SkeletonArchive
 from terrain_scan.options import ScanOptions
 from terrain_scan.scan import scan_stages
 from terrain_scan.trn2 import Chunk, TerrainFormatError, read_chunk

@@ -117,7 +117,9 @@ def test_every_reader_of_a_shard_chunk_video_or_archive_refuses_a_fifo_by_name(t
 
     from marionette.bridge.gbuffer import read_gbuffer_meta
     from marionette.corpus.video_shards import PoseShard, member_index, read_at, read_chunks, read_members
-    from marionette.recordings.wildworld import SampleError, SkeletonArchive, video_info
+    from marionette.recordings.errors import SampleError
+    from marionette.recordings.skeleton_archive import SkeletonArchive
+    from marionette.recordings.wildworld import video_info
     from marionette.video import decode_frames
     from terrain_scan.trn2 import TerrainFormatError, read_chunk
 

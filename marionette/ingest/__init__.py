@@ -27,16 +27,8 @@ from marionette.ingest.sample import (
     split_of,
 )
 from marionette.io import read_json
-from marionette.recordings.wildworld import (
-    RGB_FILE,
-    SKELETON_FILE,
-    STAGES_FILE,
-    STATE_FILE,
-    SampleError,
-    SampleRef,
-    discover,
-    read_sample,
-)
+from marionette.recordings.errors import SampleError
+from marionette.recordings.wildworld import RGB_FILE, SKELETON_FILE, STAGES_FILE, STATE_FILE, SampleRef, discover, read_sample
 from marionette.schema import SchemaError
 from marionette.video import VideoSettings
 

@@ -21,17 +21,16 @@ from marionette import geometry as geo
 from marionette.corpus import paths, state_table
 from marionette.ingest.survey import recording_layout
 from marionette.io import file_sha256, printable, read_json, text_sha256, write_ipc, write_json
+from marionette.recordings.errors import SampleError, SampleSkipped
+from marionette.recordings.skeleton_archive import MAX_MEMBER_BYTES
 from marionette.recordings.wildworld import (
     DEPTH_FILE,
     MAX_FRAME_PIXELS,
-    MAX_MEMBER_BYTES,
     RGB_FILE,
     SKELETON_FILE,
     STATE_FILE,
     RecordedSample,
-    SampleError,
     SampleRef,
-    SampleSkipped,
     check_in_tree,
     read_sample,
 )

@@ -32,16 +32,15 @@ import pyarrow.compute as pc
 
 from marionette.geometry import quat_to_matrix
 from marionette.io import write_json
+from marionette.recordings.errors import SampleError
+from marionette.recordings.skeleton_archive import MAX_MEMBER_BYTES, SkeletonArchive
 from marionette.recordings.wildworld import (
     DEPTH_FILE,
-    MAX_MEMBER_BYTES,
     REQUIRED_FILES,
     RGB_FILE,
     SKELETON_FILE,
     STATE_FILE,
-    SampleError,
     SampleRef,
-    SkeletonArchive,
     check_in_tree,
     csv_header,
     discover,
