@@ -269,20 +269,25 @@ def json_depth(text: str) -> int:
     return deepest
 
 
-def read_json(path: Path, max_bytes: int = 64 << 20, max_depth: int = MAX_JSON_DEPTH):
-    """A JSON file's value, through ``read_bounded``; a ValueError naming the file when it is not a regular file, too
-    large, nested past ``max_depth`` or not JSON."""
-    raw = read_bounded(path, max_bytes, "a JSON file")
+def loads_json(raw: bytes | str, where: str, max_depth: int = MAX_JSON_DEPTH):
+    """The value of JSON text from outside, nested at most ``max_depth`` deep (measured before it is parsed); a
+    ValueError naming ``where`` when it is not UTF-8 JSON or nested deeper."""
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8") if isinstance(raw, bytes) else raw
     except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
+        raise ValueError(f"{where}: not JSON ({exc})") from None
     if (depth := json_depth(text)) > max_depth:
-        raise ValueError(f"{path}: JSON nested {depth} deep, past the limit of {max_depth}")
+        raise ValueError(f"{where}: JSON nested {depth} deep, past the limit of {max_depth}")
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
+        raise ValueError(f"{where}: not JSON ({exc})") from None
+
+
+def read_json(path: Path, max_bytes: int = 64 << 20, max_depth: int = MAX_JSON_DEPTH):
+    """A JSON file's value, through ``read_bounded`` and ``loads_json``; a ValueError naming the file when it is not a
+    regular file, too large, nested past ``max_depth`` or not JSON."""
+    return loads_json(read_bounded(path, max_bytes, "a JSON file"), str(path), max_depth)
 
 
 def read_tensors(path: Path) -> dict:

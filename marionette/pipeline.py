@@ -52,9 +52,9 @@ class RefreshReport:
             )
         for kind, failed in self.failures().items():
             out += [f"{kind} failed: {name}: {why}" for name, why in sorted(failed.items())]
-        if self.mapping_failed():
+        if misfits := self.mapping_failed():
             out.append(
-                f"depth mapping: it does not fit {len(self.mapping_failed())} recording(s), kept out of the terrain (their "
+                f"depth mapping: it does not fit {len(misfits)} recording(s), kept out of the terrain (their "
                 "ground is not where their characters stood): calibrate it (`marionette calibrate-depth <recordings> "
                 "--corpus <corpus>`), then scan again (`marionette terrain scan <corpus>`)"
             )

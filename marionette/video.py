@@ -21,7 +21,7 @@ from av.video.reformatter import VideoReformatter
 
 from marionette.corpus import video_shards
 from marionette.io import regular_file
-from marionette.recordings.errors import SampleError
+from marionette.recordings.errors import SampleError, regular_input
 
 
 @dataclass(frozen=True)
@@ -151,9 +151,11 @@ def encode_mp4(frames: np.ndarray, fps: float, settings: VideoSettings, params: 
 
 def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, np.ndarray] | list[np.ndarray]:
     """Decode RGB frames; all as a list, or only ``indices`` as {frame: array}."""
-    if not isinstance(path_or_bytes, bytes | bytearray):
+    if isinstance(path_or_bytes, bytes | bytearray):
+        src = io.BytesIO(path_or_bytes)
+    else:
         regular_file(Path(path_or_bytes))  # a FIFO would block the decoder
-    src = io.BytesIO(path_or_bytes) if isinstance(path_or_bytes, bytes | bytearray) else str(path_or_bytes)
+        src = str(path_or_bytes)
     out_d: dict[int, np.ndarray] = {}
     out_l: list[np.ndarray] = []
     rgb = VideoReformatter()  # one swscale context for the stream (a frame's own ``to_ndarray`` makes one per frame)
@@ -172,10 +174,7 @@ def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, n
 
 def _open_video(path: Path) -> av.container.InputContainer:
     """Open a video with at least one video stream; anything else raises SampleError naming the file."""
-    try:
-        regular_file(Path(path))  # a FIFO would block the decoder
-    except ValueError as exc:
-        raise SampleError(str(exc)) from None
+    regular_input(Path(path))
     try:
         c = av.open(str(path))
     except av.error.FFmpegError as exc:

@@ -237,8 +237,9 @@ def contact_positions(
 GAP_CELL_M = 0.5  # the depth's ground and the contacts are compared on cells this small
 
 
-def _cell_keys(p: np.ndarray, cell_m: float) -> np.ndarray:
-    gx, gz = (np.floor(p[:, k] / cell_m).astype(np.int64) for k in (0, 2))
+def cell_keys(x: np.ndarray, z: np.ndarray, cell_m: float) -> np.ndarray:
+    """One int64 per ``cell_m`` cell of world x, z (any within ±2·10⁹ cells of the origin)."""
+    gx, gz = (np.floor(np.asarray(v) / cell_m).astype(np.int64) for v in (x, z))
     return gx * 4_294_967_296 + (gz + 2_147_483_648)
 
 
@@ -249,11 +250,10 @@ def contact_gap(ground: np.ndarray, contacts: np.ndarray, cell_m: float = GAP_CE
     centimetres, with ground seen on many contact cells; a wrong one, metres, or no ground where the feet stood."""
     if not len(contacts):
         return float("nan"), 0, 0
-    kc = _cell_keys(contacts, cell_m)
-    common = np.intersect1d(kc, _cell_keys(ground, cell_m)) if len(ground) else np.zeros(0, np.int64)
+    kc, kg = cell_keys(contacts[:, 0], contacts[:, 2], cell_m), cell_keys(ground[:, 0], ground[:, 2], cell_m)
+    common = np.intersect1d(kc, kg)
     if not len(common):
         return float("nan"), 0, len(np.unique(kc))
-    kg = _cell_keys(ground, cell_m)
 
     def medians(keys: np.ndarray, y: np.ndarray) -> np.ndarray:
         m = np.isin(keys, common)
@@ -267,15 +267,9 @@ def contact_gap(ground: np.ndarray, contacts: np.ndarray, cell_m: float = GAP_CE
     return float(np.median(gaps)), len(common), len(np.unique(kc))
 
 
-def contact_observations(
-    sample: RecordedSample, layout: Layout, ts: int, speed: float = 0.2, window: int = 2, tol_m: float = 0.05, hits: int = 1
-) -> Observations:
-    """Ground contacts of every articulated entity (``contact_positions``) as observations of their cells."""
-    return contacts_as_observations(contact_positions(sample, layout, speed, window, tol_m), ts, hits)
-
-
-def contacts_as_observations(q: np.ndarray, ts: int, hits: int = 1) -> Observations:
-    """Contact positions (n, 3) as observations of their cells: height exact, normal +Y, weight ``hits``."""
+def contact_observations(q: np.ndarray, ts: int, hits: int = 1) -> Observations:
+    """Ground contacts (``contact_positions``, (n, 3)) as observations of their cells: height exact, normal +Y,
+    weight ``hits``."""
     if not len(q):
         return Observations.empty()
     return Observations(
@@ -563,7 +557,7 @@ def scan_sample(
     if n and sample.entities:
         q = contact_positions(sample, layout, contact_speed, contact_window, contact_tol_m)
         res.contact_gap_m, res.contact_gap_cells, res.contact_cells = contact_gap(p, q)
-        contacts = contacts_as_observations(q, ts, contact_hits)
+        contacts = contact_observations(q, ts, contact_hits)
     res.contacts_added = len(contacts)
     res.observations = merge(Observations.concat([depth_obs, contacts]))
     return res

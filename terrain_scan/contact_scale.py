@@ -17,7 +17,7 @@ import numpy as np
 
 from marionette.recordings.wildworld import DEPTH_FILE, SampleRef, read_sample
 from marionette.schema import Layout
-from terrain_scan.accumulate import contact_positions, depth_frames, frame_points
+from terrain_scan.accumulate import cell_keys, contact_positions, depth_frames, frame_points
 from terrain_scan.depth import DepthDecoder
 
 CONTACT_CELL_M = 0.25  # contacts and depth points are compared on cells this small (slopes move a 1 m cell's points)
@@ -27,9 +27,8 @@ CONTACT_SCALE_RANGE = (0.8, 1.25)  # a scale outside this is not applied: the co
 
 
 def _cell_key(x: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """One int64 per ``CONTACT_CELL_M`` cell of world x, z (any within ±5·10⁸ m of the origin)."""
-    gx, gz = (np.floor(np.asarray(v) / CONTACT_CELL_M).astype(np.int64) for v in (x, z))
-    return gx * 4_294_967_296 + (gz + 2_147_483_648)
+    """One int64 per ``CONTACT_CELL_M`` cell of world x, z (``accumulate.cell_keys``)."""
+    return cell_keys(x, z, CONTACT_CELL_M)
 
 
 @dataclass

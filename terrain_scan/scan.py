@@ -316,8 +316,7 @@ def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
     if out.reason is not None:
         report["failed"][sample] = out.reason
         if out.contact_gap_m is not None:
-            gap = out.contact_gap_m
-            report.setdefault("mapping_failed", {})[sample] = None if gap != gap else round(gap, 4)
+            report.setdefault("mapping_failed", {})[sample] = _gap_json(out.contact_gap_m)
         log(printable(f"terrain {st}: {sample}: not scanned: {out.reason}"))
     elif out.unchanged:
         report["unchanged"].append(sample)
@@ -330,7 +329,7 @@ def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
                 "sample": sample,
                 **res.counters(),
                 "observations": len(res.observations),
-                "contact_gap_m": None if gap != gap else round(gap, 4),
+                "contact_gap_m": _gap_json(gap),
                 "worker": out.worker,
             }
         )
@@ -340,6 +339,11 @@ def _commit(S: Stage, out: ScanOutcome, report: dict, log) -> None:
                 f"observations, ground {'unseen where the feet stood' if gap != gap else f'{gap:+.3f} m from the feet'}"
             )
         )
+
+
+def _gap_json(gap: float) -> float | None:
+    """A contact gap as a report holds it: metres to the tenth of a millimetre, None where no cell held both."""
+    return None if gap != gap else round(gap, 4)
 
 
 def _reason(exc: Exception, ref: SampleRef) -> str:

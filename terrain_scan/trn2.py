@@ -140,15 +140,16 @@ def read_chunk(path: Path, at: tuple[int, int] | None = None) -> Chunk:
     where = str(path)
     try:
         regular_file(path)  # a FIFO would block the read
-        with open(path, "rb") as fh:
-            size = os.fstat(fh.fileno()).st_size
-            cx, cz, max_layers = _header(fh.read(HEADER.size), where)
-            _check_size(size, max_layers, where)
-            body = fh.read(size - HEADER.size)
+        fh = open(path, "rb")  # noqa: SIM115 (closed by the with below)
     except FileNotFoundError:
         raise TerrainFormatError(f"{path}: no such chunk file") from None
     except ValueError as exc:  # not a regular file
         raise TerrainFormatError(str(exc)) from None
+    with fh:
+        size = os.fstat(fh.fileno()).st_size
+        cx, cz, max_layers = _header(fh.read(HEADER.size), where)
+        _check_size(size, max_layers, where)
+        body = fh.read(size - HEADER.size)
     _check_size(HEADER.size + len(body), max_layers, where)  # the file changed while it was read
     if at is not None and (cx, cz) != tuple(at):
         raise TerrainFormatError(f"{path}: header says chunk ({cx}, {cz}), the file name ({at[0]}, {at[1]})")
@@ -157,7 +158,6 @@ def read_chunk(path: Path, at: tuple[int, int] | None = None) -> Chunk:
 
 def write_chunk(path: Path, chunk: Chunk) -> None:
     """Write one chunk file atomically."""
-
     write_bytes(path, chunk.to_bytes())
 
 

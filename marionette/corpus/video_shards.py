@@ -77,29 +77,33 @@ def _checked(tar: tarfile.TarFile, path: Path) -> Iterator[tuple[tarfile.TarInfo
         yield m, key, kind
 
 
-def read_members(path: Path) -> list[tuple[str, bytes]]:
-    """Every member (name, bytes) of a shard, in order, each checked (module docstring)."""
-    path = Path(path)
+@contextlib.contextmanager
+def _open_shard(path: Path) -> Iterator[tarfile.TarFile]:
+    """A shard opened for reading: a regular file only (``regular_file``: a FIFO would block the read), and a tar
+    error while it is read raised as a ``CorpusPathError`` naming it."""
     regular_file(path)
     try:
         with tarfile.open(path) as tar:
-            return [(m.name, tar.extractfile(m).read()) for m, _, _ in _checked(tar, path)]
+            yield tar
     except tarfile.TarError as exc:
         raise CorpusPathError(f"{path}: not a readable tar ({exc})") from None
+
+
+def read_members(path: Path) -> list[tuple[str, bytes]]:
+    """Every member (name, bytes) of a shard, in order, each checked (module docstring)."""
+    path = Path(path)
+    with _open_shard(path) as tar:
+        return [(m.name, tar.extractfile(m).read()) for m, _, _ in _checked(tar, path)]
 
 
 def read_chunks(path: Path, segment: str | None = None, kinds: tuple[str, ...] = VIDEO_KINDS) -> dict[str, dict[str, bytes]]:
     """Chunk key → {kind: bytes} of a shard's chunks (of one ``segment``, if given), reading only ``kinds``."""
     path = Path(path)
     out: dict[str, dict[str, bytes]] = {}
-    regular_file(path)
-    try:
-        with tarfile.open(path) as tar:
-            for m, key, kind in _checked(tar, path):
-                if kind in kinds and (segment is None or parse_chunk_key(key)[0] == segment):
-                    out.setdefault(key, {})[kind] = tar.extractfile(m).read()
-    except tarfile.TarError as exc:
-        raise CorpusPathError(f"{path}: not a readable tar ({exc})") from None
+    with _open_shard(path) as tar:
+        for m, key, kind in _checked(tar, path):
+            if kind in kinds and (segment is None or parse_chunk_key(key)[0] == segment):
+                out.setdefault(key, {})[kind] = tar.extractfile(m).read()
     return out
 
 
@@ -143,16 +147,12 @@ def member_digests(path: Path) -> list[tuple[str, str]]:
     """(name, sha256) of every member of a shard, in order, each checked; the bytes are streamed, never held."""
     path = Path(path)
     out = []
-    regular_file(path)
-    try:
-        with tarfile.open(path) as tar:
-            for m, _, _ in _checked(tar, path):
-                h, f = hashlib.sha256(), tar.extractfile(m)
-                while block := f.read(1 << 20):
-                    h.update(block)
-                out.append((m.name, h.hexdigest()))
-    except tarfile.TarError as exc:
-        raise CorpusPathError(f"{path}: not a readable tar ({exc})") from None
+    with _open_shard(path) as tar:
+        for m, _, _ in _checked(tar, path):
+            h, f = hashlib.sha256(), tar.extractfile(m)
+            while block := f.read(1 << 20):
+                h.update(block)
+            out.append((m.name, h.hexdigest()))
     return out
 
 
@@ -161,13 +161,9 @@ def member_index(path: Path) -> dict[str, dict[str, tarfile.TarInfo]]:
     are read. ``offset_data`` and ``size`` of a header locate its bytes in the file (``read_at``)."""
     path = Path(path)
     out: dict[str, dict[str, tarfile.TarInfo]] = {}
-    regular_file(path)
-    try:
-        with tarfile.open(path) as tar:
-            for m, key, kind in _checked(tar, path):
-                out.setdefault(key, {})[kind] = m
-    except tarfile.TarError as exc:
-        raise CorpusPathError(f"{path}: not a readable tar ({exc})") from None
+    with _open_shard(path) as tar:
+        for m, key, kind in _checked(tar, path):
+            out.setdefault(key, {})[kind] = m
     return out
 
 

@@ -22,7 +22,7 @@ from typing import Any
 
 from starlette.requests import Request
 
-from marionette.io import json_depth
+from marionette.io import loads_json
 from marionette.play.access import LOOPBACK_NAMES
 
 MAX_BODY = 64 << 10
@@ -138,14 +138,5 @@ async def read_body(request: Request) -> bytes:
 
 
 def parse_message(raw: str | bytes) -> Any:
-    """A message's JSON, nested at most ``MAX_DEPTH`` deep (a ValueError naming what is wrong otherwise)."""
-    try:
-        text = raw.decode("utf-8") if isinstance(raw, bytes) else raw
-    except UnicodeDecodeError as err:
-        raise ValueError(f"the body is not JSON: {err}") from None
-    if json_depth(text) > MAX_DEPTH:
-        raise ValueError(f"a message is nested at most {MAX_DEPTH} levels deep")
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ValueError(f"the body is not JSON: {err}") from None
+    """A message's JSON, nested at most ``MAX_DEPTH`` deep (``io.loads_json``: a ValueError naming what is wrong)."""
+    return loads_json(raw, "the message", MAX_DEPTH)

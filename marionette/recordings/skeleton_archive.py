@@ -11,8 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from marionette.io import regular_file
-from marionette.recordings.errors import SampleError
+from marionette.recordings.errors import SampleError, regular_input
 
 MAX_MEMBER_BYTES = 2 << 30  # default cap on one inflated skeleton.npz member (IngestOptions.max_member_bytes)
 MAX_JOINTS = 1024  # no rig comes near this; a member declaring more joints is refused unread
@@ -44,10 +43,7 @@ class SkeletonArchive:
         self.max_member_bytes = int(max_member_bytes)
         if not self.path.exists():
             raise SampleError(f"{self.path}: missing")
-        try:
-            regular_file(self.path)  # a FIFO would block the zip reader
-        except ValueError as exc:
-            raise SampleError(str(exc)) from None
+        regular_input(self.path)
         try:
             with self._open() as z:
                 self._members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith(".npy")}

@@ -28,8 +28,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
-from marionette.io import read_json, regular_file
-from marionette.recordings.errors import SampleError, SampleSkipped
+from marionette.io import read_json
+from marionette.recordings.errors import SampleError, SampleSkipped, regular_input
 from marionette.recordings.skeleton_archive import MAX_MEMBER_BYTES, SkeletonArchive
 from marionette.schema import FIELD_RANGES, Entity, Layout
 
@@ -126,11 +126,8 @@ def check_in_tree(ref: SampleRef) -> None:
             if not target.is_relative_to(root):
                 raise SampleError(f"symlink leaves the source tree: {p} → {target}")
     for p in (ref.edges_path, *(ref.path / f for f in REQUIRED_FILES)):
-        if p.exists():  # a FIFO or device would hang or never end the reads that follow: refused from its stat
-            try:
-                regular_file(p)
-            except ValueError as exc:
-                raise SampleError(str(exc)) from None
+        if p.exists():
+            regular_input(p)
 
 
 @dataclass
@@ -313,10 +310,7 @@ def video_info(path: Path) -> tuple[int, float, int, int]:
     path = Path(path)
     if not path.exists():
         raise SampleError(f"{path}: missing")
-    try:
-        regular_file(path)  # a FIFO would block the demuxer
-    except ValueError as exc:
-        raise SampleError(str(exc)) from None
+    regular_input(path)
     try:
         with av.open(str(path)) as c:
             s = c.streams.video[0]
