@@ -20,18 +20,18 @@ def scanned(scanned_copy):
 
 
 def first_chunk(corpus):
-    """(video json record, pose.mkv bytes) of the first chunk of the first shard."""
+    """(video json record, pose.gbz bytes) of the first chunk of the first shard."""
     c = Corpus(corpus)
     n = c.shard_ids()[0]
     joined = read_joined(c.video_path(n), c.pose_path(n), c.shard_hash(n))
     m = joined[sorted(joined)[0]]
-    return json.loads(m["json"]), m["pose.mkv"]
+    return json.loads(m["json"]), m["pose.gbz"]
 
 
 def test_recorded_camera_render_matches_the_pose_target(scanned, tmp_path):
     rec, pose = first_chunk(scanned)
-    (tmp_path / "target.mkv").write_bytes(pose)
-    target, _ = decode_gbuffer(tmp_path / "target.mkv")
+    (tmp_path / "target.gbz").write_bytes(pose)
+    target, _ = decode_gbuffer(tmp_path / "target.gbz")
     h, w = rec["resize"]
     out = tmp_path / "seg.mkv"
     assert main(["render", str(scanned), "--segment", rec["segment"], "--size", f"{h}x{w}", "--out", str(out)]) == 0

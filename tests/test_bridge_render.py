@@ -101,48 +101,64 @@ def test_occlusion_and_near_terrain_culling(rast):
     assert (ids_of(near) == 200).sum() > 50
 
 
-def test_front_faces_alone_draw_what_both_faces_draw(rast, monkeypatch):
-    """Capsules beyond the near plane are drawn with back faces culled: the same picture but for pixels on a silhouette
-    edge; a capsule at the near plane (or around the camera) is drawn with both faces, its inside seen."""
-    import marionette.bridge.render as render
+def traced_capsules(cam: Cameras, bones) -> tuple[np.ndarray, np.ndarray]:
+    """The id (−1: none) and view depth (m) each pixel's ray meets first among capsules wholly in front of the camera,
+    in float64: the entry into the nearer ball or the cylinder's side between them."""
+    K, R, o = cam.K[0], cam.rot[0], cam.pos[0]
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    d = np.stack([(u - K[2]) / K[0], -(v - K[3]) / K[1], -np.ones_like(u)], -1) @ R.T  # world rays, camera at o
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    best, ids = np.full((H, W), np.inf), np.full((H, W), -1)
+    for a, b, r, ident in zip(*bones):
+        a, b = np.asarray(a) - o, np.asarray(b) - o
+        hits = []
+        for c in (a, b):
+            h = d @ c
+            disc = h * h - (c @ c - r * r)
+            hits.append(np.where(disc >= 0, h - np.sqrt(np.maximum(disc, 0)), np.inf))
+        n = (b - a) / np.linalg.norm(b - a)
+        dn, an = d @ n, -(a @ n)
+        dp, ap = d - dn[..., None] * n, -a - an * n
+        qa, qb, qc = np.sum(dp * dp, -1), dp @ ap, ap @ ap - r * r
+        disc = qb * qb - qa * qc
+        t = (-qb - np.sqrt(np.maximum(disc, 0))) / qa
+        s = an + t * dn
+        hits.append(np.where((disc >= 0) & (s >= 0) & (s <= np.linalg.norm(b - a)), t, np.inf))
+        t = np.minimum.reduce(hits)
+        nearer = t < best
+        best[nearer], ids[nearer] = t[nearer], int(ident)
+    depth = best * -(d @ R[:, 2])  # along the optical axis, the camera looking down its −Z
+    return ids, depth
 
+
+def test_capsules_are_traced_exactly(rast):
+    """Every pixel of a bone is the capsule the pixel's ray meets first (ids and depths against a float64 trace of the
+    same rays), silhouettes included; a camera inside a capsule sees its inside."""
     rng = np.random.default_rng(3)
     cam = camera([0.0, 2.0, 9.0], [0.0, 1.0, 0.0])
-    rast.set_terrain(*grid(-30, 30, -30, 30, 0.0))
-    scenes = []
+    rast.set_terrain(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    meta = GBufferMeta(width=W, height=H, fps=30.0, **RANGE)
+    drawn = wrong = 0
     for _ in range(12):
         a = rng.normal(size=(30, 3)) * [1.5, 0.6, 1.5] + [0.0, 1.2, 0.0]
-        scenes.append(
-            (a, a + rng.normal(size=(30, 3)) * 0.4, rng.uniform(0.03, 0.3, 30), rng.integers(100, 250, 30).astype(float))
-        )
-    culled = []
-    beyond = render.capsules_beyond
-    monkeypatch.setattr(render, "capsules_beyond", lambda *a: culled.append(beyond(*a)) or culled[-1])
-    front = [ids_of(rast.render(cam, 0, bones, **RANGE)) for bones in scenes]
-    monkeypatch.setattr(render, "capsules_beyond", lambda *a: False)
-    both = [ids_of(rast.render(cam, 0, bones, **RANGE)) for bones in scenes]
-    assert culled == [True] * len(scenes)
-    drawn = sum(int((b >= 100).sum()) for b in both)
-    differ = [np.argwhere(f != b) for f, b in zip(front, both)]
-    assert drawn > 10_000 and sum(map(len, differ)) <= drawn * 1e-3
-    for img, pixels in zip(both, differ):  # each on an edge: a neighbour holds another id
-        for y, x in pixels:
-            patch = img[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2]
-            assert (patch != img[y, x]).any(), (y, x)
-    # through the near plane (0.3 m): culling would open the capsule; both faces are drawn
-    through = (
-        np.array([[0.0, 2.0, 8.9], [0.0, 2.0, 8.5]]),
-        np.array([[0.0, 2.0, 7.0], [0.4, 2.0, 8.5]]),
-        np.array([0.5, 0.2]),
-        np.array([200.0, 210.0]),
-    )
-    assert not beyond(through[0] - cam.pos[0], through[1] - cam.pos[0], through[2], cam.rot[0][:, 2], RANGE["z_near"])
-    monkeypatch.setattr(render, "capsules_beyond", beyond)
+        bones = (a, a + rng.normal(size=(30, 3)) * 0.4, rng.uniform(0.03, 0.3, 30), rng.integers(100, 250, 30).astype(float))
+        f = decode_codes(to_codes(rast.render(cam, 0, bones, **RANGE)), meta)
+        want, depth = traced_capsules(cam, bones)
+        covered = (want >= 0) | (f.id >= 0)
+        drawn, wrong = drawn + int(covered.sum()), wrong + int((f.id != want).sum())
+        for y, x in np.argwhere(f.id != want):  # only where the ray grazes a silhouette: a neighbour holds another id
+            patch = want[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2]
+            assert (patch != want[y, x]).any(), (y, x)
+        same = (f.id == want) & (want >= 0)
+        assert np.abs(f.depth[same] - depth[same]).max() <= meta.depth_bound() + 1e-4
+    assert drawn > 10_000 and wrong <= drawn * 2e-3, (drawn, wrong)
+    through = (np.array([[0.0, 2.0, 8.9]]), np.array([[0.0, 2.0, 7.0]]), np.array([0.5]), np.array([200.0]))
     inside = ids_of(rast.render(cam, 0, through, **RANGE))
-    assert (inside == 200).mean() > 0.3  # the camera is inside the first capsule: its inside fills half the view and more
+    assert (inside == 200).all()  # the camera is inside the capsule: its inside fills the view
 
 
-def test_codec_round_trip(rast, tmp_path):
+@pytest.mark.parametrize("suffix", [".gbz", ".mkv"])
+def test_codec_round_trip(rast, tmp_path, suffix):
     layout = load_scene("duel")
     skel = standing_pair(layout, origin=(-950.0, 30.0, 850.0))
     cam = camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0], origin=(-950.0, 30.0, 850.0))
@@ -150,8 +166,9 @@ def test_codec_round_trip(rast, tmp_path):
     rng = dict(h_min=20.0, h_max=45.0, z_near=0.3, z_far=120.0)
     frames = [rast.render(cam, 0, bone_segments(layout, skel, i), **rng) for i in range(len(skel))]
     meta = GBufferMeta(width=W, height=H, fps=30.0, **rng)
-    assert write_gbuffer(tmp_path / "pose.mkv", frames, meta) == len(frames)
-    decoded, _ = decode_gbuffer(tmp_path / "pose.mkv")
+    assert write_gbuffer(tmp_path / f"pose{suffix}", frames, meta) == len(frames)
+    decoded, back = decode_gbuffer(tmp_path / f"pose{suffix}")
+    assert back == meta
     assert len(decoded) == len(frames)
     for img, f in zip(frames, decoded):
         want_ids = np.where(img.sum(-1) > 0, ids_of(img), BACKGROUND_ID)
@@ -168,28 +185,29 @@ def test_codec_round_trip(rast, tmp_path):
         assert np.all((f.height[bones] > 30.0 - meta.height_bound(False)) & (f.height[bones] < 34.0))
 
 
-def test_overlapped_encoding_writes_the_serial_bytes_and_raises_either_sides_error(tmp_path):
+@pytest.mark.parametrize("suffix", [".gbz", ".mkv"])
+def test_overlapped_encoding_writes_the_serial_bytes_and_raises_either_sides_error(tmp_path, suffix):
     """The encoder thread (``write_gbuffer(overlap=True)``, the default from 72 × 128 pixels up) writes the bytes of
     the serial loop; a bad frame fails naming it, and an error while producing frames reaches the caller; neither
     leaves a file."""
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 1024, (3, H, W), dtype=np.uint16) for _ in range(12)]
     meta = GBufferMeta(width=W, height=H, fps=30.0, h_min=0.0, h_max=10.0, z_near=0.3, z_far=100.0)
-    assert write_gbuffer(tmp_path / "a.mkv", iter(frames), meta, overlap=True) == 12
-    assert write_gbuffer(tmp_path / "b.mkv", iter(frames), meta, overlap=False) == 12
-    assert (tmp_path / "a.mkv").read_bytes() == (tmp_path / "b.mkv").read_bytes()
+    assert write_gbuffer(tmp_path / f"a{suffix}", iter(frames), meta, overlap=True) == 12
+    assert write_gbuffer(tmp_path / f"b{suffix}", iter(frames), meta, overlap=False) == 12
+    assert (tmp_path / f"a{suffix}").read_bytes() == (tmp_path / f"b{suffix}").read_bytes()
     bad = frames[:5] + [np.zeros((3, H + 1, W), np.uint16)] + frames[5:]
     with pytest.raises(ValueError, match="frame 5"):
-        write_gbuffer(tmp_path / "bad.mkv", iter(bad), meta, overlap=True)
+        write_gbuffer(tmp_path / f"bad{suffix}", iter(bad), meta, overlap=True)
 
     def broken():
         yield from frames[:3]
         raise RuntimeError("the renderer stopped")
 
     with pytest.raises(RuntimeError, match="renderer stopped"):
-        write_gbuffer(tmp_path / "broken.mkv", broken(), meta, overlap=True)
-    assert not (tmp_path / "bad.mkv").exists() and not (tmp_path / "broken.mkv").exists()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mkv", "b.mkv"]  # no temp file left
+        write_gbuffer(tmp_path / f"broken{suffix}", broken(), meta, overlap=True)
+    assert not (tmp_path / f"bad{suffix}").exists() and not (tmp_path / f"broken{suffix}").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"a{suffix}", f"b{suffix}"]  # no temp file left
 
 
 def test_decoding_rejects_other_files(tmp_path):
@@ -426,12 +444,9 @@ def test_follow_camera_seeded_from_a_start_camera():
         follow_cameras([a, b], fwd, [ok, ok], fps, W + 2, H, start=start)
 
 
-def test_the_fast_code_path_equals_the_float_path(rast, tmp_path):
-    from marionette.bridge.gbuffer import HALF_TO_CODE, iter_codes
+def test_the_code_planes_are_the_float_path_and_either_file_gives_them_back(rast, tmp_path):
+    from marionette.bridge.gbuffer import iter_codes, iter_planes
 
-    h = np.arange(1 << 16, dtype=np.uint16).view(np.float16)
-    ok = np.isfinite(h)
-    np.testing.assert_array_equal(HALF_TO_CODE[ok], to_codes(h[ok].astype(np.float32)))
     layout = load_scene("duel")
     skel = standing_pair(layout, (0.0, 0.0, 0.0))
     cam = camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0])
@@ -441,7 +456,26 @@ def test_the_fast_code_path_equals_the_float_path(rast, tmp_path):
     planes = rast.render_planes(cam, 0, bones, **RANGE)
     np.testing.assert_array_equal(planes, codes.transpose(2, 0, 1)[[1, 2, 0]])
     meta = GBufferMeta(width=W, height=H, fps=30.0, **RANGE)
-    write_gbuffer(tmp_path / "a.mkv", [planes], meta)
-    write_gbuffer(tmp_path / "b.mkv", [codes], meta)
-    assert (tmp_path / "a.mkv").read_bytes() == (tmp_path / "b.mkv").read_bytes()
-    np.testing.assert_array_equal(next(iter_codes(tmp_path / "a.mkv")), codes)
+    for suffix in (".gbz", ".mkv"):
+        write_gbuffer(tmp_path / f"a{suffix}", [planes], meta)
+        write_gbuffer(tmp_path / f"b{suffix}", [codes], meta)
+        assert (tmp_path / f"a{suffix}").read_bytes() == (tmp_path / f"b{suffix}").read_bytes()
+        np.testing.assert_array_equal(next(iter_codes(tmp_path / f"a{suffix}")), codes)
+        np.testing.assert_array_equal(next(iter_planes((tmp_path / f"a{suffix}").read_bytes())), planes)
+    with pytest.raises(ValueError, match="out.mp4: a G-buffer file is .gbz"):
+        write_gbuffer(tmp_path / "out.mp4", [planes], meta)
+
+
+def test_bone_capsules_are_every_frames_bone_segments():
+    from marionette.bridge.kinematics import bone_capsules
+
+    layout = load_scene("duel")
+    skel = standing_pair(layout, (-950.0, 30.0, 850.0), n=5)
+    skel.valid["hunter"][1] = False
+    skel.joints["monster"][3, 2] = np.nan  # a frame whose skeleton cannot be drawn
+    got = list(bone_capsules(layout, skel))
+    assert len(got) == 5
+    for i, frame in enumerate(got):
+        for x, y in zip(frame, bone_segments(layout, skel, i)):
+            np.testing.assert_array_equal(x, y)
+    assert len(got[1][0]) < len(got[0][0]) and len(got[3][0]) < len(got[0][0])

@@ -9,7 +9,7 @@ import av
 import numpy as np
 import pytest
 
-from marionette.bridge.gbuffer import decode_gbuffer
+from marionette.bridge.gbuffer import GBZ_MAGIC, decode_gbuffer, iter_planes
 from marionette.bridge.targets import render_pose_targets
 from marionette.corpus import Corpus, paths
 from marionette.corpus.paths import stage_dir
@@ -29,6 +29,9 @@ def members(tar_path):
 
 
 def frame_count(data: bytes) -> int:
+    """The frames of an RGB video or a G-buffer file."""
+    if data.startswith(GBZ_MAGIC):
+        return sum(1 for _ in iter_planes(data))
     with av.open(io.BytesIO(data)) as c:
         return sum(1 for _ in c.decode(video=0))
 
@@ -61,15 +64,15 @@ def test_every_chunk_gets_a_pose_target_of_equal_length(scanned, tmp_path):
         chunks = [n[: -len(".json")] for n in video if n.endswith(".json")]
         assert chunks
         # keyed like the video chunks, in their order, each target's record first (webdataset joins by key)
-        assert list(pose) == [f"{k}.{kind}" for k in chunks for kind in ("pose.json", "pose.mkv")]
+        assert list(pose) == [f"{k}.{kind}" for k in chunks for kind in ("pose.json", "pose.gbz")]
         for k in chunks:
             rec, pose_rec = json.loads(video[f"{k}.json"]), json.loads(pose[f"{k}.pose.json"])
             assert pose_matches(pose_rec, video[f"{k}.json"], c.shard_hash(shard))
             n = rec["frames"][1] - rec["frames"][0]
-            assert frame_count(video[f"{k}.rgb.mp4"]) == frame_count(pose[f"{k}.pose.mkv"]) == n == pose_rec["frames"]
+            assert frame_count(video[f"{k}.rgb.mp4"]) == frame_count(pose[f"{k}.pose.gbz"]) == n == pose_rec["frames"]
             assert pose_rec["terrain_chunks"]  # the scanned stage is in view
-        p = tmp_path / "pose.mkv"
-        p.write_bytes(pose[f"{chunks[0]}.pose.mkv"])
+        p = tmp_path / "pose.gbz"
+        p.write_bytes(pose[f"{chunks[0]}.pose.gbz"])
         frames, meta = decode_gbuffer(p)  # decoding needs only the file
         h, w = json.loads(video[f"{chunks[0]}.json"])["resize"]
         n = json.loads(pose[f"{chunks[0]}.pose.json"])["frames"]
@@ -133,8 +136,8 @@ def test_a_rescan_rerenders_only_the_chunks_that_see_the_change_and_no_rgb_byte(
     assert set(again.rendered) == seeing and again.failed == {}
     assert {p.name: p.read_bytes() for p in (scanned / "pose").glob("*.tar")} == before
     assert snapshot(scanned, "video") == videos
-    used = {f"{k}-{r['key']}.mkv" for k, r in pose_records(scanned).items()}
-    assert {p.name for p in (scanned / "derived" / "pose").glob("*.mkv")} == used
+    used = {f"{k}-{r['key']}.gbz" for k, r in pose_records(scanned).items()}
+    assert {p.name for p in (scanned / "derived" / "pose").glob("*.gbz")} == used
 
 
 def test_stale_damaged_and_orphan_pose_shards(scanned):
@@ -147,12 +150,12 @@ def test_stale_damaged_and_orphan_pose_shards(scanned):
     shard = c.shard_ids()[0]
     seg = next(s for s in c.segment_ids() if c.segment_row(s)["shard"] == shard and c.segment_row(s)["chunks"])
     joined = read_joined(c.video_path(shard), c.pose_path(shard), c.shard_hash(shard), seg)
-    assert joined and all("pose.mkv" in m for m in joined.values())
+    assert joined and all("pose.gbz" in m for m in joined.values())
     # another state shard hash: the pose shard is stale for it, nothing is joined
-    assert all("pose.mkv" not in m for m in read_joined(c.video_path(shard), c.pose_path(shard), "0" * 64, seg).values())
+    assert all("pose.gbz" not in m for m in read_joined(c.video_path(shard), c.pose_path(shard), "0" * 64, seg).values())
     key, m = next(iter(joined.items()))
     with PoseShard(c.pose_path(shard)) as ps:
-        assert ps.get(key, m["json"], c.shard_hash(shard))[1] == m["pose.mkv"]
+        assert ps.get(key, m["json"], c.shard_hash(shard))[1] == m["pose.gbz"]
         assert ps.get(key, m["json"] + b" ", c.shard_hash(shard)) is None  # another chunk record
     good = c.pose_path(shard).read_bytes()
     c.pose_path(shard).write_bytes(good[: len(good) // 3])  # truncated

@@ -170,17 +170,17 @@ def test_export_chunk_writes_what_generate_reads(posed, tmp_path, capsys):
     k = n - 1
     out = tmp_path / "chunk"
     assert main(["export-chunk", str(posed), "--segment", seg, "--chunk", str(k), "--out", str(out)]) == 0
-    assert f"--pose {out / 'pose.mkv'} --first-frame {out / 'first.png'}" in capsys.readouterr().out
+    assert f"--pose {out / 'pose.gbz'} --first-frame {out / 'first.png'}" in capsys.readouterr().out
     n = c.segment_row(seg)["shard"]
     member = read_joined(c.video_path(n), c.pose_path(n), c.shard_hash(n), seg)[chunk_key(seg, k)]
-    assert (out / "pose.mkv").read_bytes() == member["pose.mkv"] and (out / "rgb.mp4").read_bytes() == member["rgb.mp4"]
-    frames, meta = decode_gbuffer(out / "pose.mkv")
+    assert (out / "pose.gbz").read_bytes() == member["pose.gbz"] and (out / "rgb.mp4").read_bytes() == member["rgb.mp4"]
+    frames, meta = decode_gbuffer(out / "pose.gbz")
     video = c.info.video
     assert len(frames) == video["chunk_frames"] and (meta.height, meta.width) == (video["height"], video["width"])
     first = read_image(out / "first.png")
     assert np.array_equal(first, decode_frames(member["rgb.mp4"])[0])  # PNG is lossless
     size = (video["height"] // 2, video["width"] // 2)  # a model at half the chunk size, as the demo trains
-    pose, rgb = load_inputs(out / "pose.mkv", out / "first.png", size)
+    pose, rgb = load_inputs(out / "pose.gbz", out / "first.png", size)
     assert tuple(pose.shape) == (video["chunk_frames"], 3, *size) and tuple(rgb.shape) == (3, *size)
 
 

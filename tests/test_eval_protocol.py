@@ -311,7 +311,7 @@ def test_rollout_clips_match_the_recorded_pose_targets(posed, windows, free):
         a = clip.source_frames[0]
         chunk = next(r for r in C.segment_chunks(c, windows[k].segment) if r["frames"][0] <= a < r["frames"][1])
         with tarfile.open(c.pose_path(c.segment_row(windows[k].segment)["shard"])) as tar:
-            target = list(iter_codes(tar.extractfile(f"{chunk['key']}.pose.mkv").read()))[a - chunk["frames"][0]]
+            target = list(iter_codes(tar.extractfile(f"{chunk['key']}.pose.gbz").read()))[a - chunk["frames"][0]]
         ours, theirs = clip.pose[0, 1].numpy() > 0, target[..., 1] > 0
         assert (ours & theirs).sum() >= 0.6 * (ours | theirs).sum() > 0, k  # bone pixels' IoU (the time may differ by < 1/30 s)
         assert clip.pose[0].numpy().max() <= 1 and np.abs(clip.pose[0, 1].numpy() * CODE_MAX - target[..., 1]).mean() < 5

@@ -238,7 +238,7 @@ def test_deployment_builds_on_two_dask_workers(dask_build):
     for tar_path in sorted((corpus / "video").glob("*.tar")):
         with tarfile.open(tar_path) as tar, tarfile.open(corpus / "pose" / tar_path.name) as pose:
             names, posed = tar.getnames(), pose.getnames()
-        assert [n.replace(".pose.mkv", "") for n in posed if n.endswith(".pose.mkv")] == [
+        assert [n.replace(".pose.gbz", "") for n in posed if n.endswith(".pose.gbz")] == [
             n.replace(".rgb.mp4", "") for n in names if n.endswith(".rgb.mp4")
         ]
 
@@ -336,7 +336,7 @@ def test_train_observation_deployment_renders_targets_trains_and_reports(local_p
     ckpt = latest_checkpoint(out)
     assert ckpt is not None and ckpt.name == "step-00000004"
     with tarfile.open(sorted((copy / "pose").glob("*.tar"))[0]) as tar:
-        assert any(n.endswith(".pose.mkv") for n in tar.getnames())  # the flow rendered the targets first
+        assert any(n.endswith(".pose.gbz") for n in tar.getnames())  # the flow rendered the targets first
     artifacts = rest(
         "POST", f"{local_prefect['api']}/artifacts/filter", json={"artifacts": {"key": {"any_": ["train-observation-report"]}}}
     ).json()

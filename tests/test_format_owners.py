@@ -12,7 +12,7 @@ OWNERS = (ROOT / "marionette" / "corpus", ROOT / "marionette" / "recordings")
 # file names a corpus or a recording holds (members of a shard, metadata files, a recording's files)
 NAMES = {
     "rgb.mp4",
-    "pose.mkv",
+    "pose.gbz",
     "pose.json",
     "depth.mkv",
     "state.csv",

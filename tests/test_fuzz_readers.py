@@ -18,6 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from marionette.arrow_footer import ArrowFooterError, declared_batches
+from marionette.bridge.gbuffer import GBufferMeta, iter_planes, read_gbuffer_meta, write_gbuffer
 from marionette.corpus.stages import check_stage_map
 from marionette.dynamics.config import DynamicsConfig
 from marionette.io import read_ipc, read_json, write_ipc
@@ -85,7 +86,15 @@ def seeds(tmp_path_factory) -> dict[str, bytes]:
         "edges": json.dumps({"em_25": [[0, 1], [1, 2]], "npc": [[0, 1]]}).encode(),
         "dynamics": json.dumps(config).encode(),
         "observation": json.dumps(OBS_PRESETS["tiny"].to_json()).encode(),
+        "gbz": _gbz_bytes(d / "seed.gbz"),
     }
+
+
+def _gbz_bytes(tmp: Path) -> bytes:
+    rng = np.random.default_rng(0)
+    frames = [np.where(rng.random((3, 12, 20)) < 0.5, 0, rng.integers(0, 1024, (3, 12, 20))).astype(np.uint16) for _ in range(3)]
+    write_gbuffer(tmp, frames, GBufferMeta(0.0, 10.0, 0.3, 100.0, 20, 12, 30.0))
+    return tmp.read_bytes()
 
 
 def _write(tmp_path: Path, name: str, data: bytes) -> Path:
@@ -121,6 +130,24 @@ def test_an_arrow_file_answers_or_names_the_file_before_inflating_it(seeds, tmp_
         _named(exc, p)
     else:
         assert t.num_rows == 60
+
+
+@FUZZ
+@given(data=st.data())
+def test_a_gbuffer_file_answers_or_names_the_file_before_inflating_it(seeds, tmp_path, data):
+    raw = data.draw(damage(seeds["gbz"]))
+    p = _write(tmp_path, "pose.gbz", raw)
+    for read in (read_gbuffer_meta, lambda f: list(iter_planes(f))):
+        try:
+            read(p)
+        except ValueError as exc:
+            _named(exc, p)
+    try:
+        frames = list(iter_planes(raw, name="shard.tar:pose.gbz"))
+    except ValueError as exc:
+        assert "shard.tar:pose.gbz" in str(exc)
+    else:
+        assert all(f.shape == (3, 12, 20) for f in frames)
 
 
 @FUZZ

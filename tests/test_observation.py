@@ -231,8 +231,8 @@ def test_train_and_generate_commands(obs_corpus, tmp_path):
     )
     c = Corpus(obs_corpus)
     n = c.shard_ids()[0]
-    m = next(m for m in read_joined(c.video_path(n), c.pose_path(n), c.shard_hash(n)).values() if "pose.mkv" in m)
-    (tmp_path / "pose.mkv").write_bytes(m["pose.mkv"])
+    m = next(m for m in read_joined(c.video_path(n), c.pose_path(n), c.shard_hash(n)).values() if "pose.gbz" in m)
+    (tmp_path / "pose.gbz").write_bytes(m["pose.gbz"])
     rgb = decode_frames(m["rgb.mp4"])
     write_image(tmp_path / "first.png", rgb[0])
     out = tmp_path / "gen.mp4"
@@ -240,7 +240,7 @@ def test_train_and_generate_commands(obs_corpus, tmp_path):
         "generate",
         str(runs),
         "--pose",
-        str(tmp_path / "pose.mkv"),
+        str(tmp_path / "pose.gbz"),
         "--first-frame",
         str(tmp_path / "first.png"),
         "--out",

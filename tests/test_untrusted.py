@@ -82,13 +82,13 @@ def test_video_shard_member_outside_the_corpus_is_refused(corpus_copy, tmp_path,
     assert name in report.failed["shard-000000"], report.failed
     assert shard.read_bytes() == shard_bytes  # the refused shard is left as it was
     assert _snapshot(outside) == before
-    assert not any(p.name.startswith("evil-") for p in tmp_path.rglob("*.mkv"))
+    assert not any(p.name.startswith("evil-") for p in tmp_path.rglob("*.gbz"))
     assert report.chunks > 0 and not any(k.startswith("shard-") for k in report.failed if k != "shard-000000")
 
 
-@pytest.mark.parametrize("evil", ["../../../outside/evil.pose.mkv", "x__c00000.rgb.mp4"])
+@pytest.mark.parametrize("evil", ["../../../outside/evil.pose.gbz", "x__c00000.rgb.mp4"])
 def test_pose_shard_member_outside_its_kinds_is_refused(corpus_copy, tmp_path, evil):
-    """A pose shard holds ``<key>.pose.json`` and ``<key>.pose.mkv`` only: anything else refuses the shard (readers
+    """A pose shard holds ``<key>.pose.json`` and ``<key>.pose.gbz`` only: anything else refuses the shard (readers
     skip its chunks, naming it) and the next pose pass writes it again."""
     from marionette.bridge.targets import render_pose_targets
     from marionette.corpus import Corpus

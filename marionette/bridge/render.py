@@ -1,7 +1,16 @@
-"""The rasterizer: terrain mesh + bone capsules → the G-buffer floats, with moderngl on headless EGL.
+"""The rasterizer: terrain mesh + bone capsules → the G-buffer's 10-bit codes, with moderngl on headless EGL.
 
 OpenGL through moderngl, on EGL with no display (Mesa llvmpipe on a CPU, the vendor driver on a GPU).
-One half-float RGBA colour target and a depth buffer; depth test on; background cleared to 0.
+One 32-bit unsigned-integer colour target and a depth buffer; depth test on; background cleared to 0. The
+vertex shaders compute each channel's value before its clamp (affine in the vertex's position, so interpolating
+it is exact), the fragment shader clamps and rounds each to its code round(1023 · v) (``gbuffer``'s module
+docstring) and writes the pixel's three codes packed in one word (``gbuffer.pack_planes``: G | B << 10 |
+R << 20): the frame is read back as the words a ``.gbz`` file stores, with nothing to convert, and one
+target costs llvmpipe less to clear and to write than one per channel. An id's code is integer arithmetic,
+exact on every driver. The projection's y is mirrored so that GL's bottom-up rows land top-down in memory
+(row 0 at the top of the image, as ``camera.Cameras.project`` numbers them); the mirror turns the winding
+of every triangle, so what is counter-clockwise in the image is clockwise to GL, and front faces are
+declared clockwise.
 
 Precision: nothing world-sized reaches float32. The terrain mesh is uploaded relative to an anchor
 (float64 subtraction on the CPU, the stage's first vertex); each frame passes the camera position
@@ -9,18 +18,16 @@ relative to that anchor, and the bone capsules relative to the camera, so a scen
 origin renders like one at the origin. Heights are recovered in the shader from the same relative
 coordinates plus a per-draw float offset (anchor or camera height − h_min), small numbers both.
 
-Capsules are instanced: one unit capsule (two hemispheres joined by a cylinder, ``CAPSULE_SIDES``
-around, ``CAPSULE_RINGS`` per hemisphere) is placed per bone by the vertex shader from the bone's two
-end points and radius. The projection matches ``camera.Cameras.project`` exactly: pixel centres at
-+½, v down; NDC x = 2u/W − 1, y = 1 − 2v/H. Terrain fragments nearer than ``cull_m`` (3 m) are
-discarded; bones never are.
-
-A capsule is a closed convex mesh wound outwards, so behind the near plane's reach only its front faces can be
-seen: where every capsule of a frame lies beyond the near plane (``capsules_beyond``) the bones are drawn with back
-faces culled (llvmpipe renders such a frame 1.4–1.6× as fast up to 352×640: ``benchmarks/bench_bridge.py --part
-faces``). The picture is the same but for a pixel whose centre lies exactly on a silhouette edge, which the
-rasterizer's fill rule may give to the back face.
-A frame with a capsule at the near plane or behind the camera (the camera inside a body) draws both faces.
+Capsules are traced, not tessellated: each bone is drawn as the box around its capsule (instanced, 12 triangles,
+by its far faces, so every pixel it covers is shaded once whether the camera is outside the box or inside it),
+and the fragment shader intersects the pixel's ray with the capsule itself (two balls of the bone's radius at its
+ends and the cylinder between them), discards a pixel whose ray misses it and writes the hit's depth
+(``gl_FragDepth``) for the depth test against the terrain and the other bones: the exact capsule, at a cost of
+triangles that does not grow with its size on screen. The surface seen is the nearest the ray meets beyond the near
+plane: the capsule's outside, or its inside where the camera is within the capsule. The projection matches
+``camera.Cameras.project`` exactly: pixel centres at +½, v down; NDC x = 2u/W − 1, y = 1 − 2v/H. Terrain nearer
+than ``cull_m`` (3 m of view depth) is clipped away (a clip distance, not a discard, so llvmpipe keeps its early
+depth test); bones never are.
 """
 
 from __future__ import annotations
@@ -28,10 +35,9 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Cameras
-from .gbuffer import HALF_TO_CODE
+from .gbuffer import CODE_MAX, unpack_planes
 
-CAPSULE_SIDES = 12
-CAPSULE_RINGS = 4
+GL_CLIP_DISTANCE0 = 0x3000  # glEnable's name of the first clip distance (moderngl has none)
 TERRAIN_CULL_M = 3.0
 
 _VS_TERRAIN = """
@@ -40,13 +46,18 @@ uniform mat4 u_proj;
 uniform mat3 u_view;       // world-to-camera rotation (R^T)
 uniform vec3 u_cam_rel;    // camera position relative to the anchor
 uniform float u_h_off;     // anchor height - h_min
+uniform float u_h_scale;   // 1 / (h_max - h_min)
+uniform float u_z_near;
+uniform float u_z_scale;   // 1 / (z_far - z_near)
+uniform float u_cull;      // terrain nearer than this (m of view depth) is clipped away
 in vec3 in_pos;            // vertex relative to the anchor
-out float v_y;             // world height - h_min
-out float v_depth;         // view depth (m)
+out float v_r;             // 0.5 + 0.5 ĥ
+out float v_b;             // inverse depth
 void main() {
     vec3 p = u_view * (in_pos - u_cam_rel);
-    v_y = in_pos.y + u_h_off;
-    v_depth = -p.z;
+    v_r = 0.5 + 0.5 * (in_pos.y + u_h_off) * u_h_scale;
+    v_b = 1.0 - (-p.z - u_z_near) * u_z_scale;
+    gl_ClipDistance[0] = -p.z - u_cull;
     gl_Position = u_proj * vec4(p, 1.0);
 }
 """
@@ -55,15 +66,16 @@ _VS_BONE = """
 #version 330
 uniform mat4 u_proj;
 uniform mat3 u_view;
-uniform float u_h_off;     // camera height - h_min
-in vec4 in_unit;           // unit capsule: (cos, sin) around, axial offset, end (0 = a, 1 = b)
+in vec3 in_corner;         // unit box corner: (±1, ±1) across the bone, ±1 along it
 in vec3 in_a;              // bone end at the parent, relative to the camera
 in vec3 in_b;              // bone end at the child, relative to the camera
 in float in_r;
 in float in_id;
-out float v_y;
-out float v_depth;
-flat out float v_id;
+out vec3 v_q;              // the box's surface point, relative to the camera (world axes)
+flat out vec3 v_a;
+flat out vec3 v_b;
+flat out float v_rad;
+flat out uint v_g;         // the id's code
 void main() {
     vec3 axis = in_b - in_a;
     float len = length(axis);
@@ -71,32 +83,103 @@ void main() {
     vec3 helper = abs(n.y) < 0.9 ? vec3(0.0, 1.0, 0.0) : vec3(1.0, 0.0, 0.0);
     vec3 u = normalize(cross(n, helper));
     vec3 w = cross(n, u);
-    vec3 q = mix(in_a, in_b, in_unit.w) + in_r * (u * in_unit.x + w * in_unit.y + n * in_unit.z);
-    vec3 p = u_view * q;
-    v_y = q.y + u_h_off;
-    v_depth = -p.z;
-    v_id = in_id;
-    gl_Position = u_proj * vec4(p, 1.0);
+    vec3 q = mix(in_a - in_r * n, in_b + in_r * n, 0.5 + 0.5 * in_corner.z) + in_r * (u * in_corner.x + w * in_corner.y);
+    v_q = q;
+    v_a = in_a;
+    v_b = in_b;
+    v_rad = in_r;
+    v_g = (uint(in_id + 0.5) * 2046u + 255u) / 510u;  // round(1023 · id / 255), never a tie
+    gl_Position = u_proj * vec4(u_view * q, 1.0);
 }
 """
 
-_FS = """
+# The capsule itself, traced along the pixel's ray from the camera (the origin): the ray meets the convex capsule
+# (two balls and the solid cylinder between them) in one interval [t_in, t_out], the union of the three parts'
+# intervals. The nearest end of it beyond the camera and within [z_near, z_far] is the surface seen: t_in from
+# outside, t_out (the inside of the capsule) from within it or where t_in is nearer than z_near.
+_FS_BONE = """
 #version 330
+uniform mat4 u_proj;
+uniform mat3 u_view;
+uniform float u_h_off;     // camera height - h_min
 uniform float u_h_scale;   // 1 / (h_max - h_min)
 uniform float u_z_near;
 uniform float u_z_far;
-uniform float u_cull;      // terrain: discard nearer than this; bones: 0
-uniform int u_terrain;
-in float v_y;
-in float v_depth;
-%s
-out vec4 f_color;
+uniform float u_z_scale;   // 1 / (z_far - z_near)
+in vec3 v_q;
+flat in vec3 v_a;
+flat in vec3 v_b;
+flat in float v_rad;
+flat in uint v_g;
+layout(location = 0) out uint o_codes;   // G | B << 10 | R << 20
+const float FAR = 1e30;
+
+vec2 ball(vec3 d, vec3 c, float r) {       // [t_in, t_out] of the ray t·d (|d| = 1) in the ball, or empty (in > out)
+    float h = dot(c, d);
+    float disc = h * h - (dot(c, c) - r * r);
+    if (disc < 0.0) return vec2(FAR, -FAR);
+    float s = sqrt(disc);
+    return vec2(h - s, h + s);
+}
+
+vec2 cylinder(vec3 d, vec3 a, vec3 b, float r) {   // the solid cylinder between the two end discs
+    vec3 axis = b - a;
+    float len = length(axis);
+    if (len < 1e-6) return vec2(FAR, -FAR);
+    vec3 n = axis / len;
+    float dn = dot(d, n), an = dot(-a, n);          // ray and origin along the axis, from a
+    vec3 dp = d - dn * n, ap = -a - an * n;         // across the axis
+    float qa = dot(dp, dp), qb = dot(ap, dp), qc = dot(ap, ap) - r * r;
+    vec2 iv;
+    if (qa < 1e-12) {
+        if (qc > 0.0) return vec2(FAR, -FAR);
+        iv = vec2(-FAR, FAR);
+    } else {
+        float disc = qb * qb - qa * qc;
+        if (disc < 0.0) return vec2(FAR, -FAR);
+        float s = sqrt(disc);
+        iv = vec2((-qb - s) / qa, (-qb + s) / qa);
+    }
+    if (abs(dn) < 1e-12) {
+        if (an < 0.0 || an > len) return vec2(FAR, -FAR);
+    } else {
+        float t0 = -an / dn, t1 = (len - an) / dn;
+        iv = vec2(max(iv.x, min(t0, t1)), min(iv.y, max(t0, t1)));
+    }
+    return iv;
+}
+
+float depth_of(vec3 d, float t) { return -(u_view * (t * d)).z; }
+
 void main() {
-    if (v_depth < u_cull) discard;
-    float h = clamp(v_y * u_h_scale, 0.0, 1.0);
-    float inv = clamp(1.0 - (v_depth - u_z_near) / (u_z_far - u_z_near), 0.0, 1.0);
-    if (u_terrain == 1) f_color = vec4(0.5 + 0.5 * h, 0.0, inv, 1.0);
-    else f_color = vec4(0.2 * h, %s / 255.0, inv, 1.0);
+    vec3 d = normalize(v_q);
+    vec2 ia = ball(d, v_a, v_rad), ib = ball(d, v_b, v_rad), ic = cylinder(d, v_a, v_b, v_rad);
+    float t_in = FAR, t_out = -FAR;
+    if (ia.x <= ia.y) { t_in = min(t_in, ia.x); t_out = max(t_out, ia.y); }
+    if (ib.x <= ib.y) { t_in = min(t_in, ib.x); t_out = max(t_out, ib.y); }
+    if (ic.x <= ic.y) { t_in = min(t_in, ic.x); t_out = max(t_out, ic.y); }
+    if (t_in > t_out) discard;
+    float t = t_in;
+    if (t <= 0.0 || depth_of(d, t) < u_z_near) t = t_out;
+    float z = depth_of(d, t);
+    if (t <= 0.0 || z < u_z_near || z > u_z_far) discard;
+    vec3 q = t * d;
+    vec4 clip = u_proj * vec4(u_view * q, 1.0);
+    gl_FragDepth = 0.5 + 0.5 * clip.z / clip.w;
+    uint b = uint(floor(clamp(1.0 - (z - u_z_near) * u_z_scale, 0.0, 1.0) * 1023.0 + 0.5));
+    uint r = uint(floor(clamp(0.2 * (q.y + u_h_off) * u_h_scale, 0.0, 0.2) * 1023.0 + 0.5));
+    o_codes = v_g | (b << 10) | (r << 20);
+}
+"""
+
+_FS_TERRAIN = """
+#version 330
+in float v_r;
+in float v_b;
+layout(location = 0) out uint o_codes;   // G | B << 10 | R << 20 (G = 0: terrain)
+uint code(float v) { return uint(floor(v * 1023.0 + 0.5)); }
+void main() {
+    o_codes = (code(clamp(v_b, 0.0, 1.0)) << 10) | (code(clamp(v_r, 0.5, 1.0)) << 20);
 }
 """
 
@@ -115,34 +198,13 @@ def projection(K: np.ndarray, width: int, height: int, z_near: float, z_far: flo
     )
 
 
-def unit_capsule(sides: int = CAPSULE_SIDES, rings: int = CAPSULE_RINGS) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 4) float32 (cos·ρ, sin·ρ, axial, end) and triangles (T, 3) int32 of the unit capsule."""
-    lat = np.concatenate([np.linspace(-np.pi / 2, 0, rings + 1), np.linspace(0, np.pi / 2, rings + 1)])
-    end = np.concatenate([np.zeros(rings + 1), np.ones(rings + 1)])
-    th = 2 * np.pi * np.arange(sides) / sides
-    rho, ax = np.cos(lat), np.sin(lat)
-    V = np.stack(
-        [
-            np.outer(rho, np.cos(th)),
-            np.outer(rho, np.sin(th)),
-            np.repeat(ax[:, None], sides, 1),
-            np.repeat(end[:, None], sides, 1),
-        ],
-        -1,
-    ).reshape(-1, 4)
-    L = len(lat)
-    i = np.arange(L - 1)[:, None] * sides + np.arange(sides)[None]
-    j = np.arange(L - 1)[:, None] * sides + (np.arange(sides)[None] + 1) % sides
-    T = np.concatenate([np.stack([i, j, i + sides], -1).reshape(-1, 3), np.stack([j, j + sides, i + sides], -1).reshape(-1, 3)])
-    return V.astype(np.float32), T.astype(np.int32)
-
-
-def capsules_beyond(a_rel: np.ndarray, b_rel: np.ndarray, r: np.ndarray, back: np.ndarray, z_near: float) -> bool:
-    """Whether every capsule (ends ``a_rel``, ``b_rel`` (B, 3) relative to the camera, radii ``r``) lies wholly
-    beyond the near plane: its view depth (along −``back``, the camera's +Z in the world) at least ``z_near`` plus a
-    margin of 1 % and 1 mm. A capsule's depth is least at one of its ends, less its radius."""
-    depth = np.minimum(-(np.asarray(a_rel) @ back), -(np.asarray(b_rel) @ back)) - np.asarray(r, np.float64)
-    return bool(np.all(depth > z_near * 1.01 + 1e-3))
+def unit_box() -> tuple[np.ndarray, np.ndarray]:
+    """Corners (8, 3) float32 (±1, ±1, ±1) and triangles (12, 3) int32 of the box around a capsule, wound
+    counter-clockwise seen from outside (before the projection's mirror)."""
+    V = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)], np.float32)
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    T = [tri for a, b, c, d in quads for tri in ((a, b, c), (a, c, d))]
+    return V, np.array(T, np.int32)
 
 
 class Rasterizer:
@@ -160,14 +222,17 @@ class Rasterizer:
                 "(Debian: libegl1 libgl1-mesa-dri) or a GPU driver."
             ) from err
         ctx = self.ctx
-        self._color = ctx.renderbuffer((self.width, self.height), 4, dtype="f2")
-        self._depth = ctx.depth_renderbuffer((self.width, self.height))
-        self.fbo = ctx.framebuffer(color_attachments=[self._color], depth_attachment=self._depth)
-        self._terrain_prog = ctx.program(vertex_shader=_VS_TERRAIN, fragment_shader=_FS % ("", "0.0"))
-        self._bone_prog = ctx.program(vertex_shader=_VS_BONE, fragment_shader=_FS % ("flat in float v_id;", "v_id"))
-        V, T = unit_capsule()
-        self._cap_vbo = ctx.buffer(V.tobytes())
-        self._cap_ibo = ctx.buffer(T.tobytes())
+        size = (self.width, self.height)
+        self._codes = ctx.renderbuffer(size, 1, dtype="u4")  # a pixel's packed codes
+        self._depth = ctx.depth_renderbuffer(size)
+        self.fbo = ctx.framebuffer(color_attachments=[self._codes], depth_attachment=self._depth)
+        ctx.front_face = "cw"  # the mirrored projection (module doc)
+        ctx.cull_face = "front"  # a capsule's box is drawn by its far faces: every pixel once, the camera inside or out
+        self._terrain_prog = ctx.program(vertex_shader=_VS_TERRAIN, fragment_shader=_FS_TERRAIN)
+        self._bone_prog = ctx.program(vertex_shader=_VS_BONE, fragment_shader=_FS_BONE)
+        V, T = unit_box()
+        self._box_vbo = ctx.buffer(V.tobytes())
+        self._box_ibo = ctx.buffer(T.tobytes())
         self._inst = None
         self._inst_cap = 0
         self._terrain_vao = None
@@ -208,52 +273,54 @@ class Rasterizer:
             self._inst = self.ctx.buffer(reserve=self._inst_cap * 32)
             self._bone_vao = self.ctx.vertex_array(
                 self._bone_prog,
-                [(self._cap_vbo, "4f", "in_unit"), (self._inst, "3f 3f 1f 1f/i", "in_a", "in_b", "in_r", "in_id")],
-                index_buffer=self._cap_ibo,
+                [(self._box_vbo, "3f", "in_corner"), (self._inst, "3f 3f 1f 1f/i", "in_a", "in_b", "in_r", "in_id")],
+                index_buffer=self._box_ibo,
             )
         self._inst.write(data.tobytes())
         return n
 
     def _draw(
         self, cameras: Cameras, i: int, bones, h_min: float, h_max: float, z_near: float, z_far: float, cull_m: float
-    ) -> np.ndarray | None:
-        """Draw frame ``i`` and read back the half-float bits (H, W, 4) uint16, rows bottom-up; None if the camera is invalid."""
+    ) -> bool:
+        """Draw frame ``i`` into the codes' target; False (nothing drawn) if the camera is invalid."""
         if (cameras.width, cameras.height) != (self.width, self.height):
             raise ValueError(f"cameras are {cameras.height}×{cameras.width}, the rasterizer {self.height}×{self.width}")
         if not cameras.valid[i]:
-            return None
+            return False
         import moderngl
 
         self.fbo.use()
         self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
-        self.ctx.disable(moderngl.CULL_FACE)
+        self.ctx.disable(moderngl.CULL_FACE)  # the terrain's triangles face either way
         pos, R = cameras.pos[i], cameras.rot[i]
-        proj = projection(cameras.K[i], self.width, self.height, z_near, z_far).astype(np.float32)
+        proj = projection(cameras.K[i], self.width, self.height, z_near, z_far)
+        proj[1] *= -1.0  # image rows top-down in memory (module doc)
+        proj = proj.astype(np.float32)
         view = np.ascontiguousarray(R.T.astype(np.float32))
-        scale = 1.0 / (h_max - h_min)
-        for prog, cull, terrain in ((self._terrain_prog, cull_m, 1), (self._bone_prog, 0.0, 0)):
+        for prog in (self._terrain_prog, self._bone_prog):
             prog["u_proj"].write(proj.T.tobytes())  # GL matrices are column-major
             prog["u_view"].write(view.T.tobytes())
-            prog["u_h_scale"].value = scale
-            prog["u_z_near"].value, prog["u_z_far"].value = z_near, z_far
-            prog["u_cull"].value = cull
-            prog["u_terrain"].value = terrain
+            prog["u_h_scale"].value = 1.0 / (h_max - h_min)
+            prog["u_z_near"].value, prog["u_z_scale"].value = z_near, 1.0 / (z_far - z_near)
+        self._bone_prog["u_z_far"].value = z_far
         if self._terrain_vao is not None:
+            self._terrain_prog["u_cull"].value = cull_m
             self._terrain_prog["u_cam_rel"].value = tuple(float(v) for v in (pos - self.anchor).astype(np.float32))
             self._terrain_prog["u_h_off"].value = float(self.anchor[1] - h_min)
+            self.ctx.enable_direct(GL_CLIP_DISTANCE0)  # the terrain's near cull; the bones' shader writes none
             self._terrain_vao.render()
+            self.ctx.disable_direct(GL_CLIP_DISTANCE0)
         a, b, r, ids = bones
         if len(a):
             a_rel, b_rel = np.asarray(a) - pos, np.asarray(b) - pos
             n = self._instances(a_rel, b_rel, r, ids)
             self._bone_prog["u_h_off"].value = float(pos[1] - h_min)
-            if capsules_beyond(a_rel, b_rel, r, R[:, 2], z_near):
-                self.ctx.enable(moderngl.CULL_FACE)  # front faces alone (module doc); every frame starts with it off
+            self.ctx.enable(moderngl.CULL_FACE)
             self._bone_vao.render(instances=n)
-        return np.frombuffer(self.fbo.read(components=4, dtype="f2"), np.uint16).reshape(self.height, self.width, 4)
+        return True
 
-    def render(
+    def render_packed(
         self,
         cameras: Cameras,
         i: int,
@@ -264,12 +331,15 @@ class Rasterizer:
         z_far: float,
         cull_m: float = TERRAIN_CULL_M,
     ) -> np.ndarray:
-        """Render frame ``i`` of ``cameras`` with bone capsules (a, b world (B, 3), radii (B,), ids (B,)):
-        the (H, W, 3) float32 R, G, B of the G-buffer (row 0 at the top); all zero where the camera is invalid."""
-        bits = self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m)
-        if bits is None:
-            return np.zeros((self.height, self.width, 3), np.float32)
-        return bits[::-1, :, :3].view(np.float16).astype(np.float32)
+        """Render frame ``i`` of ``cameras`` with bone capsules (a, b world (B, 3), radii (B,), ids (B,)): each
+        pixel's 10-bit codes packed in one word (H, W) uint32, G | B << 10 | R << 20 (``gbuffer.pack_planes``), row
+        0 at the top; all zero where the camera is invalid. The fast path: what a ``.gbz`` file stores."""
+        out = np.empty((self.height, self.width), np.uint32)  # every pixel is read back (or zeroed) below
+        if self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m):
+            self.fbo.read_into(out, components=1, dtype="u4")
+        else:
+            out[:] = 0
+        return out
 
     def render_planes(
         self,
@@ -282,12 +352,27 @@ class Rasterizer:
         z_far: float,
         cull_m: float = TERRAIN_CULL_M,
     ) -> np.ndarray:
-        """``render`` straight to 10-bit code planes (3, H, W) uint16 in G, B, R order (the encoder's), through
-        one table lookup per channel: equal to ``to_codes(render(...))`` re-ordered, without the float copies."""
-        bits = self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m)
-        out = np.zeros((3, self.height, self.width), np.uint16)
-        if bits is not None:
-            flipped = bits[::-1]
-            for k, c in enumerate((1, 2, 0)):
-                np.take(HALF_TO_CODE, flipped[:, :, c], out=out[k])
-        return out
+        """``render_packed`` as code planes (3, H, W) uint16 in G, B, R order."""
+        return unpack_planes(self.render_packed(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m))
+
+    def render(
+        self,
+        cameras: Cameras,
+        i: int,
+        bones: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        h_min: float,
+        h_max: float,
+        z_near: float,
+        z_far: float,
+        cull_m: float = TERRAIN_CULL_M,
+    ) -> np.ndarray:
+        """``render_packed`` as the channels' values (H, W, 3) float32 R, G, B in [0, 1], each its code / 1023
+        (``gbuffer.to_codes`` of them gives the codes back)."""
+        g, b, r = self.render_planes(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m)
+        return np.stack([r, g, b], -1).astype(np.float32) / CODE_MAX
+
+
+def llvmpipe_threads(cores: int) -> str:
+    """Mesa llvmpipe's ``LP_NUM_THREADS`` for a process allotted ``cores`` cores: "0" for one (the thread that draws
+    rasterizes, with no hand-off to a rasterizer thread: the least CPU a frame), else the count."""
+    return "0" if int(cores) <= 1 else str(int(cores))

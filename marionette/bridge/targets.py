@@ -1,12 +1,12 @@
-"""Pose-control targets: every video chunk's ``pose.mkv``, rendered from recorded state with the recorded
+"""Pose-control targets: every video chunk's ``pose.gbz``, rendered from recorded state with the recorded
 camera, cached as a derived product and gathered into the pose shards beside the video shards.
 
 A chunk's target is keyed by what it is computed from (DESIGN "The corpus"): the chunk's state rows
 (their content hash), the sha256 of every terrain chunk its cameras can see (frustum against the
 chunk's bounding box, over all the chunk's frames), the stage's height range, ``BRIDGE_VERSION`` and
-the render settings. Rendered files live in ``<corpus>/derived/pose/<segment>__c<chunk>-<key>.mkv``;
+the render settings. Rendered files live in ``<corpus>/derived/pose/<segment>__c<chunk>-<key>.gbz``;
 a pass renders only the chunks whose key has no file yet, then rewrites (atomically) only the pose
-shards (``pose/shard-NNNNNN.tar``, ``video_shards``: ``<key>.pose.json`` and ``<key>.pose.mkv`` per
+shards (``pose/shard-NNNNNN.tar``, ``video_shards``: ``<key>.pose.json`` and ``<key>.pose.gbz`` per
 chunk, in the video shard's order) whose members change. A pass reads the video shards' ``json``
 members only and never writes a video shard: a terrain re-scan that changes one chunk re-renders only
 the video chunks that see it, rewrites only their pose shards, and leaves every RGB byte where it was;
@@ -40,10 +40,10 @@ from terrain_scan.trn2 import CELLS, find_chunks, read_chunk
 from .camera import Cameras, follow_cameras, recorded_cameras
 from .gbuffer import GBufferMeta, write_gbuffer
 from .jitter import Jitter
-from .kinematics import bone_segments, world_skeletons
-from .render import TERRAIN_CULL_M, Rasterizer
+from .kinematics import bone_capsules, world_skeletons
+from .render import TERRAIN_CULL_M, Rasterizer, llvmpipe_threads
 
-BRIDGE_VERSION = "2"  # what the renderer draws: a change of it re-renders every target
+BRIDGE_VERSION = "3"  # what the renderer draws: a change of it re-renders every target
 PLAYER_EDGES_KEY = "npc"  # WildWorld's skeleton key of the player character (the hunter rig)
 
 
@@ -172,11 +172,10 @@ def follow_view(layout: Layout, skel, fps: float, width: int, height: int, start
 
 
 def render_frames(rast: Rasterizer, layout: Layout, skel, cams: Cameras, h: tuple[float, float], settings: RenderSettings):
-    """Yield the G-buffer code planes (3, H, W) of every frame of ``skel`` seen through ``cams``."""
-    for i in range(len(skel)):
-        yield rast.render_planes(
-            cams, i, bone_segments(layout, skel, i), h[0], h[1], settings.z_near, settings.z_far, settings.cull_m
-        )
+    """Yield the G-buffer's packed codes (H, W) uint32 (``Rasterizer.render_packed``) of every frame of ``skel`` seen
+    through ``cams``."""
+    for i, bones in enumerate(bone_capsules(layout, skel)):
+        yield rast.render_packed(cams, i, bones, h[0], h[1], settings.z_near, settings.z_far, settings.cull_m)
 
 
 @dataclass
@@ -326,7 +325,7 @@ def render_shard(
     (read when the process's first GL context is made: k workers on one machine share its cores)."""
 
     if gl_threads is not None:
-        os.environ.setdefault("LP_NUM_THREADS", str(int(gl_threads)))
+        os.environ.setdefault("LP_NUM_THREADS", llvmpipe_threads(gl_threads))
     corpus = Corpus(Path(job.corpus))
     report = TargetsReport()
     run = _Pass(corpus, settings, report, jitter)
@@ -412,8 +411,8 @@ def render_pose_targets(
             if bar:
                 bar.close()
         if out_dir.exists():
-            for old in out_dir.glob("*.mkv"):
-                if old.name not in keep:
+            for old in out_dir.glob("*.*"):
+                if old.suffix in (".gbz", ".mkv") and old.name not in keep:  # .mkv: an earlier bridge's
                     old.unlink(missing_ok=True)
         _remove_orphan_pose_shards(corpus, jitter_key)
     return report

@@ -268,7 +268,7 @@ def joined_chunks(c, segment: str, kinds: tuple[str, ...]) -> tuple[Path, dict[i
 
 
 def export_chunk(c, segment: str, chunk: int, out: Path) -> tuple[int, int]:
-    """Write chunk ``chunk`` of ``segment`` as ``out``/pose.mkv (its pose target), first.png (its first RGB frame) and
+    """Write chunk ``chunk`` of ``segment`` as ``out``/pose.gbz (its pose target), first.png (its first RGB frame) and
     rgb.mp4 (the recorded RGB); returns the frame's (height, width). A chunk without a pose target says how to render one."""
     from marionette.observation.generate import write_image
     from marionette.video import decode_frames
@@ -461,7 +461,7 @@ class ExportChunkOptions:
     corpus: Path = option(MISSING, "a corpus directory", parse=Path, positional=True)
     segment: str = option(MISSING, "segment id (`marionette inspect CORPUS --segments` lists them)")
     chunk: int | None = option(None, "chunk number in the segment (default: list its chunks)", parse=non_negative_int)
-    out: Path | None = option(None, "directory for pose.mkv, first.png and rgb.mp4 (required with --chunk)", parse=Path)
+    out: Path | None = option(None, "directory for pose.gbz, first.png and rgb.mp4 (required with --chunk)", parse=Path)
 
 
 def _register_export_chunk(sub) -> None:

@@ -176,7 +176,7 @@ def _demo_observation(c, out: Path, steps: int) -> None:
     else:
         print("    no held-out chunk with a pose target: nothing to generate")
         return
-    export_chunk(c, seg, chunk, out)  # out/pose.mkv, out/first.png (and the recorded out/rgb.mp4)
+    export_chunk(c, seg, chunk, out)  # out/pose.gbz, out/first.png (and the recorded out/rgb.mp4)
     print(f"    painting chunk {chunk} of held-out segment {seg} from its first frame")
     paint_video(runs, out / POSE_KIND, out / "first.png", out / "generated.mp4", chunks=4, steps=8, seed=0, fps=30.0)
 

@@ -10,7 +10,7 @@ meta/info.json  meta/segments.parquet  meta/samples.parquet  meta/quarantine.par
 meta/vocab.json meta/stats.json        meta/samples/<key>.json  meta/finalize-plan.json  meta/.lock
 state/shard-NNNNNN.arrow               video/shard-NNNNNN.tar    pose/shard-NNNNNN.tar
 staging/<key>/{record.json,state.arrow,video.tar}
-derived/pose/<segment>__c<chunk:05d>-<hash>.mkv
+derived/pose/<segment>__c<chunk:05d>-<hash>.gbz
 terrain/stage_<stage>/{manifest.json, chunks/chunk_<cx>_<cz>.trn2, contributions/<key>.npz}
 ```
 """
@@ -180,11 +180,11 @@ def pose_targets_dir(root: Path, jitter: str | None = None) -> Path:
 
 
 def pose_target(root: Path, key: str, digest: str, jitter: str | None = None) -> Path:
-    """``<root>/derived/pose/<chunk key>-<digest>.mkv``: a rendered pose-control target (``pose_targets_dir``)."""
+    """``<root>/derived/pose/<chunk key>-<digest>.gbz``: a rendered pose-control target (``pose_targets_dir``)."""
     parse_chunk_key(key)
     if not POSE_HASH.fullmatch(digest):
         raise CorpusPathError(f"pose target digest {digest!r} is not 16 hex digits")
-    return pose_targets_dir(root, jitter) / f"{key}-{digest}.mkv"
+    return pose_targets_dir(root, jitter) / f"{key}-{digest}.gbz"
 
 
 def stage_dir(root: Path, stage: str) -> Path:

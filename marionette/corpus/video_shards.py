@@ -5,7 +5,7 @@ A video shard ``video/shard-NNNNNN.tar`` holds, per chunk key ``<segment>__c<chu
 (the chunk's record: source frames, crop, intrinsics), in that order; ingest writes it and nothing
 rewrites it. Its pose shard ``pose/shard-NNNNNN.tar`` holds, for every chunk whose pose-control target
 is rendered, ``<key>.pose.json`` (``pose_record``: the render's key, the terrain chunks it saw, and what
-it was rendered from) and ``<key>.pose.mkv`` (the bridge's lossless G-buffer), in the video shard's
+it was rendered from) and ``<key>.pose.gbz`` (the bridge's lossless G-buffer, ``bridge.gbuffer``), in the video shard's
 chunk order. Readers join the two by key (webdataset's rule: members sharing a key are one sample), so
 re-rendering pose targets never touches an RGB byte. A pose member is joined only while its record names
 the chunk's current json and state shard (``pose_matches``): a video shard replaced by a re-ingest never
@@ -33,10 +33,11 @@ from marionette.io import atomic_path, regular_file
 RGB_KIND = "rgb.mp4"  # a chunk's recorded RGB (H.264)
 CHUNK_KIND = "json"  # a chunk's record: its source frames, cameras, keys
 POSE_RECORD_KIND = "pose.json"  # a pose target's record: what it was rendered from
-POSE_KIND = "pose.mkv"  # a chunk's pose-control target (the bridge's G-buffer video)
+POSE_KIND = "pose.gbz"  # a chunk's pose-control target (the bridge's G-buffer file)
+OLD_POSE_KIND = "pose.mkv"  # a target of an earlier bridge version (FFV1): read past, never joined
 VIDEO_KINDS = (RGB_KIND, CHUNK_KIND)  # a video shard's member kinds, in the order they follow one another
 POSE_KINDS = (POSE_RECORD_KIND, POSE_KIND)  # a pose shard's
-KINDS = VIDEO_KINDS + POSE_KINDS
+KINDS = VIDEO_KINDS + POSE_KINDS + (OLD_POSE_KIND,)
 MAX_MEMBER_BYTES = 1 << 30  # an 81-frame chunk at the training resolution is a few MB
 
 
@@ -58,10 +59,10 @@ def parse_member(name: str, where: str = "") -> tuple[str, str]:
 
 
 def shard_kinds(path: Path) -> tuple[str, ...]:
-    """The member kinds a shard may hold: a pose shard's (under ``pose/``) or a video shard's. A video shard
-    written before pose targets had shards of their own may still hold ``pose.mkv`` members; they are read
-    past, never joined."""
-    return POSE_KINDS if Path(path).parent.name == "pose" else (*VIDEO_KINDS, POSE_KIND)
+    """The member kinds a shard may hold: a pose shard's (under ``pose/``) or a video shard's. Either may hold
+    targets of an earlier bridge (``OLD_POSE_KIND``: a video shard written before pose targets had shards of their
+    own, a pose shard before the next pose pass rewrites it); they are read past, never joined."""
+    return (*POSE_KINDS, OLD_POSE_KIND) if Path(path).parent.name == "pose" else (*VIDEO_KINDS, OLD_POSE_KIND)
 
 
 def _checked(tar: tarfile.TarFile, path: Path) -> Iterator[tuple[tarfile.TarInfo, str, str]]:
@@ -122,7 +123,7 @@ def chunk_record(data: bytes, key: str, where: str) -> dict:
 
 
 def pose_record(key: str, render_key: str, terrain_chunks: list[str], frames: int, chunk_json: bytes, state_hash: str) -> dict:
-    """A chunk's ``pose.json``: the render's key (``derived/pose/<key>-<render key>.mkv``), the terrain chunks its
+    """A chunk's ``pose.json``: the render's key (``derived/pose/<key>-<render key>.gbz``), the terrain chunks its
     cameras saw, its frame count, and what it belongs to: the sha256 of the chunk's video ``json`` member and the
     ingest hash of the state shard it was rendered from."""
     segment, chunk = parse_chunk_key(key)
@@ -204,10 +205,10 @@ class PoseShard:
         self._tar = tar
 
     def member(self, key: str, chunk_json: bytes, state_hash: str) -> tuple[dict, tarfile.TarInfo] | None:
-        """(``pose.json`` record, ``pose.mkv`` header) of the chunk ``key`` whose video json is ``chunk_json``, or
+        """(``pose.json`` record, ``pose.gbz`` header) of the chunk ``key`` whose video json is ``chunk_json``, or
         None where the shard holds no target for it or only a stale one (``pose_matches``)."""
-        info, mkv = self._index.get(f"{key}.pose.json"), self._index.get(f"{key}.pose.mkv")
-        if info is None or mkv is None or self._tar is None:
+        info, target = self._index.get(f"{key}.{POSE_RECORD_KIND}"), self._index.get(f"{key}.{POSE_KIND}")
+        if info is None or target is None or self._tar is None:
             return None
         try:
             rec = json.loads(self._tar.extractfile(info).read())
@@ -215,14 +216,14 @@ class PoseShard:
             raise ValueError(f"{self.path}: member {info.name} is not JSON ({exc})") from None
         if not isinstance(rec, dict) or not pose_matches(rec, chunk_json, state_hash):
             return None
-        return rec, mkv
+        return rec, target
 
     def read(self, member: tarfile.TarInfo) -> bytes:
-        """The bytes of a ``pose.mkv`` header that ``member`` returned."""
+        """The bytes of a ``pose.gbz`` header that ``member`` returned."""
         return self._tar.extractfile(member).read()
 
     def get(self, key: str, chunk_json: bytes, state_hash: str) -> tuple[dict, bytes] | None:
-        """(``pose.json`` record, ``pose.mkv`` bytes) of the chunk (``member``), or None."""
+        """(``pose.json`` record, ``pose.gbz`` bytes) of the chunk (``member``), or None."""
         got = self.member(key, chunk_json, state_hash)
         return None if got is None else (got[0], self.read(got[1]))
 
@@ -248,8 +249,8 @@ def read_joined(
         for key, m in chunks.items():
             got = ps.get(key, m[CHUNK_KIND], state_hash) if CHUNK_KIND in m and set(kinds) & set(POSE_KINDS) else None
             if got is not None:
-                rec, mkv = got
-                m.update({POSE_RECORD_KIND: json.dumps(rec, sort_keys=True).encode(), POSE_KIND: mkv})
+                rec, target = got
+                m.update({POSE_RECORD_KIND: json.dumps(rec, sort_keys=True).encode(), POSE_KIND: target})
             for kind in KINDS:
                 if kind not in kinds:
                     m.pop(kind, None)

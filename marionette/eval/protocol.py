@@ -239,7 +239,7 @@ def _follow_codes(
 ) -> tuple[np.ndarray, Any, Any]:
     """G-buffer codes (T, H, W, 3) uint16 (R, G, B) of ``rows`` at ``times`` (s; None: the rows' own) through the follow
     camera (``start``-seeded when given), with the cameras and the ``GBufferMeta`` to decode them."""
-    from marionette.bridge.gbuffer import GBufferMeta
+    from marionette.bridge.gbuffer import GBufferMeta, unpack_codes
     from marionette.bridge.render import Rasterizer
     from marionette.bridge.targets import RenderSettings, TerrainScene, chunk_inputs, follow_view, height_range, render_frames
 
@@ -254,9 +254,9 @@ def _follow_codes(
     h = height_range(terrain, np.concatenate([skel.joints[e.name][:, 0, 1] for e in layout.articulated]), settings)
     with Rasterizer(W, H) as rast:
         rast.set_terrain(terrain.vertices, terrain.faces)
-        planes = np.stack(list(render_frames(rast, layout, skel, cams, h, settings)))  # (T, 3, H, W) in G, B, R order
+        codes = np.stack([unpack_codes(w) for w in render_frames(rast, layout, skel, cams, h, settings)])
     meta = GBufferMeta(h[0], h[1], settings.z_near, settings.z_far, W, H, fps)
-    return np.ascontiguousarray(planes[:, [2, 0, 1]].transpose(0, 2, 3, 1)), cams, meta
+    return codes, cams, meta
 
 
 def body_share_frames(
@@ -276,7 +276,7 @@ def rollout_pose_codes(
     """The pose-control video of rollout ``rows`` (a rollout table, or any state rows) at ``times`` (s, inside
     the rows' span; e.g. the recorded video's frame times): skeletons interpolated in time, seen through the
     follow camera seeded at ``start`` (a one-frame ``Cameras``, e.g. the recorded camera of the first time;
-    its size is the render's). Returns the G-buffer codes (T, H, W, 3) uint16 (R, G, B: what a ``pose.mkv``
+    its size is the render's). Returns the G-buffer codes (T, H, W, 3) uint16 (R, G, B: what a ``pose.gbz``
     decodes to) and the cameras used."""
     t = rows["t"].to_numpy().astype(np.float64)
     times = np.asarray(times, np.float64)

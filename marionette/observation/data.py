@@ -2,7 +2,7 @@
 
 A video shard (``video/shard-NNNNNN.tar``) holds, per 81-frame chunk ``<segment>__c<chunk>``, the RGB
 clip ``rgb.mp4`` (the training resolution) and a ``json``; its pose shard (``pose/shard-NNNNNN.tar``)
-the chunk's pose-control target ``pose.mkv`` (the bridge's lossless 10-bit G-buffer, same size and frame
+the chunk's pose-control target ``pose.gbz`` (the bridge's lossless 10-bit G-buffer, same size and frame
 count), joined by key as the video shard streams past (``video_shards.PoseShard``: one pose shard open at
 a time, a member read when its chunk comes; a stale target is not joined). A *clip* is ``frames`` consecutive frames
 (4k + 1, as Wan's VAE expects) of one chunk that holds a pose target, reduced to the model's
@@ -95,12 +95,12 @@ def check_size(src_hw: tuple[int, int], size: tuple[int, int], where: str) -> in
 
 
 def decode_clip(sample: dict, frames: int, size: tuple[int, int], start: int) -> Clip:
-    """A webdataset sample {"__key__", "rgb.mp4", "pose.mkv", ...} → the clip of ``frames`` frames from ``start``."""
+    """A webdataset sample {"__key__", "rgb.mp4", "pose.gbz", ...} → the clip of ``frames`` frames from ``start``."""
     key = sample["__key__"]
     rgb = np.stack(decode_frames(sample[RGB_KIND]))  # (n, H, W, 3) uint8
     codes = np.stack(list(iter_codes(sample[POSE_KIND], name=f"{key}.{POSE_KIND}")))  # (n, H, W, 3) uint16
     if codes.shape[:3] != rgb.shape[:3]:
-        raise ValueError(f"{key}: pose.mkv {codes.shape[:3]} and rgb.mp4 {rgb.shape[:3]} differ in frames or size")
+        raise ValueError(f"{key}: {POSE_KIND} {codes.shape[:3]} and {RGB_KIND} {rgb.shape[:3]} differ in frames or size")
     if start + frames > len(rgb):
         raise ValueError(f"{key}: a clip of {frames} frames from {start} exceeds the chunk's {len(rgb)}")
     f = check_size(rgb.shape[1:3], size, key)
@@ -183,13 +183,13 @@ class ClipSource:
             return None
 
     def _usable(self, key: str, chunk_json: bytes | None, pose: tuple[PoseShard, str] | None) -> tuple[Any, int, int] | None:
-        """(current ``pose.mkv`` member, frame count, first source frame) of a chunk a clip can come from; None, the reason in
+        """(current ``pose.gbz`` member, frame count, first source frame) of a chunk a clip can come from; None, the reason in
         ``skipped``, for a chunk without a json member or a current pose target, or shorter than a clip. The one rule
         both readers (``_samples``, ``index``) apply."""
         try:
             got = pose[0].member(key, chunk_json, pose[1]) if pose is not None and chunk_json is not None else None
             if got is None:
-                self.skipped[key] = "no current pose.mkv (render the pose targets first)"
+                self.skipped[key] = f"no current {POSE_KIND} (render the pose targets first)"
                 return None
             rec = json.loads(chunk_json)
             frames, first = len(rec["K"]), int(rec["frames"][0])  # one intrinsics row per frame
@@ -202,7 +202,7 @@ class ClipSource:
         return got[1], frames, first
 
     def _samples(self) -> Iterator[tuple[dict, int]]:
-        """(webdataset sample with its ``pose.mkv`` joined, frame count) of every usable chunk, streamed in shard order."""
+        """(webdataset sample with its ``pose.gbz`` joined, frame count) of every usable chunk, streamed in shard order."""
         if not self.shards:
             return
         # every DDP rank reads every shard (ranks differ in the clips they draw, not in the chunks they hold)
@@ -259,9 +259,9 @@ class ClipSource:
                     use = self._usable(key, data, pose)
                     if use is None:
                         continue
-                    mkv, frames, first = use
+                    target, frames, first = use
                     rgb = m[RGB_KIND]
-                    at = ((rgb.offset_data, rgb.size), (mkv.offset_data, mkv.size))
+                    at = ((rgb.offset_data, rgb.size), (target.offset_data, target.size))
                     refs.append(ChunkRef(key, str(vpath), str(ppath), *at, frames, first, stamp))
         return refs
 
@@ -312,7 +312,7 @@ def _stamp(path: Path) -> tuple[int, int]:
 @dataclass(frozen=True)
 class ChunkRef:
     """Where one usable chunk's bytes are: its video and pose shards, (offset, size) of its ``rgb.mp4`` and
-    ``pose.mkv`` members, its frame count and first source frame, and (size, mtime) of both shards when indexed."""
+    ``pose.gbz`` members, its frame count and first source frame, and (size, mtime) of both shards when indexed."""
 
     key: str
     video: str

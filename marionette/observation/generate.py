@@ -1,6 +1,6 @@
 """``marionette generate``: a trained observation model, a pose-control video and a first frame → an RGB mp4.
 
-The pose video is a bridge G-buffer (``marionette render`` or a corpus's ``pose.mkv``) whose size is a
+The pose video is a bridge G-buffer (``marionette render``'s ``.mkv`` or ``.gbz``, or a corpus's ``pose.gbz``) whose size is a
 whole multiple of the model's; it is reduced like the training clips (``data.reduce_codes``). The first
 frame is an image file (PNG, JPEG; read with PyAV) of the pose video's size, area-averaged to the
 model's. Both are checked before any compute. The output is H.264 at the model's size (the frames the
