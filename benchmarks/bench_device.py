@@ -46,7 +46,6 @@ import argparse
 import json
 import math
 import os
-import pickle
 import resource
 import statistics
 import subprocess
@@ -54,7 +53,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -116,21 +115,37 @@ DRY = Sizes(
 
 def part_scene(sizes: Sizes, work: Path) -> dict:
     """Make the clip and save what a renderer needs (cameras, bone capsules, heights, settings, terrain)."""
+    import numpy as np
     from bench_bridge import make_clip
 
     (work / "clip").mkdir()
     clip = make_clip(work / "clip", sizes.clip_seconds, sizes.clip_frames, seed=0)
     H, W = sizes.bridge_hw
-    scene = {
-        "cameras": clip.cameras(H, W),
-        "bones": clip.bones,
-        "h": clip.h,
-        "settings": clip.settings,
-        "vertices": clip.terrain.vertices,
-        "faces": clip.terrain.faces,
-    }
-    (work / "scene.pkl").write_bytes(pickle.dumps(scene))
+    cams = clip.cameras(H, W)
+    a, b, r, ids = (np.concatenate([frame[k] for frame in clip.bones]) for k in range(4))
+    np.savez(
+        work / "scene.npz",
+        K=cams.K, pos=cams.pos, rot=cams.rot, valid=cams.valid, size=[W, H], h=clip.h,
+        a=a, b=b, r=r, ids=ids, counts=[len(frame[0]) for frame in clip.bones],
+        vertices=clip.terrain.vertices, faces=clip.terrain.faces,
+    )  # fmt: skip
+    (work / "settings.json").write_text(json.dumps(asdict(clip.settings)))
     return {"frames": len(clip), "triangles": len(clip.terrain.faces), "bones": sum(len(b[0]) for b in clip.bones) / len(clip)}
+
+
+def read_scene(work: Path) -> tuple[dict, object, list]:
+    """The scene ``part_scene`` saved: its arrays, the cameras and each frame's bone capsules."""
+    import numpy as np
+
+    from marionette.bridge.camera import Cameras
+
+    with np.load(work / "scene.npz", allow_pickle=False) as z:
+        scene = {k: z[k] for k in z.files}
+    W, H = (int(v) for v in scene["size"])
+    cams = Cameras(scene["K"], scene["pos"], scene["rot"], scene["valid"], W, H)
+    ends = np.cumsum(scene["counts"])
+    bones = [tuple(scene[k][e - n : e] for k in ("a", "b", "r", "ids")) for n, e in zip(scene["counts"], ends)]
+    return scene, cams, bones
 
 
 def egl_device_count() -> int:
@@ -157,11 +172,12 @@ def part_render(sizes: Sizes, work: Path, mesa: bool) -> dict:
     import numpy as np
 
     from marionette.bridge.render import Rasterizer
+    from marionette.bridge.targets import RenderSettings
 
     if mesa:  # the rasterizer opens the device GLCONTEXT_DEVICE_INDEX names; Mesa lists its software device last
         os.environ["GLCONTEXT_DEVICE_INDEX"] = str(egl_device_count() - 1)
-    scene = pickle.loads((work / "scene.pkl").read_bytes())
-    cams, bones, (h_min, h_max), s = scene["cameras"], scene["bones"], scene["h"], scene["settings"]
+    scene, cams, bones = read_scene(work)
+    (h_min, h_max), s = scene["h"], RenderSettings(**json.loads((work / "settings.json").read_text()))
     H, W = sizes.bridge_hw
     codes_path = work / "codes.npy"
     with Rasterizer(W, H) as rast:
