@@ -130,6 +130,14 @@ def chunk_frames(s: str) -> int:
     return v
 
 
+def gbuffer_path(s: str) -> Path:
+    """An argparse type: a G-buffer file to write, ``.mkv`` (FFV1, for players) or ``.gbz`` (the corpus's encoding)."""
+    path = Path(s)
+    if path.suffix not in (".mkv", ".gbz"):
+        raise argparse.ArgumentTypeError(f"{s!r}: a G-buffer file ends in .mkv (FFV1, for players) or .gbz (zstd)")
+    return path
+
+
 def size_hxw(s: str) -> tuple[int, int]:
     """An argparse type: ``HxW`` with both sides > 0."""
     try:

@@ -64,6 +64,7 @@ BAD_OPTIONS = [  # (command line, the flag named, why), SRC an empty directory a
     ("ingest SRC OUT --scene duell", "--scene", "did you mean duel"),
     ("render SRC --segment x --size 0x0 --out OUT/x.mkv", "--size", "greater than 0"),
     ("render SRC --segment x --fps 0 --out OUT/x.mkv", "--fps", "greater than 0"),
+    ("render SRC --segment x --out OUT/x.mp4", "--out", "ends in .mkv"),
     ("synth OUT --seconds 0", "--seconds", "greater than 0"),
     ("synth OUT --recordings 0", "--recordings", "at least 1"),
     ("synth OUT --width 321", "--width", "even"),

@@ -14,6 +14,7 @@ from marionette.corpus import Corpus
 from marionette.io import read_ipc
 from marionette.knobs import add_options, option
 from marionette.options import (
+    gbuffer_path,
     near_ids,
     non_negative_float,
     non_negative_int,
@@ -86,7 +87,7 @@ class RenderOptions:
     source: Path = option(MISSING, "a corpus directory or a STATES.arrow rollout", parse=Path, positional=True)
     segment: str | None = option(None, "segment id (required for a corpus; `inspect CORPUS --segments` lists them)")
     camera: str | None = option(None, "default: recorded for a corpus, follow for a rollout", choices=["recorded", "follow"])
-    out: Path = option(MISSING, "output .mkv", parse=Path)
+    out: Path = option(MISSING, "output G-buffer file: .mkv (FFV1, any player opens it) or .gbz", parse=gbuffer_path)
     size: tuple[int, int] = option((704, 1280), "output size, HxW", parse=size_hxw, metavar="HxW")
     fps: float | None = option(None, "output rate (default: the state's)", parse=positive_float)
     terrain: Path | None = option(None, "a stage directory (default: the segment's stage)", parse=Path)

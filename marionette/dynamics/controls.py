@@ -15,7 +15,7 @@ import numpy as np
 
 from marionette.bridge.rules import RULES
 from marionette.knobs import add_options, option
-from marionette.options import HelpFormatter, non_negative_float, non_negative_int, positive_int, size_hxw
+from marionette.options import HelpFormatter, gbuffer_path, non_negative_float, non_negative_int, positive_int, size_hxw
 
 Force = tuple[str, int, int, int]  # (entity, start, end exclusive, token), predicted-frame indices
 
@@ -103,7 +103,7 @@ class RolloutOptions:
     )
     rules: str = option("auto", f"auto, none, or a comma list of {','.join(RULES)}", parse=parse_rules)
     out: Path = option(MISSING, "STATES.arrow (the corpus state schema)", parse=Path)
-    render: Path | None = option(None, "also render the rollout (follow camera) to this .mkv", parse=Path)
+    render: Path | None = option(None, "also render the rollout (follow camera) to this .mkv or .gbz", parse=gbuffer_path)
     size: tuple[int, int] = option((352, 640), "render size, HxW", parse=size_hxw, metavar="HxW")
 
 
