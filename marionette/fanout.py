@@ -28,6 +28,12 @@ def worker_identity() -> str:
     return f"{where}/pid-{os.getpid()}"
 
 
+def threads_per_worker(workers: int) -> int:
+    """The threads each of ``workers`` local workers may use, so that together they use this machine's cores once."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, cores // workers)
+
+
 def serial_mapper(fn: Callable[..., Any], jobs: list, static: dict[str, Any]) -> Iterator[Any]:
     for job in jobs:
         yield fn(job, **static)

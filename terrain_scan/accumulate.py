@@ -2,16 +2,18 @@
 
 Two sources of evidence, both in world metres (Y up), binned into 1 m cells by floor(x), floor(z):
 
-1. **Depth.** Every depth.mkv frame with a valid camera is decoded (``DepthDecoder``) and every
-   valid pixel back-projected through the recorded pinhole camera. Pixel (row i, column j) has its
+1. **Depth.** Every ``frame_stride``-th depth.mkv frame with a valid camera is read (``depth_frames``:
+   the frames between are decoded only where a later frame is predicted from them), its codes
+   de-quantised and decoded (``DepthDecoder``), and every valid pixel back-projected through the recorded pinhole camera. Pixel (row i, column j) has its
    centre at (u, v) = (j + ½, i + ½); in the OpenGL camera frame (x right, y up, looking down −Z)
    the point at z-depth z is ``p_cam = ((u − cx)/fx · z, −(v − cy)/fy · z, −z)`` and
    ``p_world = pos + R(rot) p_cam`` (``rot`` camera-to-world, xyzw). Points near a recorded
    skeleton (within the rig's capsule radius × ``mask_radius_scale`` + ``mask_margin_m`` of a bone,
    a bone being a kept joint and its rig parent) are characters, not ground, and are dropped; so are
    pixels whose normal in the frame's own pixel grid is steep (``frame_points``). The
-   remaining points of all frames are voxel down-sampled (``voxel_m``), outliers removed
-   (statistical), normals estimated over a radius of ``normal_radius_voxels`` voxels and oriented
+   remaining points of a frame are reduced to their mean per ``voxel_m`` / 2 voxel, and those
+   means of all frames to their mean per ``voxel_m`` voxel (``VoxelMeans``); outliers are removed
+   (statistical, open3d), normals estimated over a radius of ``normal_radius_voxels`` voxels and oriented
    to +Y; points whose normal has ny ≥ ``min_normal_y`` (walkable, upward-facing) each give one
    observation of hit weight 1 at their own height, except those of a layer lying wholly within
    ``edge_m`` of a cell edge at the height of the cell across it: a neighbour's surface leaked a few
@@ -31,7 +33,7 @@ time (``recording_time``), never the wall clock.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,9 +47,11 @@ from marionette.recordings.errors import SampleError
 from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, RecordedSample, SampleRef, read_sample
 from marionette.schema import Layout
 
+from ._points_kernel import character_hits, grid_points, voxel_add, voxel_table
 from .depth import DepthDecoder, depth_edges, smooth_codes
 from .layers import AWAY, MERGE_M, Observations, aliases, layer_labels, merge
 
+ALL_CODES = np.arange(256, dtype=np.uint8)
 MIN_CONTACT_CELLS = 10  # a recording whose feet stood on this many cells, none of them seen as ground, has a wrong mapping
 
 
@@ -146,34 +150,19 @@ def segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def character_mask(points: np.ndarray, bones: Iterable[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
     """(P,) bool: points within ``radius`` of a segment of some bone set [(a (S, 3), b (S, 3), radius)].
 
-    Each set's points are first cut to the set's bounding box (grown by the radius), then sorted into boxes
-    of its bones — a point is tested only against the bones whose own grown box holds it, so a character
-    filling the view costs about its points × the few bones near each, not × all of them."""
-    hit = np.zeros(len(points), bool)
-    for a, b, r in bones:
-        lo = np.minimum(a.min(0), b.min(0)) - r
-        hi = np.maximum(a.max(0), b.max(0)) + r
-        near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
-        if not len(near):
-            continue
-        p = points[near]
-        blo, bhi = np.minimum(a, b) - r, np.maximum(a, b) + r  # (S, 3) each bone's grown box
-        r2 = r * r
-        for s in range(0, len(p), 4096):  # bounded memory: (chunk, S)
-            q = p[s : s + 4096]
-            inbox = (q[:, 0, None] >= blo[:, 0]) & (q[:, 0, None] <= bhi[:, 0])  # (chunk, S)
-            for k in (1, 2):
-                inbox &= (q[:, k, None] >= blo[:, k]) & (q[:, k, None] <= bhi[:, k])
-            rows, bone = np.nonzero(inbox)
-            if not len(rows):
-                continue
-            ap = q[rows] - a[bone]
-            ab = b[bone] - a[bone]
-            t = np.clip(np.einsum("nk,nk->n", ap, ab) / np.maximum(np.einsum("nk,nk->n", ab, ab), 1e-12), 0.0, 1.0)
-            d = ap - t[:, None] * ab
-            close = np.einsum("nk,nk->n", d, d) <= r2
-            hit[near[s + rows[close]]] = True
-    return hit
+    A point is tested against a set only inside the set's bounding box (grown by the radius), and then only
+    against the bones whose own grown box holds it (``_points_kernel.character_hits``), so a character filling
+    the view costs about its points × the few bones near each, not × all of them."""
+    sets = [(np.asarray(a, np.float64), np.asarray(b, np.float64), float(r)) for a, b, r in bones]
+    if not sets or not len(points):
+        return np.zeros(len(points), bool)
+    a = np.concatenate([a for a, _, _ in sets])  # (S, 3) every set's bones, set after set
+    b = np.concatenate([b for _, b, _ in sets])
+    r = np.array([r for _, _, r in sets])
+    lo = np.array([np.minimum(a.min(0), b.min(0)) - r for a, b, r in sets])  # (sets, 3) grown boxes
+    hi = np.array([np.maximum(a.max(0), b.max(0)) + r for a, b, r in sets])
+    first = np.cumsum([0] + [len(a) for a, _, _ in sets])
+    return character_hits(np.ascontiguousarray(points, np.float64), a, b, r, lo, hi, first)
 
 
 def entity_bones(sample: RecordedSample, layout: Layout, frame: int, radius_scale: float, margin_m: float):
@@ -282,55 +271,94 @@ def contact_observations(q: np.ndarray, ts: int, hits: int = 1) -> Observations:
     )
 
 
-def depth_frames(path: Path) -> Iterator[np.ndarray]:
-    """The frames of an 8-bit depth video as (H, W) uint8 codes (one decoder thread); a file that does not
-    open or decode as a video raises SampleError naming it and the frame."""
+def depth_frames(path: Path, keep: Callable[[int], bool] | None = None) -> Iterator[np.ndarray | None]:
+    """The frames of an 8-bit depth video in display order, as (H, W) uint8 codes (one decoder thread).
+
+    With ``keep``, frame i is None where ``keep(i)`` is false: not converted, and not decoded at all where the
+    decoder can leave it out (a frame no other frame is predicted from); the frames kept decode to the very
+    bytes a full decode gives. A frame's place i is then its timestamp's rank among the stream's packets
+    (``display_ranks``). A file that does not open or decode as a video raises SampleError naming it and the
+    frame."""
+    ranks = display_ranks(path) if keep is not None else None
+    c = _open_video(path)
+    with c:
+        s = c.streams.video[0]
+        s.thread_count = 1
+        gray = VideoReformatter()  # one swscale context for the stream (a frame's own ``to_ndarray`` makes one per frame)
+        i = 0  # the next frame's place
+        for packet in c.demux(s):
+            if ranks is not None and packet.pts in ranks:
+                s.codec_context.skip_frame = "DEFAULT" if keep(ranks[packet.pts]) else "NONREF"
+            try:
+                frames = s.decode(packet)
+            except (av.error.FFmpegError, ValueError) as exc:
+                raise SampleError(f"{path}: cannot decode frame {i}: {type(exc).__name__}: {exc}") from None
+            for frame in frames:
+                at = ranks.get(frame.pts, i) if ranks is not None else i
+                for _ in range(i, at):  # left out by the decoder
+                    yield None
+                i = at
+                if keep is not None and not keep(i):
+                    yield None
+                else:
+                    try:
+                        yield gray.reformat(frame, format="gray").to_ndarray()  # a gray frame is returned as it is
+                    except (av.error.FFmpegError, ValueError) as exc:
+                        raise SampleError(f"{path}: cannot decode frame {i}: {type(exc).__name__}: {exc}") from None
+                i += 1
+
+
+def _open_video(path: Path):
+    """The container of a video file with a video stream; SampleError naming the file otherwise."""
     try:
         c = av.open(str(path))
     except av.error.FFmpegError as exc:
         raise SampleError(f"{path}: unreadable video ({type(exc).__name__}: {exc})") from None
-    with c:
-        if not c.streams.video:
-            raise SampleError(f"{path}: no video stream")
-        s = c.streams.video[0]
-        s.thread_count = 1
-        frames = c.decode(s)
-        gray = VideoReformatter()  # one swscale context for the stream (a frame's own ``to_ndarray`` makes one per frame)
-        i = 0
-        while True:
-            try:
-                frame = next(frames)
-                a = gray.reformat(frame, format="gray").to_ndarray()  # a gray frame is returned as it is
-            except StopIteration:
-                return
-            except (av.error.FFmpegError, ValueError) as exc:
-                raise SampleError(f"{path}: cannot decode frame {i}: {type(exc).__name__}: {exc}") from None
-            yield a
-            i += 1
+    if not c.streams.video:
+        c.close()
+        raise SampleError(f"{path}: no video stream")
+    return c
+
+
+def display_ranks(path: Path) -> dict[int, int] | None:
+    """Each video packet's timestamp → its frame's place in display order (the timestamp's rank), read in one pass
+    over the container; None where a packet has no timestamp, two share one, or the container does not read
+    through (``depth_frames`` then decodes every frame and counts them)."""
+    try:
+        with av.open(str(path)) as c:
+            pts = [p.pts for p in c.demux(c.streams.video[0]) if p.size]
+    except (av.error.FFmpegError, IndexError, ValueError):
+        return None
+    if any(t is None for t in pts) or len(set(pts)) != len(pts):
+        return None
+    return {t: k for k, t in enumerate(sorted(pts))}
 
 
 def ground_cloud(
-    points: np.ndarray,
+    means: np.ndarray,
     voxel_m: float,
     min_normal_y: float,
     normal_radius_voxels: float = 4.0,
     outlier_neighbors: int = 16,
     outlier_std: float = 2.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Down-sample, drop outliers, estimate upward normals, keep walkable points: (P, 3) points, (P, 3) normals."""
-    if len(points) < 3:
+    """From a recording's voxel means (``VoxelMeans`` at ``voxel_m``, (V, 3)): drop outliers, estimate upward normals,
+    keep walkable points: (P, 3) points, (P, 3) normals. open3d's steps give the same result on any number of
+    threads."""
+    if len(means) < 3:
         return np.zeros((0, 3)), np.zeros((0, 3))
     # work relative to a local origin: world coordinates near x = −950 lose precision in float32
-    origin = np.floor(points.min(0))
-    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor((points - origin).astype(np.float32)))
-    pc = pc.voxel_down_sample(voxel_m)
-    if len(pc.point.positions) > outlier_neighbors:
-        pc, _ = pc.remove_statistical_outliers(nb_neighbors=outlier_neighbors, std_ratio=outlier_std)
-    if len(pc.point.positions) < 3:
+    origin = np.floor(means.min(0))
+    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor((means - origin).astype(np.float32)))
+    kept = np.arange(len(means))
+    if len(means) > outlier_neighbors:
+        pc, inlier = pc.remove_statistical_outliers(nb_neighbors=outlier_neighbors, std_ratio=outlier_std)
+        kept = np.flatnonzero(inlier.numpy())
+    if len(kept) < 3:
         return np.zeros((0, 3)), np.zeros((0, 3))
     pc.estimate_normals(max_nn=64, radius=normal_radius_voxels * voxel_m)
     pc.orient_normals_to_align_with_direction(o3d.core.Tensor(np.array([0.0, 1.0, 0.0], np.float32)))
-    p = pc.point.positions.numpy().astype(np.float64) + origin
+    p = means[kept]
     n = pc.point.normals.numpy().astype(np.float64)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     keep = (n[:, 1] >= min_normal_y) & np.isfinite(p).all(1) & np.isfinite(n).all(1)
@@ -378,25 +406,54 @@ def edge_bits(points: np.ndarray, edge_m: float) -> np.ndarray:
     return out
 
 
-def voxel_reduce(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Mean point of each occupied voxel, in (x, y, z) voxel order (a per-frame reduction before the global open3d
-    pass). The voxel's three indices are packed into one int64 relative to the frame's smallest, so one 1-D sort
-    orders them as the lexicographic sort of the index triples would (a 12× cheaper sort than ``np.unique(axis=0)``)."""
+class VoxelMeans:
+    """Running mean point of each occupied ``voxel_m`` voxel (indices floor(p / ``voxel_m``), world coordinates) of the
+    points added so far; one pass over each batch (``_points_kernel.voxel_add``), memory in the voxels held."""
+
+    def __init__(self, voxel_m: float, capacity: int = 1024):
+        self.voxel_m = float(voxel_m)
+        self.count = 0  # voxels held
+        capacity = 1 << max(int(capacity) - 1, 1).bit_length()  # a power of 2, as the table's size must be
+        self.index = np.empty((capacity, 3), np.int64)
+        self.sums = np.zeros((capacity, 3))
+        self.counts = np.zeros(capacity, np.int64)
+        self.table = np.full(2 * capacity, -1, np.int64)
+
+    def add(self, points: np.ndarray) -> None:
+        """Add points (P, 3) (finite, float64) to their voxels' sums, in order."""
+        points = np.ascontiguousarray(points, np.float64)
+        done = 0
+        while True:
+            self.count, done = voxel_add(self.table, self.index, self.sums, self.counts, self.count, points, done, self.voxel_m)
+            if done == len(points):
+                return
+            self._grow()
+
+    def _grow(self) -> None:
+        cap = 2 * len(self.counts)
+        self.index = np.resize(self.index, (cap, 3))
+        self.sums = np.concatenate([self.sums, np.zeros_like(self.sums)])
+        self.counts = np.concatenate([self.counts, np.zeros_like(self.counts)])
+        self.table = voxel_table(self.index, self.count, 2 * cap)
+
+    def means(self, ordered: bool = True) -> np.ndarray:
+        """(V, 3) the voxels' mean points: in (x, y, z) index order, or (``ordered`` False) in order of first appearance."""
+        m = self.count
+        mean = self.sums[:m] / self.counts[:m, None]
+        if not ordered:
+            return mean
+        i = self.index[:m]
+        return mean[np.lexsort((i[:, 2], i[:, 1], i[:, 0]))]
+
+
+def voxel_reduce(points: np.ndarray, voxel_m: float, ordered: bool = True) -> np.ndarray:
+    """Mean point of each occupied voxel, in (x, y, z) voxel order (or, ``ordered`` False, in order of first
+    appearance): the per-frame reduction before the recording's voxel means (``VoxelMeans``)."""
     if not len(points):
-        return points
-    key3 = np.floor(points / voxel_m).astype(np.int64)
-    key3 -= key3.min(axis=0)
-    span = key3.max(axis=0) + 1
-    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:
-        key = (key3[:, 0] * span[1] + key3[:, 1]) * span[2] + key3[:, 2]
-        _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    else:  # a frame spanning more voxels than an int64 counts (never at metres-scale voxels and a 20 m depth range)
-        _, inv, cnt = np.unique(key3, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    out = np.zeros((len(cnt), 3))
-    for k in range(3):
-        out[:, k] = np.bincount(inv, weights=points[:, k], minlength=len(cnt)) / cnt
-    return out
+        return np.zeros((0, 3))
+    acc = VoxelMeans(voxel_m, capacity=max(1024, len(points) // 4))
+    acc.add(points)
+    return acc.means(ordered)
 
 
 def image_normals(G: np.ndarray, eye: np.ndarray) -> np.ndarray:
@@ -454,26 +511,67 @@ def frame_points(
     ny < ``image_normal_y`` are dropped before any points are pooled: the rows of a distant vertical
     face, once pooled with other frames, look like horizontal strips to a neighbourhood normal, and
     the crease at a wall's foot or top mixes both surfaces; in the image they are still recognisably
-    steep. The underside of a deck seen from below faces down and is dropped too.
+    steep. The underside of a deck seen from below faces down and is dropped too. Everything after
+    the de-quantising is one compiled pass over the pixels (``_points_kernel.grid_points``, whose
+    numpy definition is ``grid_points_reference``).
     """
     codes, K = subsampled(codes, sample.camera_K[i], subsample)
-    z_raw = decoder.decode(codes)
+    z_raw = decoder.decode(ALL_CODES)[codes]  # (H, W) float32: a code's depth, looked up
     z = decoder.decode(smooth_codes(codes, smooth_radius, smooth_tol)) if smooth_radius > 0 else z_raw
-    z[depth_edges(z_raw, edge_rel)] = np.nan
-    z[~(z <= max_depth_m)] = np.nan  # NaN stays NaN
-    G = backproject(z, K, sample.camera_pos[i], sample.camera_rot[i])
-    if image_normal_y > 0:
-        eye = np.asarray(sample.camera_pos[i], dtype=np.float64)
-        steep = ~(image_normals(G, eye)[..., 1] >= image_normal_y)  # NaN normals (borders, holes) count as steep
-        G[steep] = np.nan
-    P = G.reshape(-1, 3)
-    P = P[np.isfinite(P).all(1)]
+    R = quat_to_matrix(np.asarray(sample.camera_rot[i], dtype=np.float64))  # camera-to-world (3, 3)
+    pos = np.asarray(sample.camera_pos[i], dtype=np.float64)
+    P = grid_points(z, z_raw, np.asarray(K, np.float64), R, pos, max_depth_m, edge_rel, image_normal_y)
     m = character_mask(P, entity_bones(sample, layout, i, mask_radius_scale, mask_margin_m))
     return P[~m], int(m.sum())
 
 
+def grid_points_reference(
+    z: np.ndarray,
+    z_raw: np.ndarray,
+    K: np.ndarray,
+    pos: np.ndarray,
+    rot_xyzw: np.ndarray,
+    max_depth_m: float = 20.0,
+    edge_rel: float = 0.1,
+    image_normal_y: float = 0.8,
+) -> np.ndarray:
+    """``_points_kernel.grid_points`` in whole-array numpy passes: the definition the compiled kernel follows.
+
+    Pixels next to a depth edge of ``z_raw`` and depths of ``z`` beyond ``max_depth_m`` are dropped, the rest
+    back-projected, and those whose image normal has ny < ``image_normal_y`` dropped; the points in row-major
+    pixel order."""
+    z = z.copy()
+    z[depth_edges(z_raw, edge_rel)] = np.nan
+    z[~(z <= max_depth_m)] = np.nan  # NaN stays NaN
+    G = backproject(z, K, pos, rot_xyzw)
+    if image_normal_y > 0:
+        eye = np.asarray(pos, dtype=np.float64)
+        steep = ~(image_normals(G, eye)[..., 1] >= image_normal_y)  # NaN normals (borders, holes) count as steep
+        G[steep] = np.nan
+    P = G.reshape(-1, 3)
+    return P[np.isfinite(P).all(1)]
+
+
 # ------------------------------------------------------------------------------------------------
 # the scan
+
+
+def load_kernels() -> None:
+    """Load the scan's compiled kernels (numba's cache) into this process, so that workers forked from it share
+    them instead of each paying numba's start (about half a CPU-second a process)."""
+    codes = np.full((3, 3), 100, np.uint8)
+    K = np.array([1.0, 1.0, 1.5, 1.5])
+    z = DepthDecoder().decode(smooth_codes(codes))
+    P = grid_points(z, z, K, np.eye(3), np.zeros(3), 20.0, 0.1, 0.0)
+    character_mask(P, [(P[:1], P[:1], 0.1)])
+    voxel_reduce(P, 0.1, ordered=False)
+
+
+def use_threads(n: int) -> None:
+    """Let the scan's thread pools take at most ``n`` threads in this process: open3d's (its outlier and normal
+    steps give the same result on any number). The numba kernels and numpy steps run on one thread, and
+    BLAS sees only 3 × 3 products, which it never splits."""
+    o3d.utility.set_max_threads(max(1, int(n)))
 
 
 def scan_sample(
@@ -501,12 +599,13 @@ def scan_sample(
     keep_points: bool = False,
     depth_subsample: int = 1,
 ) -> ScanResult:
-    """Scan a read sample with its depth frames (codes, (H, W) uint8); see ``scan_recording``.
+    """Scan a read sample with its depth frames (codes, (H, W) uint8, one item per frame: those the stride leaves out
+    may be None); see ``scan_recording``.
     ``depth_subsample``: ``frame_points``' ``subsample``."""
     res = ScanResult(Observations.empty(), int(recording_ts))
     stride = max(1, int(frame_stride))
     n = sample.n_frames
-    chunks: list[np.ndarray] = []
+    voxels = VoxelMeans(voxel_m)  # the recording's voxels, the mean of each frame's half-size voxel means
     for i, codes in enumerate(frames):
         if i >= n:
             break
@@ -534,9 +633,8 @@ def scan_sample(
         res.frames_used += 1
         res.points_valid += len(P) + masked
         res.points_masked += masked
-        chunks.append(voxel_reduce(P, voxel_m / 2))
-    pts = np.concatenate(chunks) if chunks else np.zeros((0, 3))
-    p, nrm = ground_cloud(pts, voxel_m, min_normal_y, normal_radius_voxels)
+        voxels.add(voxel_reduce(P, voxel_m / 2, ordered=False))
+    p, nrm = ground_cloud(voxels.means(), voxel_m, min_normal_y, normal_radius_voxels)
     leak = edge_leaks(p, edge_m)
     p, nrm = p[~leak], nrm[~leak]
     res.points_leaked = int(leak.sum())
@@ -583,4 +681,6 @@ def scan_recording(
     if not depth.exists():
         raise SampleError(f"{depth}: missing")
     ts = recording_time(ref.path / RGB_FILE)
-    return scan_sample(sample, layout, depth_frames(depth), decoder, ts, frame_stride, voxel_m, min_normal_y, **options)
+    stride = max(1, int(frame_stride))
+    frames = depth_frames(depth, keep=lambda i: i % stride == 0)
+    return scan_sample(sample, layout, frames, decoder, ts, frame_stride, voxel_m, min_normal_y, **options)

@@ -92,7 +92,7 @@ def contact_points(ref: SampleRef, layout: Layout, decoder: DepthDecoder, frame_
     )
     kw = {k: knobs[k] for k in point_knobs if k in knobs}
     cams, offs, frames = [], [], 0
-    for i, codes in enumerate(depth_frames(ref.path / DEPTH_FILE)):
+    for i, codes in enumerate(depth_frames(ref.path / DEPTH_FILE, keep=lambda i: i % frame_stride == 0)):
         if i >= sample.n_frames:
             break
         if i % frame_stride or sample.camera_valid is None or not sample.camera_valid[i]:

@@ -162,12 +162,11 @@ def smooth_codes(codes: np.ndarray, radius: int = 3, tol: float = 1.0) -> np.nda
     are left out). Where codes change by more than ``tol`` per pixel (near surfaces, whose quantisation
     is fine anyway) the mean keeps roughly the centre's own code.
     """
-    c = np.asarray(codes, dtype=np.float64)
-    if radius <= 0:
-        return c
-    if c.ndim == 2 and np.asarray(codes).dtype == np.uint8:
+    codes = np.asarray(codes)
+    if radius > 0 and codes.ndim == 2 and codes.dtype == np.uint8:
         return _smooth_u8(np.ascontiguousarray(codes), int(radius), float(tol))
-    return smooth_codes_reference(c, radius, tol)
+    c = codes.astype(np.float64)
+    return c if radius <= 0 else smooth_codes_reference(c, radius, tol)
 
 
 def smooth_codes_reference(c: np.ndarray, radius: int, tol: float) -> np.ndarray:
@@ -187,24 +186,42 @@ def smooth_codes_reference(c: np.ndarray, radius: int, tol: float) -> np.ndarray
 
 @numba.njit(cache=True, nogil=True)
 def _smooth_u8(codes: np.ndarray, radius: int, tol: float) -> np.ndarray:  # pragma: no cover - compiled
-    """``smooth_codes`` of 8-bit codes, per pixel over its window: the sums are of integers, so exact in any
-    order, and the one division per pixel is the reference's."""
+    """``smooth_codes`` of 8-bit codes with a histogram of the window's codes that slides along each row: a step
+    right adds the column entering the window and removes the one leaving it, and a pixel of code c reads the
+    bins c − ⌊tol⌋ … c + ⌊tol⌋ (the integer codes within ``tol`` of c). The sums are of integers, so exact in any
+    order, and the one division per pixel is the reference's. Rows alternate between two histograms (by row
+    parity), so the increments of a column of equal codes do not wait on one another."""
     H, W = codes.shape
     out = np.zeros((H, W))
+    if tol < 0:
+        return out  # no code lies within a negative tolerance, not even its own: the reference's 0 / max(0, 1)
+    k = int(np.floor(tol))
+    hist = np.zeros((2, 256), np.int32)
     for i in range(H):
+        a0 = max(i - radius, 0)
+        a1 = min(i + radius + 1, H)
+        hist[:] = 0
+        for b in range(min(radius + 1, W)):
+            for a in range(a0, a1):
+                hist[a & 1, codes[a, b]] += 1
         for j in range(W):
-            c = codes[i, j]
-            if c == 0:
-                continue
-            total = 0.0
-            count = 0.0
-            for a in range(max(i - radius, 0), min(i + radius + 1, H)):
-                for b in range(max(j - radius, 0), min(j + radius + 1, W)):
-                    nb = codes[a, b]
-                    if nb > 0 and abs(float(nb) - float(c)) <= tol:
-                        total += nb
-                        count += 1.0
-            out[i, j] = total / max(count, 1.0)
+            c = np.int64(codes[i, j])
+            if c > 0:
+                total = 0
+                count = 0
+                for v in range(max(c - k, 1), min(c + k, 255) + 1):
+                    n = np.int64(hist[0, v] + hist[1, v])
+                    total += n * v
+                    count += n
+                out[i, j] = float(total) / max(float(count), 1.0)
+            enter = j + radius + 1
+            if enter < W:
+                for a in range(a0, a1):
+                    hist[a & 1, codes[a, enter]] += 1
+            leave = j - radius
+            if leave >= 0:
+                for a in range(a0, a1):
+                    hist[a & 1, codes[a, leave]] -= 1
     return out
 
 

@@ -105,7 +105,7 @@ def recording_pairs(ref: SampleRef, layout: Layout, frame_stride: int = 5) -> Pa
         names += [f"{e.rig.name}/{j}" for j in e.rig.keep]  # by rig: recordings of other species never share a name
         offset += [e.rig.capsule_radius_m] * len(e.rig.keep)
     codes, zjs, dists, joints, at, frames = [], [], [], [], [], 0
-    for i, img in enumerate(depth_frames(ref.path / DEPTH_FILE)):
+    for i, img in enumerate(depth_frames(ref.path / DEPTH_FILE, keep=lambda i: i % frame_stride == 0)):
         if i % frame_stride or sample.camera_valid is None or i >= len(sample.camera_valid) or not sample.camera_valid[i]:
             continue
         frames += 1

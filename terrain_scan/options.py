@@ -18,8 +18,9 @@ from terrain_scan.layers import ALIAS_DOMINANCE, ALIAS_FRACTION, ALIAS_SUPPORT
 # docs/tradeoffs.md, "A wrong depth mapping".
 MAX_CONTACT_GAP_M = 0.5
 
-# 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug
-SCAN_VERSION = "4"
+# 2: image-space steepness test, 20 m depth range; 3: edge leaks dropped; 4: observations keep the edges they hug;
+# 5: a recording's voxel means in float64 world coordinates (``accumulate.VoxelMeans``)
+SCAN_VERSION = "5"
 
 
 @dataclass(frozen=True)

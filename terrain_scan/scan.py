@@ -17,12 +17,12 @@ from pathlib import Path
 from marionette.corpus import Corpus, paths
 from marionette.corpus.lock import corpus_lock
 from marionette.corpus.stages import UNPLACED, read_stage_file, write_placements
-from marionette.fanout import Mapper, pool_mapper, worker_identity
+from marionette.fanout import Mapper, pool_mapper, threads_per_worker, worker_identity
 from marionette.ingest.finalize import write_metadata
 from marionette.io import file_sha256, printable, text_sha256
 from marionette.recordings.errors import SampleError
 from marionette.recordings.wildworld import DEPTH_FILE, SampleRef
-from terrain_scan.accumulate import ScanResult, scan_recording
+from terrain_scan.accumulate import ScanResult, load_kernels, scan_recording, use_threads
 from terrain_scan.depth import DepthDecoder
 from terrain_scan.grouping import place
 from terrain_scan.layers import Observations
@@ -82,9 +82,12 @@ class ScanOutcome:
         return self.result is None and self.reason is None
 
 
-def scan_job(job: ScanJob, layouts: dict, options: ScanOptions) -> ScanOutcome:
+def scan_job(job: ScanJob, layouts: dict, options: ScanOptions, threads: int | None = None) -> ScanOutcome:
     """Hash a recording's scan inputs (ingest input, depth.mkv, scan settings) and scan it unless the stage
-    already holds that hash. Never raises: a failure is the outcome's ``reason``, naming the file."""
+    already holds that hash. Never raises: a failure is the outcome's ``reason``, naming the file. ``threads``:
+    the most threads the scan's thread pools take in this worker (``accumulate.use_threads``)."""
+    if threads is not None:
+        use_threads(threads)
     out = ScanOutcome(job, worker=worker_identity())
     ref = _ref(job.source)
     depth = ref.path / DEPTH_FILE
@@ -126,18 +129,26 @@ def scan_stages(
     The recordings are scanned as independent jobs (``scan_job``) by ``mapper`` (``marionette.fanout``;
     default: ``pool_mapper(workers)``; the ``rescan-stage`` flow passes one that runs them on Dask) and
     committed to their stage in the stage's recording order, whatever order they finish in, so any number of
-    workers writes the bytes a serial scan writes. A recording that cannot be scanned (its depth.mkv or any other input unreadable, or any other
+    workers writes the bytes a serial scan writes. The local pool's k workers take ``threads_per_worker(k)``
+    threads each (the machine's cores split between them). A recording that cannot be scanned (its depth.mkv or any other input unreadable, or any other
     error) is listed under ``failed`` with the reason and the other recordings are scanned. ``progress``
     shows a bar over the recordings.
     """
 
     with corpus_lock(corpus, "terrain scan"):
-        run = mapper or pool_mapper(workers)
+        if mapper is None and workers > 1:
+            load_kernels()  # once here, not once in each forked worker
+        run = mapper or _sharing_cores(pool_mapper(workers), threads_per_worker(workers))
         if options is None:
             options = ScanOptions.of_corpus(corpus)
         report = _scan_stages(corpus, stage, incremental, options, log, progress, run)
         options.store(corpus)
         return report
+
+
+def _sharing_cores(mapper: Mapper, threads: int) -> Mapper:
+    """``mapper`` with each ``scan_job`` told how many threads its share of the machine's cores is."""
+    return lambda fn, jobs, static: mapper(fn, jobs, {**static, "threads": threads})
 
 
 def _scan_stages(corpus: Path, stage: str | None, incremental: bool, options: ScanOptions, log, progress: bool, mapper) -> dict:

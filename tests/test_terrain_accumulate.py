@@ -4,23 +4,33 @@ from __future__ import annotations
 
 import dataclasses
 
+import av
 import numpy as np
+import open3d as o3d
 import pytest
 
+from marionette.geometry import quat_to_matrix
+from marionette.recordings.errors import SampleError
 from marionette.recordings.wildworld import RecordedSample, SampleRef, discover, read_sample
 from marionette.schema import load_scene
 from marionette.synth import generate, load_truth, terrain
 from marionette.synth.render import decode_depth, encode_depth
+from terrain_scan._points_kernel import grid_points
 from terrain_scan.accumulate import (
+    VoxelMeans,
     backproject,
     character_mask,
     depth_frames,
+    display_ranks,
     edge_leaks,
     entity_bones,
     frame_points,
+    grid_points_reference,
+    ground_cloud,
     scan_recording,
     scan_sample,
     segment_distance,
+    subsampled,
     voxel_reduce,
 )
 from terrain_scan.depth import DepthDecoder, smooth_codes, smooth_codes_reference
@@ -254,7 +264,6 @@ def test_invalid_cameras_and_empty_recordings_are_harmless(rec):
 def test_subsampled_depth_keeps_pixels_and_maps_the_intrinsics(f):
     """Issue 16: ``depth_subsample`` keeps one source pixel per f × f block (never a blend of codes) and maps K so
     each kept pixel back-projects to the very world point it does at full size, far from the origin too."""
-    from terrain_scan.accumulate import backproject, subsampled
     from terrain_scan.options import ScanOptions
 
     rng = np.random.default_rng(f)
@@ -280,7 +289,7 @@ def test_subsampled_depth_keeps_pixels_and_maps_the_intrinsics(f):
 
 def test_fast_paths_equal_their_definitions():
     """The scan's compiled and packed paths give their plain definitions' values bit for bit: the smoothing of
-    8-bit codes, the per-frame voxel means (one packed 1-D sort against ``np.unique(axis=0)``) and the character
+    8-bit codes, the per-frame voxel means (one hashed pass over the points, against ``np.unique(axis=0)``) and the character
     mask (bones tested where their grown boxes hold a point, against every point × every bone) — on random data,
     at negative and far-out coordinates."""
     rng = np.random.default_rng(5)
@@ -288,7 +297,7 @@ def test_fast_paths_equal_their_definitions():
     codes[rng.random(codes.shape) < 0.2] = 0
     smooth = np.cumsum(rng.integers(-1, 2, (40, 61)), axis=1) % 200 + 30  # plane-like runs of near codes
     for c in (codes, smooth.astype(np.uint8)):
-        for radius, tol in ((3, 1.0), (1, 0.5), (2, 4.0)):
+        for radius, tol in ((3, 1.0), (1, 0.5), (2, 4.0), (3, 0.0), (1, -1.0), (2, 300.0), (40, 1.0)):
             np.testing.assert_array_equal(smooth_codes(c, radius, tol), smooth_codes_reference(c.astype(float), radius, tol))
     for origin in (np.zeros(3), np.array([-4321.7, -12.3, 98765.4])):
         pts = origin + rng.normal(0, 3, (5000, 3))
@@ -303,3 +312,86 @@ def test_fast_paths_equal_their_definitions():
             brute |= (segment_distance(pts, sa, sb) <= r).any(1)
         assert 0 < brute.sum() < len(pts)
         np.testing.assert_array_equal(character_mask(pts, bones), brute)
+
+
+def test_compiled_frame_pass_equals_its_numpy_definition(rec):
+    """``grid_points`` keeps the pixels ``grid_points_reference`` keeps, at the same points (to rounding: the camera
+    rotation's dot products are summed in a fixed order, numpy's matmul leaves it to BLAS), on recorded frames and at
+    the settings' extremes."""
+    _, ref, _, sample, _ = rec
+    dec = DepthDecoder.synthetic()
+    frames = depth_frames(ref.path / "depth.mkv", keep=lambda k: k % 60 == 7)
+    kept = 0
+    for i, codes in enumerate(frames):
+        if codes is None or not sample.camera_valid[i]:
+            continue
+        for f, max_depth, rel, ny in ((1, 20.0, 0.1, 0.8), (2, 20.3, 0.1, 0.8), (3, 300.0, 0.02, 0.0), (1, 8.0, 1.0, -1.0)):
+            c, K = subsampled(codes, sample.camera_K[i], f)
+            z_raw = dec.decode(c)
+            z = dec.decode(smooth_codes(c, 3, 1.0))
+            pos, rot = sample.camera_pos[i], sample.camera_rot[i]
+            want = grid_points_reference(z, z_raw, K, pos, rot, max_depth, rel, ny)
+            R = quat_to_matrix(np.asarray(rot, np.float64))
+            got = grid_points(z, z_raw, K, R, np.asarray(pos, np.float64), max_depth, rel, ny)
+            assert got.shape == want.shape, (i, f, got.shape, want.shape)
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+            kept += len(got)
+    assert kept > 10000
+
+
+def _gray_video(path, frames: int = 40) -> None:
+    """A short lossless HEVC gray video with B-frames (some referenced by other frames, some not)."""
+    rng = np.random.default_rng(0)
+    base = rng.integers(1, 200, (48, 64))
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx265", rate=30, options={"x265-params": "lossless=1:log-level=error:pools=1:frame-threads=1"})
+        s.width, s.height, s.pix_fmt = 64, 48, "gray"
+        for k in range(frames):
+            img = ((base + k) % 255 + 1).astype(np.uint8)
+            for p in s.encode(av.VideoFrame.from_ndarray(img, format="gray")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+
+
+def test_depth_frames_keep_decodes_only_what_it_must(tmp_path):
+    """Frames ``keep`` leaves out are None and the rest are the full decode's bytes, whichever frames the decoder
+    skips; a file that is no video still raises SampleError naming it."""
+    path = tmp_path / "depth.mkv"
+    _gray_video(path)
+    full = list(depth_frames(path))
+    assert len(full) == 40 and sorted(display_ranks(path).values()) == list(range(40))
+    for stride in (1, 3, 4):
+        got = list(depth_frames(path, keep=lambda i, s=stride: i % s == 0))
+        assert len(got) == len(full)
+        for i, (a, b) in enumerate(zip(got, full, strict=True)):
+            if i % stride:
+                assert a is None
+            else:
+                np.testing.assert_array_equal(a, b)
+    bad = tmp_path / "broken.mkv"
+    bad.write_bytes(b"not a video")
+    with pytest.raises(SampleError, match="broken.mkv"):
+        next(depth_frames(bad, keep=lambda i: True))
+
+
+def test_voxel_means_in_batches_and_ground_cloud_on_any_thread_count():
+    """``VoxelMeans`` fed in batches gives the voxel means of all the points at once (bit for bit), and the open3d
+    steps give the same points and normals on one thread and on several."""
+    rng = np.random.default_rng(3)
+    x, z = rng.uniform(-960, -940, 60000), rng.uniform(300, 320, 60000)
+    pts = np.c_[x, 30 + 0.1 * np.sin(x) + rng.normal(0, 0.01, len(x)), z]
+    acc = VoxelMeans(0.25, capacity=2)
+    for part in np.array_split(pts, 9):
+        acc.add(part)
+    whole = voxel_reduce(pts, 0.25)
+    np.testing.assert_array_equal(acc.means(), whole)
+    assert sorted(map(tuple, acc.means(ordered=False))) == sorted(map(tuple, whole))
+    out = []
+    for threads in (1, 4):
+        o3d.utility.set_max_threads(threads)
+        out.append(ground_cloud(whole, 0.25, 0.5, 2.0))
+    o3d.utility.set_max_threads(0)
+    assert len(out[0][0]) > 1000
+    for a, b in zip(out[0], out[1], strict=True):
+        np.testing.assert_array_equal(a, b)
