@@ -26,7 +26,7 @@ import pyarrow as pa
 
 from marionette.corpus import Corpus, fixed_rows, paths, video_shards
 from marionette.corpus.lock import corpus_lock
-from marionette.fanout import pool_mapper, worker_identity
+from marionette.fanout import pool_mapper, threads_per_worker, worker_identity
 from marionette.geometry import resample_positions, resample_quats
 from marionette.io import file_sha256, text_sha256
 from marionette.recordings.wildworld import RGB_FILE
@@ -404,7 +404,7 @@ def render_pose_targets(
                 keep = _render_serial(corpus, settings, report, bar, jitter)
             else:
                 if mapper is None and gl_threads is None:
-                    gl_threads = max(1, (os.cpu_count() or 1) // workers)
+                    gl_threads = threads_per_worker(workers)
                 mapper = mapper or pool_mapper(workers, start_method="spawn")
                 keep = _render_fanned_out(corpus, settings, report, bar, mapper, gl_threads, jitter)
         finally:
