@@ -7,8 +7,10 @@ in job order, so the bytes it writes do not depend on the mapper.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
@@ -18,13 +20,13 @@ Mapper = Callable[[Callable[..., Any], list, dict[str, Any]], Iterable[Any]]
 
 
 def worker_identity() -> str:
-    """``<dask worker address>/pid-<pid>`` on a Dask worker, ``<host>/pid-<pid>`` elsewhere."""
-    try:
-        from distributed import get_worker
-
-        where = get_worker().address
-    except (ImportError, ValueError):
-        where = socket.gethostname()
+    """``<dask worker address>/pid-<pid>`` on a Dask worker, ``<host>/pid-<pid>`` elsewhere (a process that has not
+    loaded Dask's ``distributed`` is no Dask worker, and is not made to import it: a third of a second)."""
+    where = socket.gethostname()
+    distributed = sys.modules.get("distributed")
+    if distributed is not None:
+        with contextlib.suppress(ValueError):  # ValueError: not inside a Dask worker
+            where = distributed.get_worker().address
     return f"{where}/pid-{os.getpid()}"
 
 
