@@ -11,6 +11,7 @@ import functools
 import io
 import json
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -23,19 +24,40 @@ from marionette.corpus import video_shards
 from marionette.io import regular_file
 from marionette.recordings.errors import SampleError, regular_input
 
+# x264 options over the preset: superfast's motion search and partitions with veryfast's rate control (mb-tree over a
+# 10-frame lookahead). From 176 × 320 to 704 × 1280: 0.5× veryfast's encode time, PSNR within 0.25 dB, SSIM within
+# 0.002, 1.1–1.15× the bytes (benchmarks/bench_rgb_chunks.py).
+X264_OPTIONS = "me=dia:subme=1:partitions=i8x8,i4x4"
+# From the paper's chunk size up, P-frames only: there B-frames take a quarter of the encode, the largest part of ingest
+# (without them: 0.75× the time, 1.26× the bytes, PSNR and SSIM no lower); at 352 × 640 and below they cost at most
+# 11 % of the encode and save a quarter of the bytes.
+P_FRAMES_ONLY_PIXELS = 704 * 1280
+
+
+def x264_options_for(height: int, width: int) -> str:
+    """The default ``x264_options`` of chunks of this size."""
+    return f"{X264_OPTIONS}:bframes=0" if height * width >= P_FRAMES_ONLY_PIXELS else X264_OPTIONS
+
 
 @dataclass(frozen=True)
 class VideoSettings:
-    """Training-resolution video chunks: size (height, width), frames per chunk, x264 quality."""
+    """Training-resolution video chunks: size (height, width), frames per chunk, x264 quality, speed and options
+    (``x264_options``: a ``key=value:...`` list applied over the preset; by default ``x264_options_for`` the size)."""
 
     height: int = 176
     width: int = 320
     chunk_frames: int = 81
     crf: int = 20
     preset: str = "veryfast"
+    x264_options: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.x264_options is None:  # the size's default, written out: the settings say what the chunks hold
+            object.__setattr__(self, "x264_options", x264_options_for(self.height, self.width))
 
     def key(self) -> str:
-        return f"{self.height}x{self.width}-{self.chunk_frames}f-crf{self.crf}-{self.preset}"
+        options = f"-{self.x264_options}" if self.x264_options else ""
+        return f"{self.height}x{self.width}-{self.chunk_frames}f-crf{self.crf}-{self.preset}{options}"
 
 
 @dataclass(frozen=True)
@@ -124,29 +146,72 @@ def x264_cpu_flags() -> str:
 
 
 def x264_params() -> str:
-    """``x264-params`` of every RGB chunk: one thread, one lookahead thread, no sliced threads, and
-    the CPU code paths of ``x264_cpu_flags`` — the same frames always give the same bytes."""
+    """The ``x264-params`` every RGB chunk ends with: one thread, one lookahead thread, no sliced threads, and the CPU
+    code paths of ``x264_cpu_flags`` — the same frames always give the same bytes."""
     return f"threads=1:lookahead-threads=1:sliced-threads=0:asm={x264_cpu_flags()}"
+
+
+def chunk_x264_params(settings: VideoSettings) -> str:
+    """``x264-params`` of a chunk: the settings' ``x264_options``, then ``x264_params()`` (last: nothing overrides it)."""
+    return ":".join(p for p in (settings.x264_options, x264_params()) if p)
+
+
+class ChunkEncoder:
+    """One H.264 mp4 in memory, fed yuv420p frames of one size one at a time; ``finish`` returns its bytes.
+
+    ``params`` replaces ``chunk_x264_params(settings)`` (the benchmarks measure others); ``colour`` tags the stream
+    (``colorspace``, ``color_range``, ``color_primaries``, ``color_trc``) so a decoder turns it into the RGB its source
+    gave.
+    """
+
+    def __init__(
+        self, width: int, height: int, fps: float, settings: VideoSettings, params: str | None = None, colour: dict | None = None
+    ):
+        self._buf = io.BytesIO()
+        self._mp4 = av.open(self._buf, "w", format="mp4")
+        options = {"crf": str(settings.crf), "preset": settings.preset, "x264-params": params or chunk_x264_params(settings)}
+        self._rate = int(round(fps))
+        self._stream = self._mp4.add_stream("libx264", rate=self._rate, options=options)
+        self._stream.width, self._stream.height, self._stream.pix_fmt = width, height, "yuv420p"
+        self._stream.codec_context.thread_count = 1
+        for name, value in (colour or {}).items():
+            setattr(self._stream.codec_context, name, value)
+        self.frames = 0
+
+    def add(self, frame: av.VideoFrame) -> None:
+        """Encode the next frame (its timestamp is set here: frame n of the chunk at ``fps``)."""
+        frame.pts, frame.time_base = self.frames, Fraction(1, self._rate)
+        for packet in self._stream.encode(frame):
+            self._mp4.mux(packet)
+        self.frames += 1
+
+    def finish(self) -> bytes:
+        """Flush the encoder, close the mp4 and return its bytes."""
+        for packet in self._stream.encode():
+            self._mp4.mux(packet)
+        self._mp4.close()
+        return self._buf.getvalue()
+
+    def close(self) -> None:
+        """Drop an unfinished chunk."""
+        self._mp4.close()
 
 
 def encode_mp4(frames: np.ndarray, fps: float, settings: VideoSettings, params: str | None = None) -> bytes:
     """Encode (T, H, W, 3) uint8 RGB frames as an H.264 mp4 in memory, deterministically with the default
-    ``params`` (``x264_params()``; the benchmark passes others to measure them)."""
+    ``params`` (``chunk_x264_params(settings)``; the benchmarks pass others to measure them)."""
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or not len(frames):
         raise ValueError(f"encode_mp4: expected (T, H, W, 3) uint8 frames with T > 0, got {frames.shape} {frames.dtype}")
-    buf = io.BytesIO()
-    options = {"crf": str(settings.crf), "preset": settings.preset, "x264-params": params or x264_params()}
-    with av.open(buf, "w", format="mp4") as c:
-        s = c.add_stream("libx264", rate=int(round(fps)), options=options)
-        s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
-        s.codec_context.thread_count = 1
+    to_yuv = VideoReformatter()
+    encoder = ChunkEncoder(frames.shape[2], frames.shape[1], fps, settings, params)
+    try:
         for f in frames:
-            for p in s.encode(av.VideoFrame.from_ndarray(f, format="rgb24")):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
-    return buf.getvalue()
+            encoder.add(to_yuv.reformat(av.VideoFrame.from_ndarray(f, format="rgb24"), format="yuv420p", threads=1))
+    except BaseException:
+        encoder.close()
+        raise
+    return encoder.finish()
 
 
 def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, np.ndarray] | list[np.ndarray]:
@@ -185,6 +250,117 @@ def _open_video(path: Path) -> av.container.InputContainer:
     return c
 
 
+@dataclass(frozen=True)
+class _Chunk:
+    """One chunk of the shard: segment, chunk number, source frames [start, stop), intrinsics (n, 4) in source pixels."""
+
+    segment: str
+    number: int
+    start: int
+    stop: int
+    K: np.ndarray
+
+
+def _chunk_plan(segments: list[tuple[str, int, int, np.ndarray]], chunk_frames: int) -> list[_Chunk]:
+    """Every segment's chunks (``chunk_spans``), in segment order."""
+    return [
+        _Chunk(seg, ci, a + s, a + e, K[s:e])
+        for seg, a, b, K in segments
+        for ci, (s, e) in enumerate(chunk_spans(b - a, chunk_frames))
+    ]
+
+
+COLOUR_TAGS = ("colorspace", "color_range", "color_primaries", "color_trc")  # how a decoder turns YUV into RGB
+
+
+def crop_planes(frame: av.VideoFrame, x0: int, y0: int, w: int, h: int) -> av.VideoFrame:
+    """The (x0, y0, w, h) window of a yuv420p frame, plane by plane, as a new frame with the same colour tags; the
+    window's offsets and sizes are even, so the chroma planes (half the size) crop exactly."""
+    out = av.VideoFrame(w, h, "yuv420p")
+    for i, (src, dst) in enumerate(zip(frame.planes, out.planes)):
+        k = 1 if i else 0  # chroma planes: half the rows and columns
+        rows = np.frombuffer(src, np.uint8).reshape(src.height, src.line_size)
+        np.frombuffer(dst, np.uint8).reshape(dst.height, dst.line_size)[:, : w >> k] = rows[
+            y0 >> k : (y0 + h) >> k, x0 >> k : (x0 + w) >> k
+        ]
+    for tag in COLOUR_TAGS:
+        setattr(out, tag, getattr(frame, tag))
+    return out
+
+
+class ChunkFrames:
+    """Decoded source frames → the chunk's yuv420p frames (``CropResize``), as the encoder takes them.
+
+    A yuv420p source whose crop window lies on even pixels (every 16:9 source at the 11:20 training aspect) is cropped
+    plane by plane, exactly, and resampled (AREA, in yuv420p) only when the crop's size is not the chunk's: no RGB round
+    trip, and its colour tags go with it (``colour``). Any other source takes the reference route: RGB24, crop, then one
+    swscale call to the chunk's size in yuv420p (BT.601, untagged).
+    """
+
+    def __init__(self, cr: CropResize, source: av.VideoCodecContext):
+        self.cr = cr
+        self.planar = source.pix_fmt == "yuv420p" and all(v % 2 == 0 for v in (cr.x0, cr.y0, cr.w, cr.h))
+        self.colour = {t: getattr(source, t) for t in COLOUR_TAGS} if self.planar else {}
+        self._to_rgb, self._to_chunk = VideoReformatter(), VideoReformatter()  # one swscale context each for the stream
+
+    def __call__(self, frame: av.VideoFrame) -> av.VideoFrame:
+        cr = self.cr
+        if self.planar and frame.format.name == "yuv420p":
+            window = crop_planes(frame, cr.x0, cr.y0, cr.w, cr.h)
+            if (cr.h, cr.w) == (cr.out_h, cr.out_w):
+                return window
+        else:
+            rgb = self._to_rgb.reformat(frame, format="rgb24", threads=1).to_ndarray()
+            window = av.VideoFrame.from_ndarray(
+                np.ascontiguousarray(rgb[cr.y0 : cr.y0 + cr.h, cr.x0 : cr.x0 + cr.w]), format="rgb24"
+            )
+        return self._to_chunk.reformat(window, width=cr.out_w, height=cr.out_h, format="yuv420p", interpolation="AREA", threads=1)
+
+
+def _decoded(c: av.container.InputContainer, path: Path) -> Iterator[tuple[int, av.VideoFrame]]:
+    """(number, frame) of the first video stream, on one codec thread; a frame that cannot be decoded or whose size is
+    not the stream's is a SampleError naming the file and the frame."""
+    s = c.streams.video[0]
+    s.codec_context.thread_count = 1  # one codec thread: parallelism comes from workers
+    size = (s.codec_context.width, s.codec_context.height)
+    frames = c.decode(s)
+    i = 0
+    while True:
+        try:
+            fr = next(frames)
+        except StopIteration:
+            return
+        except av.error.FFmpegError as exc:
+            raise SampleError(f"{path}: cannot decode frame {i}: {exc}") from None
+        if (fr.width, fr.height) != size:
+            raise SampleError(f"{path}: frame {i} is {fr.width}×{fr.height}, the stream's frames are {size[0]}×{size[1]}")
+        yield i, fr
+        i += 1
+
+
+def _chunk_record(chunk: _Chunk, fps: float, source_size: tuple[int, int], cr: CropResize, meta: dict) -> dict:
+    """A chunk's json member: where it comes from, how it was cropped and resized, its intrinsics in chunk pixels."""
+    return {
+        **meta,
+        "segment": chunk.segment,
+        "chunk": chunk.number,
+        "frames": [chunk.start, chunk.stop],
+        "fps": fps,
+        "source_size": list(source_size),
+        "crop": cr.to_json(),
+        "resize": [cr.out_h, cr.out_w],
+        "scale": [cr.sy, cr.sx],
+        "K": np.round(cr.intrinsics(chunk.K), 6).tolist(),
+    }
+
+
+def _add_chunk(tar, chunk: _Chunk, mp4: bytes, record: dict) -> None:
+    """A chunk's members in the shard: ``rgb.mp4``, then ``json``."""
+    key = video_shards.chunk_key(chunk.segment, chunk.number)
+    video_shards.add_member(tar, video_shards.member_name(key, video_shards.RGB_KIND), mp4)
+    video_shards.add_member(tar, video_shards.member_name(key, "json"), json.dumps(record, sort_keys=True).encode())
+
+
 def write_video_shard(
     out: Path,
     rgb_path: Path,
@@ -196,75 +372,54 @@ def write_video_shard(
     """Write a webdataset tar of RGB chunks for ``segments`` [(segment id, start, stop, K (n,4))].
 
     Keys and members as ``marionette.corpus.video_shards`` defines them (``rgb.mp4`` and ``json``). The source is
-    decoded once, sequentially. Returns the json records written.
+    decoded once, sequentially; each wanted frame is made a chunk frame once (``ChunkFrames``) and fed to the encoder of
+    every chunk holding it, and a chunk's members are written when its last frame is in. Returns the json records
+    written, in that order.
     """
-    wanted: dict[int, list[tuple[str, int]]] = {}
-    plan: list[tuple[str, int, int, int, np.ndarray]] = []
-    for seg, a, b, K in segments:
-        for ci, (s, e) in enumerate(chunk_spans(b - a, settings.chunk_frames)):
-            plan.append((seg, ci, a + s, a + e, K[s:e]))
-            for f in range(a + s, a + e):
-                wanted.setdefault(f, []).append((seg, ci))
+    plan = _chunk_plan(segments, settings.chunk_frames)
+    wanted: dict[int, list[int]] = {}  # source frame → the chunks (indices into plan) holding it
+    for k, chunk in enumerate(plan):
+        for f in range(chunk.start, chunk.stop):
+            wanted.setdefault(f, []).append(k)
     records: list[dict] = []
-    buffers: dict[tuple[str, int], list[np.ndarray]] = {(p[0], p[1]): [] for p in plan}
     with video_shards.writer(out) as tar:
-        if plan:
-            with _open_video(rgb_path) as c:
-                s = c.streams.video[0]
-                s.codec_context.thread_count = 1  # one codec thread: parallelism comes from workers
-                src_h, src_w = s.codec_context.height, s.codec_context.width
-                cr = CropResize.fit(src_h, src_w, settings.height, settings.width)
-                x0, y0, cw, ch = cr.x0, cr.y0, cr.w, cr.h
-                pending = {(p[0], p[1]): p for p in plan}
-                last = max(wanted)
-                to_rgb, to_size = VideoReformatter(), VideoReformatter()  # one swscale context each for the stream
-                frames = c.decode(s)
-                i = -1
-                while True:
-                    try:
-                        fr = next(frames)
-                    except StopIteration:
+        if not plan:
+            return records
+        encoders: dict[int, ChunkEncoder] = {}
+        added = [0] * len(plan)
+        with _open_video(rgb_path) as c:
+            source = c.streams.video[0].codec_context
+            source_size = (source.height, source.width)
+            cr = CropResize.fit(*source_size, settings.height, settings.width)
+            to_chunk = ChunkFrames(cr, source)
+            last = max(wanted)
+            try:
+                for i, frame in _decoded(c, rgb_path):
+                    if i > last:
                         break
-                    except av.error.FFmpegError as exc:
-                        raise SampleError(f"{rgb_path}: cannot decode frame {i + 1}: {exc}") from None
-                    i += 1
                     if i not in wanted:
-                        if i > last:
-                            break
                         continue
                     try:
-                        img = to_rgb.reformat(fr, format="rgb24").to_ndarray()[y0 : y0 + ch, x0 : x0 + cw]
-                        crop = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
-                        small = to_size.reformat(
-                            crop, width=settings.width, height=settings.height, interpolation="AREA"
-                        ).to_ndarray()
+                        small = to_chunk(frame)
                     except (av.error.FFmpegError, ValueError) as exc:
                         raise SampleError(f"{rgb_path}: cannot convert frame {i}: {type(exc).__name__}: {exc}") from None
-                    for key in wanted[i]:
-                        buffers[key].append(small)
-                        seg, ci, a, b, K = pending[key]
-                        if len(buffers[key]) == b - a:
-                            rec = {
-                                **meta,
-                                "segment": seg,
-                                "chunk": ci,
-                                "frames": [a, b],
-                                "fps": fps,
-                                "source_size": [src_h, src_w],
-                                "crop": cr.to_json(),
-                                "resize": [settings.height, settings.width],
-                                "scale": [cr.sy, cr.sx],
-                                "K": np.round(cr.intrinsics(K), 6).tolist(),
-                            }
-                            mp4 = encode_mp4(np.stack(buffers.pop(key)), fps, settings)
-                            key = video_shards.chunk_key(seg, ci)
-                            video_shards.add_member(tar, video_shards.member_name(key, video_shards.RGB_KIND), mp4)
-                            video_shards.add_member(
-                                tar, video_shards.member_name(key, "json"), json.dumps(rec, sort_keys=True).encode()
-                            )
-                            records.append(rec)
-                if buffers:
-                    (seg, ci), got = next(iter(buffers.items()))
-                    first_missing = pending[(seg, ci)][2] + len(got)
-                    raise SampleError(f"{rgb_path}: video ends before frame {first_missing} (needed for chunk {ci} of {seg})")
+                    for k in wanted[i]:
+                        if k not in encoders:
+                            encoders[k] = ChunkEncoder(cr.out_w, cr.out_h, fps, settings, colour=to_chunk.colour)
+                        encoders[k].add(small)
+                        added[k] += 1
+                        chunk = plan[k]
+                        if added[k] == chunk.stop - chunk.start:
+                            records.append(_chunk_record(chunk, fps, source_size, cr, meta))
+                            _add_chunk(tar, chunk, encoders.pop(k).finish(), records[-1])
+            finally:
+                for encoder in encoders.values():
+                    encoder.close()
+        short = next((k for k, chunk in enumerate(plan) if added[k] < chunk.stop - chunk.start), None)
+        if short is not None:
+            chunk = plan[short]
+            raise SampleError(
+                f"{rgb_path}: video ends before frame {chunk.start + added[short]} "
+                f"(needed for chunk {chunk.number} of {chunk.segment})"
+            )
     return records

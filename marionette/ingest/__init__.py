@@ -88,6 +88,15 @@ def check_corpus_options(corpus: Path, options: IngestOptions) -> None:
             )
 
 
+def _share_cores(workers: int) -> None:
+    """Size a pool worker's thread pools to its share of the cores: pyarrow's CPU pool (the state.csv parse). Decoding,
+    cropping and encoding run on the worker's own thread (``marionette.video``); torch and numba are not loaded."""
+    import pyarrow as pa
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    pa.set_cpu_count(max(1, cores // workers))
+
+
 def _ingest_one(args: tuple[SampleRef, str, IngestOptions]) -> SampleResult:
     ref, corpus, options = args
     return ingest_sample(ref, Path(corpus), options, worker=f"pid-{os.getpid()}")
@@ -135,7 +144,7 @@ def _build(source: Path, corpus: Path, options: IngestOptions, workers: int, pro
             if bar:
                 bar.update(1)
     else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_share_cores, initargs=(workers,)) as pool:
             for fut in as_completed([pool.submit(_ingest_one, j) for j in jobs]):
                 results.append(fut.result())
                 if bar:

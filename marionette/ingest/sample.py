@@ -37,7 +37,7 @@ from marionette.recordings.wildworld import (
 from marionette.schema import Layout, SchemaError, load_scene
 from marionette.video import VideoSettings, write_video_shard
 
-INGEST_VERSION = "1"
+INGEST_VERSION = "2"  # in every cache key (IngestOptions.key): a change of what ingest writes for the same options bumps it
 AUTO_SCENE = "auto"  # each recording ingested with the layout of what it holds
 
 
@@ -118,7 +118,7 @@ class IngestOptions:
     @staticmethod
     def from_json(d: dict) -> IngestOptions:
         d = dict(d)
-        d["video"] = VideoSettings(**d["video"])
+        d["video"] = VideoSettings(**{"x264_options": "", **d["video"]})  # no x264_options: the preset alone
         d["split_fractions"] = tuple(d["split_fractions"])
         return IngestOptions(**d)
 
