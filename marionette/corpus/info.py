@@ -58,7 +58,7 @@ class CorpusInfo:
 
     @property
     def video(self) -> dict:
-        """The video chunks' settings: height, width, chunk_frames, crf, preset."""
+        """The video chunks' settings: height, width, chunk_frames, crf, preset, x264_options."""
         return dict(self.ingest["video"])
 
     def to_json(self) -> dict:
