@@ -237,7 +237,7 @@ def decode_frames(path_or_bytes, indices: set[int] | None = None) -> dict[int, n
     return out_l if indices is None else out_d
 
 
-def _open_video(path: Path) -> av.container.InputContainer:
+def open_video(path: Path) -> av.container.InputContainer:
     """Open a video with at least one video stream; anything else raises SampleError naming the file."""
     regular_input(Path(path))
     try:
@@ -387,7 +387,7 @@ def write_video_shard(
             return records
         encoders: dict[int, ChunkEncoder] = {}
         added = [0] * len(plan)
-        with _open_video(rgb_path) as c:
+        with open_video(rgb_path) as c:
             source = c.streams.video[0].codec_context
             source_size = (source.height, source.width)
             cr = CropResize.fit(*source_size, settings.height, settings.width)

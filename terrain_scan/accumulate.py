@@ -46,6 +46,7 @@ from marionette.geometry import quat_to_matrix
 from marionette.recordings.errors import SampleError
 from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, RecordedSample, SampleRef, read_sample
 from marionette.schema import Layout
+from marionette.video import open_video
 
 from ._points_kernel import character_hits, grid_points, voxel_add, voxel_table
 from .depth import DepthDecoder, depth_edges, smooth_codes
@@ -280,7 +281,7 @@ def depth_frames(path: Path, keep: Callable[[int], bool] | None = None) -> Itera
     (``display_ranks``). A file that does not open or decode as a video raises SampleError naming it and the
     frame."""
     ranks = display_ranks(path) if keep is not None else None
-    c = _open_video(path)
+    c = open_video(path)
     with c:
         s = c.streams.video[0]
         s.thread_count = 1
@@ -306,18 +307,6 @@ def depth_frames(path: Path, keep: Callable[[int], bool] | None = None) -> Itera
                     except (av.error.FFmpegError, ValueError) as exc:
                         raise SampleError(f"{path}: cannot decode frame {i}: {type(exc).__name__}: {exc}") from None
                 i += 1
-
-
-def _open_video(path: Path):
-    """The container of a video file with a video stream; SampleError naming the file otherwise."""
-    try:
-        c = av.open(str(path))
-    except av.error.FFmpegError as exc:
-        raise SampleError(f"{path}: unreadable video ({type(exc).__name__}: {exc})") from None
-    if not c.streams.video:
-        c.close()
-        raise SampleError(f"{path}: no video stream")
-    return c
 
 
 def display_ranks(path: Path) -> dict[int, int] | None:

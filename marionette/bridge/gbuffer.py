@@ -395,25 +395,25 @@ def read_gbuffer_meta(path: Path | bytes, name: str | None = None) -> GBufferMet
 
 def iter_planes(path: Path | bytes, name: str | None = None) -> Iterator[np.ndarray]:
     """The code planes (3, H, W) uint16 in G, B, R order of each frame of a G-buffer file (a path or its bytes)."""
-    fh, where, size = _open(path, name)
-    with fh:
-        if _is_gbz(fh):
-            for words in _gbz_words(fh, size, where):
-                yield unpack_planes(words)
-            return
-        for codes in _ffv1_codes(fh, where):
-            yield np.stack((codes[..., 1], codes[..., 2], codes[..., 0]))
+    return _decoded(path, name, unpack_planes, lambda codes: np.stack((codes[..., 1], codes[..., 2], codes[..., 0])))
 
 
 def iter_codes(path: Path | bytes, name: str | None = None) -> Iterator[np.ndarray]:
     """The 10-bit codes (H, W, 3) uint16 R, G, B of each frame of a G-buffer file (a path or its bytes)."""
+    return _decoded(path, name, unpack_codes, lambda codes: codes)
+
+
+def _decoded(path: Path | bytes, name: str | None, from_words, from_codes) -> Iterator[np.ndarray]:
+    """Each frame of either encoding: a ``.gbz`` frame's packed words through ``from_words``, an FFV1 frame's codes
+    (H, W, 3) through ``from_codes``."""
     fh, where, size = _open(path, name)
     with fh:
         if _is_gbz(fh):
             for words in _gbz_words(fh, size, where):
-                yield unpack_codes(words)
-            return
-        yield from _ffv1_codes(fh, where)
+                yield from_words(words)
+        else:
+            for codes in _ffv1_codes(fh, where):
+                yield from_codes(codes)
 
 
 def _ffv1_codes(fh: BinaryIO, where: str) -> Iterator[np.ndarray]:
