@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from marionette.bridge.camera import Cameras, intrinsics_for, look_at
-from marionette.bridge.gbuffer import decode_codes, iter_codes
+from marionette.bridge.gbuffer import decode_codes, iter_codes, unpack_codes
 from marionette.bridge.jitter import Jitter, rotation
 from marionette.bridge.kinematics import world_skeletons
 from marionette.bridge.render import Rasterizer
@@ -91,8 +91,8 @@ def test_a_target_rendered_from_jittered_state_shows_the_bodies_that_far_away(re
     with Rasterizer(W, H) as rast:
         for s in (skel, moved):
             cs, ds = [], []
-            for planes in render_frames(rast, layout, s, cams, h, settings):
-                frame = decode_codes(np.stack([planes[2], planes[0], planes[1]], -1), _meta(h, settings, W, H))
+            for words in render_frames(rast, layout, s, cams, h, settings):
+                frame = decode_codes(unpack_codes(words), _meta(h, settings, W, H))
                 body = (frame.id >= lo) & (frame.id <= hi)
                 v, u = np.nonzero(body)
                 cs.append([u.mean() + 0.5, v.mean() + 0.5])
