@@ -59,7 +59,7 @@ def test_clips_are_the_chunks_reduced(obs_corpus):
     c = clips[0]
     assert c.rgb.shape == (5, 3, 18, 32) and c.pose.shape == (5, 3, 18, 32)
     assert float(c.rgb.min()) >= -1.0 and float(c.rgb.max()) <= 1.0 and float(c.pose.min()) >= 0.0 and float(c.pose.max()) <= 1.0
-    # identity codes are sampled, never blended: whole ids to the G-buffer's quantisation (a half-float ulp + rounding ≤ 1 code)
+    # identity codes are sampled, never blended: whole ids to the G-buffer's quantisation (the rounding to a code)
     ids = np.rint(c.pose[:, 1].numpy() * 1023) / 1023 * 255
     assert np.allclose(ids, np.rint(ids), atol=1.0 * 255 / 1023 + 1e-6) and (ids > 100).any()
     assert [x.start for x in ClipSource(obs_corpus, "train", 5, (18, 32)).clips(seed=0)] == [x.start for x in clips]
