@@ -32,7 +32,7 @@ a bilinear query reads hold two heights whatever the query does.
 
 Scan. ``scan_recording(ref, load_scene("duel"), DepthDecoder.synthetic(), ...)`` then
 ``layers.merge``, one factor at a time from the defaults (voxel 0.25 m, stride 1, depth subsample 1 —
-every pixel; f keeps one pixel per f × f block, ``accumulate.subsampled`` — max depth 20 m, image-normal
+every pixel; f keeps one pixel per f × f block, ``image_points.subsampled`` — max depth 20 m, image-normal
 test 0.8, edge-leak test 0.1 m; 0 turns a test off), then the ``--combos`` of stride and subsample together:
 the CPU time of the whole scan (process time over all threads: sample read, video decode,
 back-projection, open3d pass, contacts, merge; one run each, a scan takes seconds) as depth frames

@@ -1,7 +1,7 @@
 """The scan's per-frame point steps compiled with numba: one pass each over a frame's pixels or points.
 
-``grid_points`` does, pixel by pixel, what ``accumulate.grid_points_reference`` does with whole-array numpy
-passes (``depth.depth_edges``, ``accumulate.backproject``, ``accumulate.image_normals``): the same float32
+``grid_points`` does, pixel by pixel, what ``image_points.grid_points_reference`` does with whole-array numpy
+passes (``depth.depth_edges``, ``image_points.backproject``, ``image_points.image_normals``): the same float32
 edge test and the same float64 arithmetic, term by term, except that the camera rotation is applied as three
 explicit dot products where numpy's matmul leaves the order of a dot product's terms to BLAS (points agree
 to ~1e-12 m; tests compare the two). ``voxel_add`` sums points per voxel in point order, as ``np.bincount`` sums them
@@ -87,7 +87,7 @@ def grid_points(z, z_raw, K, R, pos, max_depth_m, edge_rel, image_normal_y):  # 
 
 @numba.njit(nogil=True, inline="always")
 def _faces_up(G, eye, i, j, min_ny):  # pragma: no cover - compiled
-    """``accumulate.image_normals``' ny at (i, j) (facing ``eye``) is at least ``min_ny``; False where it is NaN."""
+    """``image_points.image_normals``' ny at (i, j) (facing ``eye``) is at least ``min_ny``; False where it is NaN."""
     H, W = G.shape[0], G.shape[1]
     if i == 0 or j == 0 or i == H - 1 or j == W - 1:
         return False

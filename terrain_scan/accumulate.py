@@ -32,25 +32,22 @@ time (``recording_time``), never the wall clock.
 
 from __future__ import annotations
 
-import datetime as dt
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
 
-import av
 import numpy as np
 import open3d as o3d
-from av.video.reformatter import VideoReformatter
 
 from marionette.geometry import quat_to_matrix
 from marionette.recordings.errors import SampleError
 from marionette.recordings.wildworld import DEPTH_FILE, RGB_FILE, RecordedSample, SampleRef, read_sample
 from marionette.schema import Layout
-from marionette.video import open_video
 
 from ._points_kernel import character_hits, grid_points, voxel_add, voxel_table
-from .depth import DepthDecoder, depth_edges, smooth_codes
+from .depth import DepthDecoder, smooth_codes
+from .image_points import subsampled
 from .layers import AWAY, MERGE_M, Observations, aliases, layer_labels, merge
+from .recording_video import depth_frames, recording_time
 
 ALL_CODES = np.arange(256, dtype=np.uint8)
 MIN_CONTACT_CELLS = 10  # a recording whose feet stood on this many cells, none of them seen as ground, has a wrong mapping
@@ -107,36 +104,6 @@ class ScanResult:
 
 # ------------------------------------------------------------------------------------------------
 # pure pieces
-
-
-def recording_time(rgb_path: Path) -> int:
-    """Unix seconds of a recording from ``creation_time`` (ISO 8601) in rgb.mp4's container metadata; 0 if absent."""
-    try:
-        with av.open(str(rgb_path)) as c:
-            s = c.metadata.get("creation_time") or (c.streams.video[0].metadata.get("creation_time") if c.streams.video else None)
-    except (av.error.FFmpegError, FileNotFoundError):
-        return 0
-    if not s:
-        return 0
-    try:
-        t = dt.datetime.fromisoformat(s.strip().replace("Z", "+00:00"))
-    except ValueError:
-        return 0
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=dt.UTC)
-    return max(0, int(t.timestamp()))
-
-
-def backproject(z: np.ndarray, K: np.ndarray, pos: np.ndarray, rot_xyzw: np.ndarray) -> np.ndarray:
-    """z-depth (H, W) → world points (H, W, 3) (NaN where z is NaN); OpenGL camera, pixel centres at +½."""
-    H, W = z.shape
-    fx, fy, cx, cy = (float(k) for k in K)
-    u = np.arange(W) + 0.5
-    v = np.arange(H) + 0.5
-    z = z.astype(np.float64)
-    p_cam = np.stack([((u[None, :] - cx) / fx) * z, (-(v[:, None] - cy) / fy) * z, -z], axis=-1)  # (H, W, 3)
-    R = quat_to_matrix(np.asarray(rot_xyzw, dtype=np.float64))  # camera-to-world (3, 3)
-    return p_cam @ R.T + np.asarray(pos, dtype=np.float64)
 
 
 def segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -272,57 +239,6 @@ def contact_observations(q: np.ndarray, ts: int, hits: int = 1) -> Observations:
     )
 
 
-def depth_frames(path: Path, keep: Callable[[int], bool] | None = None) -> Iterator[np.ndarray | None]:
-    """The frames of an 8-bit depth video in display order, as (H, W) uint8 codes (one decoder thread).
-
-    With ``keep``, frame i is None where ``keep(i)`` is false: not converted, and not decoded at all where the
-    decoder can leave it out (a frame no other frame is predicted from); the frames kept decode to the very
-    bytes a full decode gives. A frame's place i is then its timestamp's rank among the stream's packets
-    (``display_ranks``). A file that does not open or decode as a video raises SampleError naming it and the
-    frame."""
-    ranks = display_ranks(path) if keep is not None else None
-    c = open_video(path)
-    with c:
-        s = c.streams.video[0]
-        s.thread_count = 1
-        gray = VideoReformatter()  # one swscale context for the stream (a frame's own ``to_ndarray`` makes one per frame)
-        i = 0  # the next frame's place
-        for packet in c.demux(s):
-            if ranks is not None and packet.pts in ranks:
-                s.codec_context.skip_frame = "DEFAULT" if keep(ranks[packet.pts]) else "NONREF"
-            try:
-                frames = s.decode(packet)
-            except (av.error.FFmpegError, ValueError) as exc:
-                raise SampleError(f"{path}: cannot decode frame {i}: {type(exc).__name__}: {exc}") from None
-            for frame in frames:
-                at = ranks.get(frame.pts, i) if ranks is not None else i
-                for _ in range(i, at):  # left out by the decoder
-                    yield None
-                i = at
-                if keep is not None and not keep(i):
-                    yield None
-                else:
-                    try:
-                        yield gray.reformat(frame, format="gray").to_ndarray()  # a gray frame is returned as it is
-                    except (av.error.FFmpegError, ValueError) as exc:
-                        raise SampleError(f"{path}: cannot decode frame {i}: {type(exc).__name__}: {exc}") from None
-                i += 1
-
-
-def display_ranks(path: Path) -> dict[int, int] | None:
-    """Each video packet's timestamp → its frame's place in display order (the timestamp's rank), read in one pass
-    over the container; None where a packet has no timestamp, two share one, or the container does not read
-    through (``depth_frames`` then decodes every frame and counts them)."""
-    try:
-        with av.open(str(path)) as c:
-            pts = [p.pts for p in c.demux(c.streams.video[0]) if p.size]
-    except (av.error.FFmpegError, IndexError, ValueError):
-        return None
-    if any(t is None for t in pts) or len(set(pts)) != len(pts):
-        return None
-    return {t: k for k, t in enumerate(sorted(pts))}
-
-
 def ground_cloud(
     means: np.ndarray,
     voxel_m: float,
@@ -445,33 +361,6 @@ def voxel_reduce(points: np.ndarray, voxel_m: float, ordered: bool = True) -> np
     return acc.means(ordered)
 
 
-def image_normals(G: np.ndarray, eye: np.ndarray) -> np.ndarray:
-    """Unit normals (H, W, 3) of an organised point grid (H, W, 3) by central differences along the row
-    and the column, turned to face the camera at ``eye``; NaN on the border and wherever a neighbour is
-    missing."""
-    a = np.full_like(G, np.nan)
-    b = np.full_like(G, np.nan)
-    a[:, 1:-1] = G[:, 2:] - G[:, :-2]
-    b[1:-1] = G[2:] - G[:-2]
-    n = np.cross(a, b)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-        return np.where((np.sum(n * (eye - G), axis=-1) < 0)[..., None], -n, n)
-
-
-def subsampled(codes: np.ndarray, K: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray]:
-    """(codes, K (fx, fy, cx, cy)) with every ``f``-th pixel of every ``f``-th row kept, from offset o = f // 2,
-    and the intrinsics of that image: a kept pixel's centre j + ½ sits at source pixel f·j + o + ½, so
-    fx' = fx / f, fy' = fy / f, cx' = (cx − o − ½) / f + ½ (cy' likewise). f = 1 returns both unchanged."""
-    if f < 1:
-        raise ValueError(f"depth subsample must be at least 1, not {f}")
-    if f == 1:
-        return codes, np.asarray(K, np.float64)
-    o = f // 2
-    fx, fy, cx, cy = (float(k) for k in K)
-    return codes[o::f, o::f], np.array([fx / f, fy / f, (cx - o - 0.5) / f + 0.5, (cy - o - 0.5) / f + 0.5])
-
-
 def frame_points(
     codes: np.ndarray,
     sample: RecordedSample,
@@ -512,33 +401,6 @@ def frame_points(
     P = grid_points(z, z_raw, np.asarray(K, np.float64), R, pos, max_depth_m, edge_rel, image_normal_y)
     m = character_mask(P, entity_bones(sample, layout, i, mask_radius_scale, mask_margin_m))
     return P[~m], int(m.sum())
-
-
-def grid_points_reference(
-    z: np.ndarray,
-    z_raw: np.ndarray,
-    K: np.ndarray,
-    pos: np.ndarray,
-    rot_xyzw: np.ndarray,
-    max_depth_m: float = 20.0,
-    edge_rel: float = 0.1,
-    image_normal_y: float = 0.8,
-) -> np.ndarray:
-    """``_points_kernel.grid_points`` in whole-array numpy passes: the definition the compiled kernel follows.
-
-    Pixels next to a depth edge of ``z_raw`` and depths of ``z`` beyond ``max_depth_m`` are dropped, the rest
-    back-projected, and those whose image normal has ny < ``image_normal_y`` dropped; the points in row-major
-    pixel order."""
-    z = z.copy()
-    z[depth_edges(z_raw, edge_rel)] = np.nan
-    z[~(z <= max_depth_m)] = np.nan  # NaN stays NaN
-    G = backproject(z, K, pos, rot_xyzw)
-    if image_normal_y > 0:
-        eye = np.asarray(pos, dtype=np.float64)
-        steep = ~(image_normals(G, eye)[..., 1] >= image_normal_y)  # NaN normals (borders, holes) count as steep
-        G[steep] = np.nan
-    P = G.reshape(-1, 3)
-    return P[np.isfinite(P).all(1)]
 
 
 # ------------------------------------------------------------------------------------------------

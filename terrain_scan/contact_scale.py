@@ -17,8 +17,9 @@ import numpy as np
 
 from marionette.recordings.wildworld import DEPTH_FILE, SampleRef, read_sample
 from marionette.schema import Layout
-from terrain_scan.accumulate import cell_keys, contact_positions, depth_frames, frame_points
+from terrain_scan.accumulate import cell_keys, contact_positions, frame_points
 from terrain_scan.depth import DepthDecoder
+from terrain_scan.recording_video import depth_frames
 
 CONTACT_CELL_M = 0.25  # contacts and depth points are compared on cells this small (slopes move a 1 m cell's points)
 CONTACT_MIN_POINTS = 200  # fewer depth points on contact cells than this: no contact scale (noted)

@@ -27,9 +27,9 @@ import numpy as np
 from marionette.geometry import quat_to_matrix
 from marionette.recordings.wildworld import DEPTH_FILE, SampleRef, read_sample
 from marionette.schema import Layout
-from terrain_scan.accumulate import depth_frames
 from terrain_scan.contact_scale import ContactScale
 from terrain_scan.depth import CODES, PARAMETRIC, DepthDecoder, curve, curve_inverse
+from terrain_scan.recording_video import depth_frames
 
 TUKEY_C = 2.0  # the biweight's cut-off in robust standard deviations: tight, as what contaminates is one-sided (another
 # part of the body in front of the joint, always nearer); 4.685, the textbook choice, left a 0.7 % bias (docs/tradeoffs.md)

@@ -18,24 +18,21 @@ from marionette.synth.render import decode_depth, encode_depth
 from terrain_scan._points_kernel import grid_points
 from terrain_scan.accumulate import (
     VoxelMeans,
-    backproject,
     character_mask,
-    depth_frames,
-    display_ranks,
     edge_leaks,
     entity_bones,
     frame_points,
-    grid_points_reference,
     ground_cloud,
     scan_recording,
     scan_sample,
     segment_distance,
-    subsampled,
     voxel_reduce,
 )
 from terrain_scan.depth import DepthDecoder, smooth_codes, smooth_codes_reference
 from terrain_scan.field import open_stage
+from terrain_scan.image_points import backproject, grid_points_reference, subsampled
 from terrain_scan.layers import Observations
+from terrain_scan.recording_video import depth_frames, display_ranks
 from terrain_scan.store import Stage
 
 pytestmark = pytest.mark.corpus  # generates its own recordings
