@@ -83,6 +83,7 @@ from marionette import synth  # noqa: E402
 from marionette.bridge.camera import Cameras, recorded_cameras  # noqa: E402
 from marionette.bridge.gbuffer import (  # noqa: E402
     CODE_MAX,
+    GBZ_LEVEL,
     GBufferMeta,
     decode_codes,
     iter_codes,
@@ -397,7 +398,7 @@ def time_reference(clip: Clip, H: int, W: int, repeats: int, tmp: Path) -> Timin
 
 
 OURS_PIPELINES = {
-    ".gbz": "ours: G-buffer with terrain, .gbz (zstd 1 of the packed codes) lossless",
+    ".gbz": f"ours: G-buffer with terrain, .gbz (zstd {GBZ_LEVEL} of the packed codes) lossless",
     ".mkv": "ours: G-buffer with terrain, .mkv (FFV1 gbrp10le) lossless",
 }
 REF_PIPELINE = "reference: skeleton lines, x264 yuv420p crf 18"
@@ -500,7 +501,7 @@ class Codec:
 
 def codecs() -> list[Codec]:
     out = [
-        Codec("(0) .gbz: zstd 1 of the packed codes, lossless (ours: the corpus's)", ".gbz", lossless=True),
+        Codec(f"(0) .gbz: zstd {GBZ_LEVEL} of the packed codes, lossless (ours: the corpus's)", ".gbz", lossless=True),
         Codec("(i) .mkv: FFV1 gbrp10le, lossless (ours: for players)", ".mkv", lossless=True),
     ]
     if "ffvhuff" in av.codecs_available:  # the fastest lossless encoder here that takes 10-bit RGB (utvideo, magicyuv do not)

@@ -173,7 +173,7 @@ def _packed(frame: np.ndarray, width: int, height: int, where: str) -> np.ndarra
 OVERLAP_MIN_PIXELS = 72 * 128
 
 GBZ_MAGIC = b"MGBZ\r\n\x1a\n"  # a .gbz file's first bytes (a line-ending or text-mode copy breaks them)
-GBZ_LEVEL = 1  # zstd's level: its fastest that still finds the background's and the terrain's repeats
+GBZ_LEVEL = -1  # zstd's level: a fast level, a fifth less CPU than level 1 for 8 % more bytes (docs/tradeoffs.md)
 GBZ_END = 0xFFFFFFFF  # in place of a frame's length: the frames are over, the count follows
 MAX_META_BYTES = 4096  # a .gbz file's metadata JSON is about 150 bytes
 MAX_FRAME_PIXELS = 4096 * 4096  # the largest frame a reader decodes (the paper's is 704 × 1280)

@@ -352,10 +352,9 @@ def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> None:
         current = video_shards.member_digests(ppath) if ppath.exists() else None
     except (ValueError, OSError):
         current = None  # a damaged pose shard is written again
-    wanted = [
+    if current is None or current != [
         (name, hashlib.sha256(data).hexdigest() if isinstance(data, bytes) else file_sha256(data)) for name, data in members
-    ]
-    if wanted != current:
+    ]:
         video_shards.write_members(ppath, members)
         run.report.shards_rewritten.append(shard)
 
