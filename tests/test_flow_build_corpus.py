@@ -49,13 +49,9 @@ def prefect_env(home: Path, api_url: str | None) -> dict[str, str]:
         DO_NOT_TRACK="1",
         PREFECT_WORKER_QUERY_SECONDS="1",
         PREFECT_CLI_WRAP_LINES="false",
-        PREFECT_SERVER_SERVICES_SCHEDULER_ENABLED="false",
-        PREFECT_SERVER_SERVICES_LATE_RUNS_ENABLED="false",
-        PREFECT_SERVER_SERVICES_PAUSE_EXPIRATIONS_ENABLED="false",
-        PREFECT_SERVER_SERVICES_CANCELLATION_CLEANUP_ENABLED="false",
-        PREFECT_SERVER_SERVICES_FOREMAN_ENABLED="false",
-        PREFECT_SERVER_SERVICES_TRIGGERS_ENABLED="false",
     )
+    for service in ("SCHEDULER", "LATE_RUNS", "PAUSE_EXPIRATIONS", "CANCELLATION_CLEANUP", "FOREMAN", "TRIGGERS"):
+        env[f"PREFECT_SERVER_SERVICES_{service}_ENABLED"] = "false"
     if api_url:
         env["PREFECT_API_URL"] = api_url
     return env
