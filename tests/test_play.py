@@ -19,8 +19,6 @@ from marionette.corpus import Corpus, fixed_rows
 from marionette.dynamics.engine import Rollout
 from marionette.eval.control import FAST_TIP_MPS, held_out_seeds, recorded_swingers, tip_speeds
 
-pytestmark = pytest.mark.exclusive  # frame rates and key latency are measured with the machine to itself
-
 SEED = 32  # seed frames
 
 
@@ -112,6 +110,7 @@ def metas(pg, since: int = 0) -> list[dict]:
     return pg.evaluate(f"window.marionette.metas.slice({since})")
 
 
+@pytest.mark.exclusive  # a rate, measured with the machine to itself
 def test_frames_arrive_at_15_fps_and_the_page_is_not_blank(page, tmp_path):
     from PIL import Image
 
@@ -143,6 +142,7 @@ def test_frames_arrive_at_15_fps_and_the_page_is_not_blank(page, tmp_path):
     assert len(whole) > 10_000
 
 
+@pytest.mark.exclusive  # a rate, measured with the machine to itself
 def test_a_bound_key_forces_its_token_within_two_frames(page, attack):
     """The press reaches the server and its token is in the frame after the one being made when it arrived: within two
     frames of its arrival. Counted from the frame the page showed at the press, frames already on their way to the page
@@ -167,6 +167,7 @@ def test_a_bound_key_forces_its_token_within_two_frames(page, attack):
     assert pressed["frame"] < reply["from_frame"] <= shown["frame"] <= reply["from_frame"] + 1
 
 
+@pytest.mark.exclusive  # a rate, measured with the machine to itself
 def test_an_attack_key_swings_the_weapon_within_ten_frames(page, live, attack):
     tok, seg, start = attack
     base = live[1]
