@@ -479,3 +479,19 @@ def test_bone_capsules_are_every_frames_bone_segments():
         for x, y in zip(frame, bone_segments(layout, skel, i)):
             np.testing.assert_array_equal(x, y)
     assert len(got[1][0]) < len(got[0][0]) and len(got[3][0]) < len(got[0][0])
+
+
+def test_two_rasterizers_in_one_thread_draw_into_their_own_targets(rast):
+    """A pose pass keeps one rasterizer per chunk size in its thread: a second context made and drawn with between two
+    frames of the first leaves the first's frames as they were."""
+    rast.set_terrain(*grid(-30, 30, -30, 30, 0.0))
+    cam, bones = camera([0.0, 3.0, 9.0], [0.0, 1.0, 0.0]), ball([0.0, 1.0, 0.0], 0.5)
+    first = rast.render_packed(cam, 0, bones, **RANGE)
+    eye, target = np.array([0.0, 3.0, 9.0]), np.array([0.0, 1.0, 0.0])
+    big = Cameras(intrinsics_for(2 * W, 2 * H)[None], eye[None], look_at(eye, target)[None], np.array([True]), 2 * W, 2 * H)
+    with Rasterizer(2 * W, 2 * H) as other:
+        other.set_terrain(*grid(-30, 30, -30, 30, 5.0))
+        theirs = other.render_packed(big, 0, bones, **RANGE)
+        assert np.array_equal(rast.render_packed(cam, 0, bones, **RANGE), first)
+    assert theirs.shape == (2 * H, 2 * W) and np.count_nonzero(first) and not np.array_equal(theirs[::2, ::2], first)
+    assert np.array_equal(rast.render_packed(cam, 0, bones, **RANGE), first)  # and after the other is released
