@@ -250,17 +250,18 @@ class Rasterizer:
 
     def set_terrain(self, vertices_world: np.ndarray, faces: np.ndarray) -> None:
         """Upload the terrain mesh (vertices (V, 3) float64 world metres, faces (F, 3)); empty = no terrain."""
-        if self._terrain_vao is not None:
-            self._terrain_vao.release()
-            self._terrain_vao = None
         V = np.asarray(vertices_world, np.float64)
         F = np.asarray(faces, np.int64)
-        if not len(V) or not len(F):
-            return
-        self.anchor = V[0].copy()
-        vbo = self.ctx.buffer((V - self.anchor).astype(np.float32).tobytes())
-        ibo = self.ctx.buffer(F.astype(np.int32).tobytes())
-        self._terrain_vao = self.ctx.vertex_array(self._terrain_prog, [(vbo, "3f", "in_pos")], index_buffer=ibo)
+        with self.ctx:  # this rasterizer's context current on this thread (``render_packed``)
+            if self._terrain_vao is not None:
+                self._terrain_vao.release()
+                self._terrain_vao = None
+            if not len(V) or not len(F):
+                return
+            self.anchor = V[0].copy()
+            vbo = self.ctx.buffer((V - self.anchor).astype(np.float32).tobytes())
+            ibo = self.ctx.buffer(F.astype(np.int32).tobytes())
+            self._terrain_vao = self.ctx.vertex_array(self._terrain_prog, [(vbo, "3f", "in_pos")], index_buffer=ibo)
 
     def _instances(self, a, b, r, ids) -> int:
         n = len(a)
@@ -335,10 +336,13 @@ class Rasterizer:
         pixel's 10-bit codes packed in one word (H, W) uint32, G | B << 10 | R << 20 (``gbuffer.pack_planes``), row
         0 at the top; all zero where the camera is invalid. The fast path: what a ``.gbz`` file stores."""
         out = np.empty((self.height, self.width), np.uint32)  # every pixel is read back (or zeroed) below
-        if self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m):
-            self.fbo.read_into(out, components=1, dtype="u4")
-        else:
-            out[:] = 0
+        # A GL call goes to the context current on the calling thread: with two rasterizers on one thread (a pass over
+        # chunks of two sizes), the one made last would receive the other's draws. Each frame makes its own current.
+        with self.ctx:
+            if self._draw(cameras, i, bones, h_min, h_max, z_near, z_far, cull_m):
+                self.fbo.read_into(out, components=1, dtype="u4")
+            else:
+                out[:] = 0
         return out
 
     def render_planes(
