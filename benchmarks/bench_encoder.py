@@ -22,16 +22,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import av  # noqa: E402
 import numpy as np  # noqa: E402
-from common import preamble, table  # noqa: E402
+from common import preamble, psnr, table  # noqa: E402
 
 from marionette import video as V  # noqa: E402
 from marionette.synth import generate  # noqa: E402
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """Peak signal-to-noise ratio (dB) of two uint8 images."""
-    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
-    return float(10 * np.log10(255**2 / max(mse, 1e-12)))
 
 
 def chunks_of(rgb: Path, settings: V.VideoSettings) -> list[np.ndarray]:
@@ -56,6 +50,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="encodes of every chunk per setting")
     args = ap.parse_args()
     settings = V.VideoSettings()
+    if args.seconds * 30 < settings.chunk_frames or args.repeats < 1:
+        ap.error(f"--seconds must hold one chunk ({settings.chunk_frames} frames at 30 fps) and --repeats be positive")
     with tempfile.TemporaryDirectory() as tmp:
         (rec,) = generate(Path(tmp), recordings=1, seconds=args.seconds, seed=0, width=320, height=180)
         chunks = chunks_of(Path(rec) / "rgb.mp4", settings)

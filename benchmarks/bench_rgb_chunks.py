@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, preamble, single_thread_env, size_hw, table  # noqa: E402
+from common import ROOT, preamble, psnr, single_thread_env, size_hw, table  # noqa: E402
 
 single_thread_env()
 
@@ -95,13 +95,6 @@ def ssim(a: np.ndarray, b: np.ndarray) -> float:
     vx, vy, cxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
     s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
     return float(s.mean())
-
-
-def psnr(ref: np.ndarray, got: np.ndarray) -> float:
-    """PSNR (dB) of two (T, H, W, 3) uint8 arrays over all their values (summed a frame at a time)."""
-    se = sum(int(np.square(np.subtract(x, y, dtype=np.int32)).sum()) for x, y in zip(ref, got))
-    mse = se / ref.size
-    return float(10 * np.log10(255**2 / max(mse, 1e-12)))
 
 
 def recordings(src: Path) -> list[Path]:

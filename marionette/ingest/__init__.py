@@ -13,6 +13,7 @@ from pathlib import Path
 from marionette.corpus import paths
 from marionette.corpus.lock import corpus_lock
 from marionette.corpus.stages import MAX_STAGES_BYTES, check_stage_map
+from marionette.fanout import threads_per_worker
 from marionette.ingest.finalize import finalize, finish_pending
 from marionette.ingest.sample import (
     IngestOptions,
@@ -93,8 +94,7 @@ def _share_cores(workers: int) -> None:
     cropping and encoding run on the worker's own thread (``marionette.video``); torch and numba are not loaded."""
     import pyarrow as pa
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    pa.set_cpu_count(max(1, cores // workers))
+    pa.set_cpu_count(threads_per_worker(workers))
 
 
 def _ingest_one(args: tuple[SampleRef, str, IngestOptions]) -> SampleResult:
