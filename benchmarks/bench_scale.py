@@ -28,8 +28,9 @@ corpus's core-seconds per recorded hour to ``--project-hours`` (WildWorld part 1
 (``BUDGET``); "the build" is ingest, view, scan and pose (the training passes are listed apart).
 
 ``--workers``: the processes of ingest, scan and pose, one count or several (``1,2``): each count builds a
-corpus of its own, and a table compares the core-seconds per recorded hour of every count with one
-worker's (linear scaling: within 15 %). ``--compare-with CHECKOUT``: a directory holding another
+corpus of its own on as many cores (every stage's process and its workers confined to the first n cores this
+process may use: n workers on n cores), and a table compares the core-seconds per recorded hour of every count
+with one worker's (linear scaling: within 15 %). ``--compare-with CHECKOUT``: a directory holding another
 revision of the project (``git worktree add /tmp/base REV``); every stage also runs with that code
 (``PYTHONPATH=CHECKOUT``, this venv's packages), on a corpus of its own built from the same recordings,
 one code after the other stage by stage, and the projection shows both.
@@ -76,16 +77,19 @@ print("chunks", sum(1 for _ in store))
 """
 
 
-def run_stage(cmd: list[str], log: Path, code: Path | None = None) -> tuple[float, float, float]:
-    """Run ``cmd`` (output to ``log``; with ``code``, that checkout's package first on the path); (wall seconds,
-    core-seconds, peak RSS MiB of its largest process)."""
+def run_stage(
+    cmd: list[str], log: Path, code: Path | None = None, cores: set[int] | None = None
+) -> tuple[float, float, float]:
+    """Run ``cmd`` (output to ``log``; with ``code``, that checkout's package first on the path; with ``cores``, on
+    those cores only, its descendants too); (wall seconds, core-seconds, peak RSS MiB of its largest process)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     if code is not None:
         env["PYTHONPATH"] = str(code)
+    pin = None if cores is None else (lambda: os.sched_setaffinity(0, cores))
     t = time.perf_counter()
     with open(log, "ab") as out:
         # run beside the log, not in a checkout: a `python -c` puts its working directory first on the path
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=log.parent)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=log.parent, preexec_fn=pin)
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t
     if os.waitstatus_to_exitcode(status) != 0:
@@ -96,6 +100,14 @@ def run_stage(cmd: list[str], log: Path, code: Path | None = None) -> tuple[floa
 STAGES = ["ingest", "view", "scan", "pose", "dynamics epoch", "observation pass"]
 BUILD = ("ingest", "view", "scan", "pose")
 BUDGET = {"ingest": 0.35, "scan": 0.35, "pose": 0.3}  # core-h per recorded h at the paper's size; the build ≤ 1.0
+
+
+def worker_cores(workers: int) -> set[int] | None:
+    """The cores ``workers`` workers run on: the first ``workers`` of this process's (n workers on n cores, so one
+    worker's figures are one core's and each stage sizes its threads to them: ``fanout.threads_per_worker``, Mesa's
+    llvmpipe); None (every core) where this process has no more cores than that."""
+    mine = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    return set(mine[:workers]) if len(mine) > workers else None
 
 
 def stage_commands(py: str, src: Path, corpus: Path, args, workers: int) -> dict[str, list[str]]:
@@ -157,9 +169,10 @@ def main() -> None:
                 commands = {
                     label: stage_commands(py, src, here / f"corpus-{label}-w{workers}", args, workers) for label, _ in codes
                 }
+                cores = worker_cores(workers)
                 for stage in STAGES:
                     for label, code in codes:  # the codes one after the other, stage by stage: the same machine state
-                        wall, cpu, rss = run_stage(commands[label][stage], log, code)
+                        wall, cpu, rss = run_stage(commands[label][stage], log, code, cores)
                         results[(hours, label, workers, stage)] = (wall / recorded_h, rss, cpu / recorded_h)
                         rows.append(
                             [f"{recorded_h:.3f}", label, str(workers), stage, f"{wall:.1f}", f"{wall / recorded_h:.0f}"]
@@ -175,7 +188,7 @@ def main() -> None:
     print(
         f"Recordings of {args.seconds:g} s at {args.source_size[0]}×{args.source_size[1]}, video {args.video_size[0]}×"
         f"{args.video_size[1]}, scan stride {args.frame_stride} and depth subsample {args.depth_subsample}, "
-        f"{','.join(map(str, args.workers))} worker(s); each stage a fresh process{compared}.\n"
+        f"{','.join(map(str, args.workers))} worker(s), n workers on n cores; each stage a fresh process{compared}.\n"
     )
     header = ["recorded h", "code", "workers", "stage", "wall s", "s per recorded h", "core-s per recorded h", "peak RSS MiB"]
     print(table(header, rows))

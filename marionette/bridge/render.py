@@ -72,9 +72,11 @@ in vec3 in_b;              // bone end at the child, relative to the camera
 in float in_r;
 in float in_id;
 out vec3 v_q;              // the box's surface point, relative to the camera (world axes)
-flat out vec3 v_a;
-flat out vec3 v_b;
-flat out float v_rad;
+flat out vec4 v_ball_a;    // the ball at a: its centre, |a|² − r²
+flat out vec4 v_ball_b;    // the ball at b: its centre, |b|² − r²
+flat out vec4 v_axis;      // the axis's unit vector n, the camera's place along it from a (−a · n)
+flat out vec4 v_across;    // the camera's offset from the axis (−a − (−a · n) n), its squared length − r²
+flat out float v_len;      // |b − a|; −1: no cylinder (a and b one point)
 flat out uint v_g;         // the id's code
 void main() {
     vec3 axis = in_b - in_a;
@@ -84,22 +86,28 @@ void main() {
     vec3 u = normalize(cross(n, helper));
     vec3 w = cross(n, u);
     vec3 q = mix(in_a - in_r * n, in_b + in_r * n, 0.5 + 0.5 * in_corner.z) + in_r * (u * in_corner.x + w * in_corner.y);
+    float r2 = in_r * in_r;
+    float an = dot(-in_a, n);
+    vec3 ap = -in_a - an * n;
     v_q = q;
-    v_a = in_a;
-    v_b = in_b;
-    v_rad = in_r;
+    v_ball_a = vec4(in_a, dot(in_a, in_a) - r2);
+    v_ball_b = vec4(in_b, dot(in_b, in_b) - r2);
+    v_axis = vec4(n, an);
+    v_across = vec4(ap, dot(ap, ap) - r2);
+    v_len = len > 1e-6 ? len : -1.0;
     v_g = (uint(in_id + 0.5) * 2046u + 255u) / 510u;  // round(1023 · id / 255), never a tie
     gl_Position = u_proj * vec4(u_view * q, 1.0);
 }
 """
 
-# The capsule itself, traced along the pixel's ray from the camera (the origin): the ray meets the convex capsule
-# (two balls and the solid cylinder between them) in one interval [t_in, t_out], the union of the three parts'
-# intervals. The nearest end of it beyond the camera and within [z_near, z_far] is the surface seen: t_in from
-# outside, t_out (the inside of the capsule) from within it or where t_in is nearer than z_near.
+# The capsule itself, traced along the pixel's ray t·d from the camera (the origin, |d| = 1): the ray meets the
+# convex capsule (two balls and the solid cylinder between them) in one interval [t_in, t_out], the union of the
+# three parts' intervals. The nearest end of it beyond the camera and within [z_near, z_far] is the surface seen:
+# t_in from outside, t_out (the inside of the capsule) from within it or where t_in is nearer than z_near. Every
+# term that does not depend on the ray is the bone's, computed once by its vertices (flat inputs): a pixel pays
+# for three dot products, two per ball and the cylinder's quadratic.
 _FS_BONE = """
 #version 330
-uniform mat4 u_proj;
 uniform mat3 u_view;
 uniform float u_h_off;     // camera height - h_min
 uniform float u_h_scale;   // 1 / (h_max - h_min)
@@ -107,67 +115,51 @@ uniform float u_z_near;
 uniform float u_z_far;
 uniform float u_z_scale;   // 1 / (z_far - z_near)
 in vec3 v_q;
-flat in vec3 v_a;
-flat in vec3 v_b;
-flat in float v_rad;
+flat in vec4 v_ball_a;
+flat in vec4 v_ball_b;
+flat in vec4 v_axis;
+flat in vec4 v_across;
+flat in float v_len;
 flat in uint v_g;
 layout(location = 0) out uint o_codes;   // G | B << 10 | R << 20
 const float FAR = 1e30;
 
-vec2 ball(vec3 d, vec3 c, float r) {       // [t_in, t_out] of the ray t·d (|d| = 1) in the ball, or empty (in > out)
-    float h = dot(c, d);
-    float disc = h * h - (dot(c, c) - r * r);
-    if (disc < 0.0) return vec2(FAR, -FAR);
-    float s = sqrt(disc);
-    return vec2(h - s, h + s);
-}
-
-vec2 cylinder(vec3 d, vec3 a, vec3 b, float r) {   // the solid cylinder between the two end discs
-    vec3 axis = b - a;
-    float len = length(axis);
-    if (len < 1e-6) return vec2(FAR, -FAR);
-    vec3 n = axis / len;
-    float dn = dot(d, n), an = dot(-a, n);          // ray and origin along the axis, from a
-    vec3 dp = d - dn * n, ap = -a - an * n;         // across the axis
-    float qa = dot(dp, dp), qb = dot(ap, dp), qc = dot(ap, ap) - r * r;
-    vec2 iv;
-    if (qa < 1e-12) {
-        if (qc > 0.0) return vec2(FAR, -FAR);
-        iv = vec2(-FAR, FAR);
-    } else {
-        float disc = qb * qb - qa * qc;
-        if (disc < 0.0) return vec2(FAR, -FAR);
-        float s = sqrt(disc);
-        iv = vec2((-qb - s) / qa, (-qb + s) / qa);
-    }
-    if (abs(dn) < 1e-12) {
-        if (an < 0.0 || an > len) return vec2(FAR, -FAR);
-    } else {
-        float t0 = -an / dn, t1 = (len - an) / dn;
-        iv = vec2(max(iv.x, min(t0, t1)), min(iv.y, max(t0, t1)));
-    }
-    return iv;
-}
-
-float depth_of(vec3 d, float t) { return -(u_view * (t * d)).z; }
-
 void main() {
     vec3 d = normalize(v_q);
-    vec2 ia = ball(d, v_a, v_rad), ib = ball(d, v_b, v_rad), ic = cylinder(d, v_a, v_b, v_rad);
     float t_in = FAR, t_out = -FAR;
-    if (ia.x <= ia.y) { t_in = min(t_in, ia.x); t_out = max(t_out, ia.y); }
-    if (ib.x <= ib.y) { t_in = min(t_in, ib.x); t_out = max(t_out, ib.y); }
-    if (ic.x <= ic.y) { t_in = min(t_in, ic.x); t_out = max(t_out, ic.y); }
+    float h = dot(v_ball_a.xyz, d), disc = h * h - v_ball_a.w;
+    if (disc >= 0.0) { float s = sqrt(disc); t_in = h - s; t_out = h + s; }
+    h = dot(v_ball_b.xyz, d);
+    disc = h * h - v_ball_b.w;
+    if (disc >= 0.0) { float s = sqrt(disc); t_in = min(t_in, h - s); t_out = max(t_out, h + s); }
+    if (v_len > 0.0) {                      // the cylinder: across the axis a quadratic in t, along it a slab
+        float dn = dot(d, v_axis.xyz), an = v_axis.w;
+        vec3 dp = d - dn * v_axis.xyz;
+        float qa = dot(dp, dp), qb = dot(v_across.xyz, dp), qc = v_across.w;
+        vec2 iv = vec2(FAR, -FAR);
+        if (qa < 1e-12) {                   // the ray along the axis: inside the cylinder's radius or never
+            if (qc <= 0.0) iv = vec2(-FAR, FAR);
+        } else {
+            float dq = qb * qb - qa * qc;
+            if (dq >= 0.0) { float s = sqrt(dq); iv = vec2(-qb - s, -qb + s) / qa; }
+        }
+        if (abs(dn) < 1e-12) {
+            if (an < 0.0 || an > v_len) iv = vec2(FAR, -FAR);
+        } else {
+            float t0 = -an / dn, t1 = (v_len - an) / dn;
+            iv = vec2(max(iv.x, min(t0, t1)), min(iv.y, max(t0, t1)));
+        }
+        if (iv.x <= iv.y) { t_in = min(t_in, iv.x); t_out = max(t_out, iv.y); }
+    }
     if (t_in > t_out) discard;
+    float dz = -dot(vec3(u_view[0][2], u_view[1][2], u_view[2][2]), d);   // view depth per unit of t
     float t = t_in;
-    if (t <= 0.0 || depth_of(d, t) < u_z_near) t = t_out;
-    float z = depth_of(d, t);
+    if (t <= 0.0 || t * dz < u_z_near) t = t_out;
+    float z = t * dz;
     if (t <= 0.0 || z < u_z_near || z > u_z_far) discard;
-    vec3 q = t * d;
-    vec4 clip = u_proj * vec4(u_view * q, 1.0);
-    gl_FragDepth = 0.5 + 0.5 * clip.z / clip.w;
+    gl_FragDepth = u_z_far * u_z_scale * (1.0 - u_z_near / z);   // the projection's window depth of view depth z
     uint b = uint(floor(clamp(1.0 - (z - u_z_near) * u_z_scale, 0.0, 1.0) * 1023.0 + 0.5));
-    uint r = uint(floor(clamp(0.2 * (q.y + u_h_off) * u_h_scale, 0.0, 0.2) * 1023.0 + 0.5));
+    uint r = uint(floor(clamp(0.2 * (t * d.y + u_h_off) * u_h_scale, 0.0, 0.2) * 1023.0 + 0.5));
     o_codes = v_g | (b << 10) | (r << 20);
 }
 """

@@ -43,7 +43,7 @@ from .jitter import Jitter
 from .kinematics import bone_capsules, world_skeletons
 from .render import TERRAIN_CULL_M, Rasterizer, llvmpipe_threads
 
-BRIDGE_VERSION = "3"  # what the renderer draws: a change of it re-renders every target
+BRIDGE_VERSION = "4"  # what the renderer draws: a change of it re-renders every target
 PLAYER_EDGES_KEY = "npc"  # WildWorld's skeleton key of the player character (the hunter rig)
 
 
