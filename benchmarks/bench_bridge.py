@@ -17,7 +17,7 @@ medians of ``--repeats`` after one warm-up run.
 Speed, per size. Ours, two rows, one per file encoding of the same frames: (a) render only —
 ``Rasterizer.render_packed`` of every frame (draw, read-back of the packed 10-bit codes the fragment shader
 writes), frames dropped; (b) encode only — ``write_gbuffer`` of the pre-rendered packed frames on one thread,
-to a ``.gbz`` (zstd level 1 of the packed words as they are: the corpus's pose targets) or to a ``.mkv``
+to a ``.gbz`` (zstd at ``GBZ_LEVEL`` of the packed words as they are: the corpus's pose targets) or to a ``.mkv``
 (unpacked to planes, FFV1 gbrp10le, level 3, intra: for players); (c) both — ``write_gbuffer`` fed by the
 renderer frame by frame, on one thread (``overlap=False``) and overlapped (``overlap=True``: the encoder on a
 thread of its own, so two threads: the one rendering, the one encoding; each still single-threaded inside);
@@ -36,7 +36,7 @@ A second table splits the time per frame: ``bone_segments``, ``render_packed``, 
 (encode only, one thread), ours render + ``.gbz`` on one thread, and the reference's columns.
 
 Codecs, at ``--codec-size``. The same rendered G-buffer frames (``render_packed``), coded by (0) ``.gbz``, zstd
-level 1 of the packed words, lossless (``write_gbuffer``, ours: the corpus's); (i) FFV1 gbrp10le lossless in
+at ``GBZ_LEVEL`` of the packed words, lossless (``write_gbuffer``, ours: the corpus's); (i) FFV1 gbrp10le lossless in
 ``.mkv`` (``write_gbuffer``, ours: for players), both fed the packed words; (i′) FFVHuff gbrp10le lossless,
 where this FFmpeg has it; (ii) libx265 crf 12 preset fast 10-bit 4:4:4, twice: fed gbrp10le and coding the
 RGB planes directly (the encoder's GBR mode, no colour transform), and converted by swscale to yuv444p10le

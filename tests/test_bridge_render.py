@@ -274,6 +274,38 @@ def test_far_from_the_origin_renders_like_the_origin(rast):
         assert (masks[0] == m).mean() > 0.995
 
 
+def test_a_frame_draws_the_terrain_it_may_see_and_the_whole_meshs_pixels(rast, monkeypatch):
+    """A stage far larger than the view (1.2 km square of rolling ground, 4 km from the origin at negative x): each
+    frame draws a small part of its triangles, and its codes are those of the whole mesh drawn as one piece."""
+    import marionette.bridge.render as render
+
+    origin = np.array([-4000.0, 0.0, 2500.0])
+    V, F = grid(-600, 600, -600, 600, 0.0, step=4.0, origin=origin)
+    V[:, 1] = 5.0 * np.sin(V[:, 0] / 37.0) + 3.0 * np.cos(V[:, 2] / 23.0)
+    monkeypatch.setattr(render, "TERRAIN_TILE_M", 1e7)  # one tile: the whole stage, drawn whenever any of it is seen
+    with Rasterizer(W, H) as whole:
+        whole.set_terrain(V, F)
+        monkeypatch.undo()
+        rast.set_terrain(V, F)
+        views = [  # eye, target (relative to the origin)
+            ([0.0, 8.0, 0.0], [40.0, 0.0, -30.0]),  # across the ground, the horizon beyond z_far
+            ([100.0, 60.0, 100.0], [100.0, 0.0, 90.0]),  # looking down
+            ([-700.0, 20.0, 0.0], [-800.0, 20.0, 0.0]),  # off the stage, looking away from it: nothing to draw
+            ([590.0, 4.0, 590.0], [0.0, 0.0, 0.0]),  # from a corner across the stage
+        ]
+        for eye, target in views:
+            cam = camera(eye, target, origin=origin)
+            bones = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+            got, want = rast.render_packed(cam, 0, bones, **RANGE), whole.render_packed(cam, 0, bones, **RANGE)
+            np.testing.assert_array_equal(got, want)
+            drawn = sum(n for _, n in rast._terrain_ranges(cam, 0, RANGE["z_near"], RANGE["z_far"], render.TERRAIN_CULL_M))
+            assert drawn <= 0.1 * F.size, (eye, drawn, F.size)
+            if eye[0] == -700.0:
+                assert drawn == 0 and not got.any()
+            else:
+                assert (got != 0).mean() > 0.3  # the ground fills much of the view
+
+
 @pytest.mark.parametrize(
     "d6", [np.zeros(6), np.array([1.0, 0, 0, 2.0, 0, 0]), np.array([1e8, 0, 0, 0, 1e8, 0]), np.array([np.nan, 0, 0, 0, 1, 0])]
 )

@@ -73,6 +73,25 @@ class Cameras:
         fx, fy, cx, cy = self.K[i]
         return np.stack([cx + fx * p[:, 0] / depth, cy - fy * p[:, 1] / depth], -1), depth
 
+    def boxes_in_view(self, i: int, lo: np.ndarray, hi: np.ndarray, z_near: float, z_far: float) -> np.ndarray:
+        """Which axis-aligned world boxes (corners ``lo``, ``hi`` (B, 3)) may meet frame ``i``'s view between view
+        depths ``z_near`` and ``z_far``: (B,) bool, False only where all eight corners lie beyond one of the
+        frustum's six planes (a conservative test: a box it keeps may still be unseen)."""
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        corners = np.stack([np.where(np.array(bits, bool), hi, lo) for bits in np.ndindex(2, 2, 2)], 1)  # (B, 8, 3)
+        p = (corners - self.pos[i]) @ self.rot[i]  # camera frame, row form of Rᵀ (c − pos)
+        x, y, d = p[..., 0], p[..., 1], -p[..., 2]
+        fx, fy, cx, cy = self.K[i]
+        outside = (
+            d < z_near,
+            d > z_far,
+            fx * x + cx * d < 0,  # left of u = 0
+            fx * x + (cx - self.width) * d > 0,  # right of u = W
+            cy * d - fy * y < 0,  # above v = 0
+            cy * d - fy * y - self.height * d > 0,  # below v = H
+        )
+        return ~np.any([o.all(axis=1) for o in outside], axis=0)
+
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
     """Camera-to-world rotation (…, 3, 3) looking from ``eye`` at ``target`` (−Z forward, +Y up-ish)."""

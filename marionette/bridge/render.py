@@ -27,7 +27,8 @@ triangles that does not grow with its size on screen. The surface seen is the ne
 plane: the capsule's outside, or its inside where the camera is within the capsule. The projection matches
 ``camera.Cameras.project`` exactly: pixel centres at +½, v down; NDC x = 2u/W − 1, y = 1 − 2v/H. Terrain nearer
 than ``cull_m`` (3 m of view depth) is clipped away (a clip distance, not a discard, so llvmpipe keeps its early
-depth test); bones never are.
+depth test); bones never are. The terrain is drawn by tiles (``TERRAIN_TILE_M`` square): a frame draws the tiles
+whose box may meet its view, so a frame's cost follows what it sees, not how large its stage has grown.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from .gbuffer import CODE_MAX, unpack_planes
 
 GL_CLIP_DISTANCE0 = 0x3000  # glEnable's name of the first clip distance (moderngl has none)
 TERRAIN_CULL_M = 3.0
+TERRAIN_TILE_M = 25.0  # side of the squares the terrain's triangles are drawn by (``Rasterizer.set_terrain``)
 
 _VS_TERRAIN = """
 #version 330
@@ -241,7 +243,12 @@ class Rasterizer:
         self.release()
 
     def set_terrain(self, vertices_world: np.ndarray, faces: np.ndarray) -> None:
-        """Upload the terrain mesh (vertices (V, 3) float64 world metres, faces (F, 3)); empty = no terrain."""
+        """Upload the terrain mesh (vertices (V, 3) float64 world metres, faces (F, 3)); empty = no terrain.
+
+        The triangles are grouped into square tiles of ``TERRAIN_TILE_M`` (by their first vertex), each tile one
+        range of the index buffer with the box of its triangles' vertices: a frame draws the tiles whose box may
+        meet its view (``Cameras.boxes_in_view``), so its cost follows what it sees, not the stage's size. A
+        triangle wholly outside the view draws no pixel, so the frame is the one the whole mesh draws."""
         V = np.asarray(vertices_world, np.float64)
         F = np.asarray(faces, np.int64)
         with self.ctx:  # this rasterizer's context current on this thread (``render_packed``)
@@ -251,9 +258,30 @@ class Rasterizer:
             if not len(V) or not len(F):
                 return
             self.anchor = V[0].copy()
+            tile = np.floor(V[F[:, 0]][:, [0, 2]] / TERRAIN_TILE_M).astype(np.int64)
+            order = np.lexsort((tile[:, 1], tile[:, 0]))
+            F, tile = F[order], tile[order]
+            first = np.flatnonzero(np.r_[True, np.any(tile[1:] != tile[:-1], axis=1)])
+            corners = [V[F[:, k]] for k in range(3)]
+            self._tile_lo = np.minimum.reduceat(np.minimum(np.minimum(*corners[:2]), corners[2]), first)
+            self._tile_hi = np.maximum.reduceat(np.maximum(np.maximum(*corners[:2]), corners[2]), first)
+            self._tile_first = 3 * first  # in indices
+            self._tile_count = 3 * np.diff(np.r_[first, len(F)])
             vbo = self.ctx.buffer((V - self.anchor).astype(np.float32).tobytes())
             ibo = self.ctx.buffer(F.astype(np.int32).tobytes())
             self._terrain_vao = self.ctx.vertex_array(self._terrain_prog, [(vbo, "3f", "in_pos")], index_buffer=ibo)
+
+    def _terrain_ranges(self, cameras: Cameras, i: int, z_near: float, z_far: float, cull_m: float) -> list[tuple[int, int]]:
+        """(first index, index count) of the terrain's tiles frame ``i`` may see, neighbours joined into one range.
+        Nothing nearer than the terrain's cull is drawn either."""
+        seen = cameras.boxes_in_view(i, self._tile_lo, self._tile_hi, max(z_near, cull_m), z_far)
+        ranges: list[tuple[int, int]] = []
+        for first, count in zip(self._tile_first[seen].tolist(), self._tile_count[seen].tolist()):
+            if ranges and ranges[-1][0] + ranges[-1][1] == first:
+                ranges[-1] = (ranges[-1][0], ranges[-1][1] + count)
+            else:
+                ranges.append((first, count))
+        return ranges
 
     def _instances(self, a, b, r, ids) -> int:
         n = len(a)
@@ -302,7 +330,8 @@ class Rasterizer:
             self._terrain_prog["u_cam_rel"].value = tuple(float(v) for v in (pos - self.anchor).astype(np.float32))
             self._terrain_prog["u_h_off"].value = float(self.anchor[1] - h_min)
             self.ctx.enable_direct(GL_CLIP_DISTANCE0)  # the terrain's near cull; the bones' shader writes none
-            self._terrain_vao.render()
+            for first, count in self._terrain_ranges(cameras, i, z_near, z_far, cull_m):
+                self._terrain_vao.render(vertices=count, first=first)
             self.ctx.disable_direct(GL_CLIP_DISTANCE0)
         a, b, r, ids = bones
         if len(a):

@@ -118,22 +118,9 @@ class TerrainScene:
         names = sorted(self.boxes)
         lo = np.array([self.boxes[n][0] for n in names])
         hi = np.array([self.boxes[n][1] for n in names])
-        corners = np.stack([np.where(np.array(bits, bool), hi, lo) for bits in np.ndindex(2, 2, 2)], 1)  # (C, 8, 3)
         seen = np.zeros(len(names), bool)
         for i in np.flatnonzero(cams.valid):
-            p = (corners - cams.pos[i]) @ cams.rot[i]  # camera frame (C, 8, 3)
-            x, y, d = p[..., 0], p[..., 1], -p[..., 2]
-            fx, fy, cx, cy = cams.K[i]
-            W, H = cams.width, cams.height
-            outside = [
-                d < z_near,
-                d > z_far,
-                fx * x + cx * d < 0,
-                fx * x + (cx - W) * d > 0,
-                cy * d - fy * y < 0,
-                cy * d - fy * y - H * d > 0,
-            ]
-            seen |= ~np.any([o.all(axis=1) for o in outside], axis=0)
+            seen |= cams.boxes_in_view(i, lo, hi, z_near, z_far)
             if seen.all():
                 break
         return [n for n, s in zip(names, seen) if s]
