@@ -77,9 +77,7 @@ print("chunks", sum(1 for _ in store))
 """
 
 
-def run_stage(
-    cmd: list[str], log: Path, code: Path | None = None, cores: set[int] | None = None
-) -> tuple[float, float, float]:
+def run_stage(cmd: list[str], log: Path, code: Path | None = None, cores: set[int] | None = None) -> tuple[float, float, float]:
     """Run ``cmd`` (output to ``log``; with ``code``, that checkout's package first on the path; with ``cores``, on
     those cores only, its descendants too); (wall seconds, core-seconds, peak RSS MiB of its largest process)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
