@@ -91,7 +91,11 @@ def run_stage(cmd: list[str], log: Path, code: Path | None = None, cores: set[in
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t
     if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed (exit {os.waitstatus_to_exitcode(status)}); its output: {log}")
+        lines = [ln for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
+        raise RuntimeError(
+            f"{' '.join(cmd)} failed (exit {os.waitstatus_to_exitcode(status)}): {lines[-1] if lines else 'no output'}\n"
+            f"its output: {log}"
+        )
     return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024
 
 
