@@ -41,6 +41,7 @@ from .gbuffer import CODE_MAX, unpack_planes
 GL_CLIP_DISTANCE0 = 0x3000  # glEnable's name of the first clip distance (moderngl has none)
 TERRAIN_CULL_M = 3.0
 TERRAIN_TILE_M = 25.0  # side of the squares the terrain's triangles are drawn by (``Rasterizer.set_terrain``)
+TILE_PAD_M = 0.01  # a tile's box grown by this on every side: far more than float32's rounding of a stage's vertices
 
 _VS_TERRAIN = """
 #version 330
@@ -106,8 +107,8 @@ void main() {
 # convex capsule (two balls and the solid cylinder between them) in one interval [t_in, t_out], the union of the
 # three parts' intervals. The nearest end of it beyond the camera and within [z_near, z_far] is the surface seen:
 # t_in from outside, t_out (the inside of the capsule) from within it or where t_in is nearer than z_near. Every
-# term that does not depend on the ray is the bone's, computed once by its vertices (flat inputs): a pixel pays
-# for three dot products, two per ball and the cylinder's quadratic.
+# term that does not depend on the ray is the bone's, computed once by its vertices (flat inputs): a pixel pays for
+# a dot product and a square root per ball, and the cylinder's quadratic and slab along its ray.
 _FS_BONE = """
 #version 330
 uniform mat3 u_view;
@@ -263,8 +264,10 @@ class Rasterizer:
             F, tile = F[order], tile[order]
             first = np.flatnonzero(np.r_[True, np.any(tile[1:] != tile[:-1], axis=1)])
             corners = [V[F[:, k]] for k in range(3)]
-            self._tile_lo = np.minimum.reduceat(np.minimum(np.minimum(*corners[:2]), corners[2]), first)
-            self._tile_hi = np.maximum.reduceat(np.maximum(np.maximum(*corners[:2]), corners[2]), first)
+            # each box padded by TILE_PAD_M: the GPU clips the float32 vertices, the test reads the float64 ones
+            lo = np.minimum.reduceat(np.minimum(np.minimum(*corners[:2]), corners[2]), first)
+            hi = np.maximum.reduceat(np.maximum(np.maximum(*corners[:2]), corners[2]), first)
+            self._tile_lo, self._tile_hi = lo - TILE_PAD_M, hi + TILE_PAD_M
             self._tile_first = 3 * first  # in indices
             self._tile_count = 3 * np.diff(np.r_[first, len(F)])
             vbo = self.ctx.buffer((V - self.anchor).astype(np.float32).tobytes())
