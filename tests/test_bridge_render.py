@@ -157,6 +157,39 @@ def test_capsules_are_traced_exactly(rast):
     assert (inside == 200).all()  # the camera is inside the capsule: its inside fills the view
 
 
+def test_a_point_bone_is_its_ball_and_a_bone_seen_end_on_is_its_near_ball(rast):
+    """Degenerate capsules: a bone of zero length (no cylinder) is its ball, pixel for pixel against a float64 trace;
+    a bone whose axis is the central ray (the cylinder's quadratic vanishes there) shows its near ball's front."""
+    cam = camera([0.0, 2.0, 9.0], [0.0, 2.0, 0.0])
+    rast.set_terrain(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    meta = GBufferMeta(width=W, height=H, fps=30.0, **RANGE)
+    K, R, o = cam.K[0], cam.rot[0], cam.pos[0]
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    d = np.stack([(u - K[2]) / K[0], -(v - K[3]) / K[1], -np.ones_like(u)], -1) @ R.T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+
+    c, r = np.array([0.4, 2.3, 4.0]), 0.5
+    f = decode_codes(to_codes(rast.render(cam, 0, (c[None], c[None].copy(), np.array([r]), np.array([200.0])), **RANGE)), meta)
+    h = d @ (c - o)
+    disc = h * h - ((c - o) @ (c - o) - r * r)
+    want = disc >= 0
+    depth = (h - np.sqrt(np.maximum(disc, 0))) * -(d @ R[:, 2])
+    got = f.id == 200
+    assert want.sum() > 300 and (got == want).mean() > 0.995
+    for y, x in np.argwhere(got != want):  # only at the silhouette
+        assert (
+            want[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2].any()
+            and not want[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2].all()
+        )
+    assert np.abs(f.depth[got & want] - depth[got & want]).max() <= meta.depth_bound() + 1e-4
+
+    a, b = np.array([[0.0, 2.0, 5.0]]), np.array([[0.0, 2.0, 3.0]])  # end-on: a 4 m from the camera, b behind it
+    f = decode_codes(to_codes(rast.render(cam, 0, (a, b, np.array([0.3]), np.array([150.0])), **RANGE)), meta)
+    centre = (slice(H // 2 - 2, H // 2 + 2), slice(W // 2 - 2, W // 2 + 2))
+    assert (f.id[centre] == 150).all()
+    assert np.abs(f.depth[centre] - 3.7).max() <= meta.depth_bound() + 0.01  # a's front, 4 m − r, near the centre
+
+
 @pytest.mark.parametrize("suffix", [".gbz", ".mkv"])
 def test_codec_round_trip(rast, tmp_path, suffix):
     layout = load_scene("duel")
