@@ -85,21 +85,56 @@ def test_every_chunk_gets_a_pose_target_of_equal_length(scanned, tmp_path):
     assert seen_bones > 100
 
 
-def test_a_second_pass_does_nothing_but_sweep_what_a_killed_pass_left(scanned):
+def test_a_second_pass_does_nothing_but_sweep_what_a_killed_pass_left(scanned, monkeypatch):
+    from marionette.corpus import video_shards
+
     render_pose_targets(scanned)
     before = {kind: snapshot(scanned, kind) for kind in ("video", "pose")}
     targets = paths.pose_targets_dir(scanned)
     left = [targets / ".data_part1-rec0000-s000__c00000-0123456789abcdef.mkv.k1ll3d.tmp", targets / ".x.mkv.tmp"]
     for p in left:  # what a pass killed mid-write leaves
         p.write_bytes(b"")
+
+    def no_read(*a):
+        raise AssertionError("a pass with nothing new read a target")
+
+    monkeypatch.setattr(video_shards.PoseShard, "read", no_read)
     report = render_pose_targets(scanned)
     assert report.rendered == [] and report.shards_rewritten == [] and report.frames_rendered == 0
     assert {kind: snapshot(scanned, kind) for kind in ("video", "pose")} == before
     assert not any(p.exists() for p in left)
 
 
+def test_a_pass_killed_before_its_shards_were_written_leaves_renders_the_next_pass_takes_up(scanned, monkeypatch):
+    """The pose shards are the targets' one copy; a target is rendered into ``derived/pose`` first, and a pass killed
+    before writing its shard leaves it there: the next pass writes the shard from it, renders nothing, and the
+    shard's bytes are a clean pass's; once written, ``derived/pose`` holds no target."""
+    from marionette.corpus import video_shards
+
+    render_pose_targets(scanned)
+    before = snapshot(scanned, "pose")
+    shard = Corpus(scanned).shard_ids()[0]
+    good = Corpus(scanned).pose_path(shard).read_bytes()
+    Corpus(scanned).pose_path(shard).unlink()
+    write = video_shards.write_members
+
+    def killed(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(video_shards, "write_members", killed)
+    with pytest.raises(KeyboardInterrupt):
+        render_pose_targets(scanned)
+    staged = {p.name[: -len("-0123456789abcdef.gbz")] for p in paths.pose_targets_dir(scanned).glob("*.gbz")}
+    assert staged == set(video_shards.read_chunks(Corpus(scanned).video_path(shard), kinds=("json",)))
+    monkeypatch.setattr(video_shards, "write_members", write)
+    report = render_pose_targets(scanned)
+    assert report.rendered == [] and report.shards_rewritten == [shard] and report.failed == {}
+    assert Corpus(scanned).pose_path(shard).read_bytes() == good and snapshot(scanned, "pose").keys() == before.keys()
+    assert not list(paths.pose_targets_dir(scanned).glob("*.gbz"))
+
+
 def test_a_rescan_rerenders_only_the_chunks_that_see_the_change_and_no_rgb_byte(scanned):
-    """Issue 16: a pose re-render after a terrain change rewrites no video shard (bytes, mtime and inode kept)."""
+    """A pose re-render after a terrain change rewrites no video shard (bytes, mtime and inode kept)."""
     render_pose_targets(scanned)
     stage = Stage(stage_dir(scanned, "default"))
     # new ground west of the arena, in a chunk of its own (x in [-1100, -1000)): some cameras look that way
@@ -129,21 +164,21 @@ def test_a_rescan_rerenders_only_the_chunks_that_see_the_change_and_no_rgb_byte(
         assert (name in rewritten) == ((scanned / "pose" / name).read_bytes() != data)
     assert 0 < len(rewritten) < len(before)
     # and removing the contribution brings back the first renders (the cache key is the content): the two
-    # workers write the bytes the one-process pass wrote, and drop the derived files no chunk uses any more
+    # workers write the bytes the one-process pass wrote; the pose shards hold the one copy of every target
     stage.remove("extra/west")
     stage.rebuild()
     again = render_pose_targets(scanned, workers=2)
     assert set(again.rendered) == seeing and again.failed == {}
     assert {p.name: p.read_bytes() for p in (scanned / "pose").glob("*.tar")} == before
     assert snapshot(scanned, "video") == videos
-    used = {f"{k}-{r['key']}.gbz" for k, r in pose_records(scanned).items()}
-    assert {p.name for p in (scanned / "derived" / "pose").glob("*.gbz")} == used
+    assert not list((scanned / "derived" / "pose").glob("*.gbz"))
 
 
 def test_stale_damaged_and_orphan_pose_shards(scanned):
-    """A target rendered for another recording is never joined; a damaged pose shard is written again; the pose
-    shard of a shard number the corpus no longer holds is removed."""
-    from marionette.corpus.video_shards import PoseShard, read_joined
+    """A target rendered for another recording is never joined; a damaged pose shard's targets are rendered and
+    written again (the pose shards are their one copy), the same bytes; the pose shard of a shard number the corpus
+    no longer holds is removed."""
+    from marionette.corpus.video_shards import PoseShard, read_chunks, read_joined
 
     render_pose_targets(scanned)
     c = Corpus(scanned)
@@ -162,7 +197,8 @@ def test_stale_damaged_and_orphan_pose_shards(scanned):
     orphan = c.pose_path(999_999)
     orphan.write_bytes(good)
     report = render_pose_targets(scanned)
-    assert report.shards_rewritten == [shard] and report.rendered == [] and report.failed == {}
+    assert report.shards_rewritten == [shard] and report.failed == {}
+    assert report.rendered == list(read_chunks(c.video_path(shard), kinds=("json",)))
     assert c.pose_path(shard).read_bytes() == good and not orphan.exists()
 
 

@@ -4,13 +4,14 @@ camera, cached as a derived product and gathered into the pose shards beside the
 A chunk's target is keyed by what it is computed from (DESIGN "The corpus"): the chunk's state rows
 (their content hash), the sha256 of every terrain chunk its cameras can see (frustum against the
 chunk's bounding box, over all the chunk's frames), the stage's height range, ``BRIDGE_VERSION`` and
-the render settings. Rendered files live in ``<corpus>/derived/pose/<segment>__c<chunk>-<key>.gbz``;
-a pass renders only the chunks whose key has no file yet, then rewrites (atomically) only the pose
-shards (``pose/shard-NNNNNN.tar``, ``video_shards``: ``<key>.pose.json`` and ``<key>.pose.gbz`` per
-chunk, in the video shard's order) whose members change. A pass reads the video shards' ``json``
-members only and never writes a video shard: a terrain re-scan that changes one chunk re-renders only
-the video chunks that see it, rewrites only their pose shards, and leaves every RGB byte where it was;
-a pass with nothing new writes nothing.
+the render settings. The pose shards (``pose/shard-NNNNNN.tar``, ``video_shards``: ``<key>.pose.json`` and
+``<key>.pose.gbz`` per chunk, in the video shard's order) are the one copy of the targets and their cache: a pass
+takes a chunk's target from its pose shard when the shard's record of it has the same key, renders the others
+into ``<corpus>/derived/pose/<segment>__c<chunk>-<key>.gbz`` (files a pass killed before its shard was written
+are taken up by the next), rewrites (atomically) only the pose shards whose members change, and then deletes the
+rendered files its shards now hold. A pass reads the video shards' ``json`` members only and never writes a video
+shard: a terrain re-scan that changes one chunk re-renders only the video chunks that see it, rewrites only their
+pose shards, and leaves every RGB byte where it was; a pass with nothing new writes nothing and reads no target.
 """
 
 from __future__ import annotations
@@ -18,7 +19,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -194,8 +197,9 @@ class _Pass:
             self.terrains[stage] = TerrainScene.of_stage(stage_terrain(self.corpus.path, stage))
         return self.terrains[stage]
 
-    def target(self, vpath: Path, key: str, rec: dict) -> tuple[Path, str, list[str]]:
-        """The chunk's pose target (rendered if its inputs changed): its file, its render key, the terrain chunks seen."""
+    def target(self, vpath: Path, key: str, rec: dict, held: dict | None) -> tuple[Path | None, str, list[str]]:
+        """The chunk's pose target: its render key, the terrain chunks seen, and the file it was rendered to — None
+        where ``held`` (the chunk's current record in its pose shard) has the same key, so the shard's copy stands."""
         settings = self.settings
         segment = paths.parse_chunk_key(key, str(vpath))[0]
         if segment not in self.segments:
@@ -233,9 +237,11 @@ class _Pass:
             settings.key(),
             *([] if self.jitter is None else [json.dumps(asdict(self.jitter), sort_keys=True)]),
         )[:16]
+        if held is not None and held.get("key") == digest:
+            return None, digest, seen
         path = paths.pose_target(self.corpus.path, key, digest, self.jitter_key)
         self.keep.add(path.name)
-        if not path.exists():
+        if not path.exists():  # else a pass killed before writing this shard rendered it
             size = (out_w, out_h)
             if size not in self.rasts:
                 self.rasts[size] = Rasterizer(out_w, out_h)
@@ -256,16 +262,24 @@ class _Pass:
         return path, digest, seen
 
     def shard(
-        self, vpath: Path, chunks: dict[str, dict[str, bytes]], state_hash: str, progress
-    ) -> list[tuple[str, bytes | Path]]:
+        self, vpath: Path, chunks: dict[str, dict[str, bytes]], state_hash: str, held: video_shards.PoseShard, progress
+    ) -> tuple[list[tuple[str, bytes | Path | Callable[[], bytes]]], list[Path], bool]:
         """The pose shard's members for a video shard's chunks (key → {"json": bytes}), every target brought up to
-        date; a chunk whose target cannot be rendered gets no members and is listed in ``report.failed``."""
-        out: list[tuple[str, bytes | Path]] = []
+        date (a target ``held`` already holds under its key is read from it when the shard is written), the files
+        rendered for it, and whether the members are ``held``'s own; a chunk whose target cannot be rendered gets no
+        members and is listed in ``report.failed``."""
+        out: list[tuple[str, bytes | Path | Callable[[], bytes]]] = []
+        rendered: list[Path] = []
+        same = True
         for key, m in chunks.items():
             rec = video_shards.chunk_record(m["json"], key, str(vpath))
             self.report.chunks += 1
             try:
-                target, digest, seen = self.target(vpath, key, rec)
+                current = held.member(key, m["json"], state_hash)
+            except ValueError:  # a damaged record: its target is rendered again
+                current = None
+            try:
+                target, digest, seen = self.target(vpath, key, rec, None if current is None else current[0])
             except Exception as exc:  # one chunk's failure is recorded; the pass goes on
                 self.report.failed[key] = f"{type(exc).__name__}: {exc}"
             else:
@@ -273,9 +287,15 @@ class _Pass:
                 out.append(
                     (video_shards.member_name(key, video_shards.POSE_RECORD_KIND), json.dumps(pose, sort_keys=True).encode())
                 )
-                out.append((video_shards.member_name(key, video_shards.POSE_KIND), target))
+                if target is None:  # the shard's copy, read when the new shard is written
+                    out.append((video_shards.member_name(key, video_shards.POSE_KIND), partial(held.read, current[1])))
+                    same = same and current[0] == pose
+                else:
+                    out.append((video_shards.member_name(key, video_shards.POSE_KIND), target))
+                    rendered.append(target)
+                    same = False
             progress(1)
-        return out
+        return out, rendered, same and held.names() == [name for name, _ in out]
 
     def release(self) -> None:
         for r in self.rasts.values():
@@ -330,20 +350,22 @@ def _render_shard(run: _Pass, corpus: Corpus, shard: int, progress) -> None:
     if not vpath.exists():
         return
     try:
-        chunks = video_shards.read_chunks(vpath, kinds=("json",))
-        members = run.shard(vpath, chunks, corpus.shard_hash(shard), progress)
-    except (ValueError, OSError, KeyError) as exc:  # an unreadable or untrusted shard: named, left untouched
-        run.report.failed[paths.shard_name(shard)] = str(exc)
-        return
-    try:
-        current = video_shards.member_digests(ppath) if ppath.exists() else None
-    except (ValueError, OSError):
-        current = None  # a damaged pose shard is written again
-    if current is None or current != [
-        (name, hashlib.sha256(data).hexdigest() if isinstance(data, bytes) else file_sha256(data)) for name, data in members
-    ]:
-        video_shards.write_members(ppath, members)
-        run.report.shards_rewritten.append(shard)
+        held = video_shards.PoseShard(ppath)
+    except (ValueError, OSError):  # a damaged pose shard is written again
+        held = video_shards.PoseShard(ppath, read=False)
+    with held:
+        try:
+            chunks = video_shards.read_chunks(vpath, kinds=("json",))
+            members, rendered, same = run.shard(vpath, chunks, corpus.shard_hash(shard), held, progress)
+        except (ValueError, OSError, KeyError) as exc:  # an unreadable or untrusted shard: named, left untouched
+            run.report.failed[paths.shard_name(shard)] = str(exc)
+            return
+        if not same:
+            video_shards.write_members(ppath, members)
+            run.report.shards_rewritten.append(shard)
+    for f in rendered:  # now in the pose shard: its one copy
+        run.keep.discard(f.name)
+        f.unlink(missing_ok=True)
 
 
 def render_pose_targets(

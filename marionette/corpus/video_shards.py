@@ -24,7 +24,7 @@ import hashlib
 import io
 import json
 import tarfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from marionette.corpus.paths import CorpusPathError, chunk_key, parse_chunk_key
@@ -184,11 +184,11 @@ class PoseShard:
     """Random access to one pose shard by chunk key: member headers indexed once (each checked), a member's
     bytes read when asked for. A missing shard is an empty one."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, read: bool = True):
         self.path = Path(path)
         self._tar: tarfile.TarFile | None = None
         self._index: dict[str, tarfile.TarInfo] = {}
-        if not self.path.exists():
+        if not read or not self.path.exists():  # unread: empty whatever the file holds (a damaged one, to replace)
             return
         regular_file(self.path)
         try:
@@ -217,6 +217,10 @@ class PoseShard:
         if not isinstance(rec, dict) or not pose_matches(rec, chunk_json, state_hash):
             return None
         return rec, target
+
+    def names(self) -> list[str]:
+        """Its members' names, in order (none for a missing shard)."""
+        return list(self._index)
 
     def read(self, member: tarfile.TarInfo) -> bytes:
         """The bytes of a ``pose.gbz`` header that ``member`` returned."""
@@ -272,10 +276,13 @@ def writer(path: Path) -> Iterator[tarfile.TarFile]:
         yield tar
 
 
-def write_members(path: Path, members: list[tuple[str, bytes | Path]]) -> None:
-    """Write a shard of ``members`` (name, bytes or a file holding them) atomically, one member in memory at a time."""
+def write_members(path: Path, members: list[tuple[str, bytes | Path | Callable[[], bytes]]]) -> None:
+    """Write a shard of ``members`` (name, and bytes, a file holding them or a call returning them) atomically, one
+    member in memory at a time."""
     with writer(path) as tar:
         for name, data in members:
+            if callable(data):
+                data = data()
             add_member(tar, name, data if isinstance(data, bytes) else Path(data).read_bytes())
 
 
