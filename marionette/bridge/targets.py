@@ -190,7 +190,7 @@ class _Pass:
         self.rasts: dict[tuple[int, int], Rasterizer] = {}
         self.uploaded: dict[tuple[int, int], str] = {}
         self.rows: dict[str, pa.Table] = {}
-        self.keep: set[str] = set()
+        self.keep: set[str] = set()  # rendered files no pose shard holds yet
 
     def terrain(self, stage: str) -> TerrainScene:
         if stage not in self.terrains:
@@ -198,8 +198,9 @@ class _Pass:
         return self.terrains[stage]
 
     def target(self, vpath: Path, key: str, rec: dict, held: dict | None) -> tuple[Path | None, str, list[str]]:
-        """The chunk's pose target: its render key, the terrain chunks seen, and the file it was rendered to — None
-        where ``held`` (the chunk's current record in its pose shard) has the same key, so the shard's copy stands."""
+        """The chunk's pose target: (the file it was rendered to, its render key, the terrain chunks seen); the file
+        is None where ``held`` (the chunk's current record in its pose shard) has the same key: the shard's copy
+        stands."""
         settings = self.settings
         segment = paths.parse_chunk_key(key, str(vpath))[0]
         if segment not in self.segments:
