@@ -50,6 +50,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import preamble, size_hw, table  # noqa: E402
 
+from marionette.fanout import usable_cores  # noqa: E402
+
 VIEW = "from marionette.corpus import Corpus\nc = Corpus({corpus!r})\nfor s in c.shard_ids():\n    c.dynamics_shard(s)\n"
 POSE = "from marionette.bridge.targets import render_pose_targets\nrender_pose_targets({corpus!r}, workers={workers})\n"
 EPOCH = """
@@ -108,8 +110,8 @@ def worker_cores(workers: int) -> set[int] | None:
     """The cores ``workers`` workers run on: the first ``workers`` of this process's (n workers on n cores, so one
     worker's figures are one core's and each stage sizes its threads to them: ``fanout.threads_per_worker``, Mesa's
     llvmpipe); None (every core) where this process has no more cores than that."""
-    mine = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-    return set(mine[:workers]) if len(mine) > workers else None
+    mine = usable_cores()
+    return set(mine[:workers]) if len(mine) > workers and hasattr(os, "sched_setaffinity") else None
 
 
 def stage_commands(py: str, src: Path, corpus: Path, args, workers: int) -> dict[str, list[str]]:

@@ -89,9 +89,7 @@ def measure(V, F, cams, repeats: int, whole: bool):
         t = time.process_time()
         one_pass()
         times.append((time.process_time() - t) / len(cams) * 1000)
-    drawn = np.mean(
-        [sum(c for _, c in rast._terrain_ranges(cams, i, s.z_near, s.z_far, s.cull_m)) // 3 for i in range(len(cams))]
-    )
+    drawn = np.mean([sum(c for _, c in rast.terrain_ranges(cams, i, s.z_near, s.z_far, s.cull_m)) // 3 for i in range(len(cams))])
     rast.release()
     return float(np.median(times)), float(drawn), frames
 

@@ -30,10 +30,16 @@ def worker_identity() -> str:
     return f"{where}/pid-{os.getpid()}"
 
 
+def usable_cores() -> list[int]:
+    """The cores this process may run on (its affinity; every core where the platform has none), in order."""
+    if hasattr(os, "sched_getaffinity"):
+        return sorted(os.sched_getaffinity(0))
+    return list(range(os.cpu_count() or 1))
+
+
 def threads_per_worker(workers: int) -> int:
     """The threads each of ``workers`` local workers may use, so that together they use this machine's cores once."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(1, cores // workers)
+    return max(1, len(usable_cores()) // workers)
 
 
 def serial_mapper(fn: Callable[..., Any], jobs: list, static: dict[str, Any]) -> Iterator[Any]:

@@ -331,7 +331,7 @@ def test_a_frame_draws_the_terrain_it_may_see_and_the_whole_meshs_pixels(rast, m
             bones = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
             got, want = rast.render_packed(cam, 0, bones, **RANGE), whole.render_packed(cam, 0, bones, **RANGE)
             np.testing.assert_array_equal(got, want)
-            drawn = sum(n for _, n in rast._terrain_ranges(cam, 0, RANGE["z_near"], RANGE["z_far"], render.TERRAIN_CULL_M))
+            drawn = sum(n for _, n in rast.terrain_ranges(cam, 0, RANGE["z_near"], RANGE["z_far"], render.TERRAIN_CULL_M))
             assert drawn <= 0.1 * F.size, (eye, drawn, F.size)
             if eye[0] == -700.0:
                 assert drawn == 0 and not got.any()

@@ -274,7 +274,7 @@ class Rasterizer:
             ibo = self.ctx.buffer(F.astype(np.int32).tobytes())
             self._terrain_vao = self.ctx.vertex_array(self._terrain_prog, [(vbo, "3f", "in_pos")], index_buffer=ibo)
 
-    def _terrain_ranges(self, cameras: Cameras, i: int, z_near: float, z_far: float, cull_m: float) -> list[tuple[int, int]]:
+    def terrain_ranges(self, cameras: Cameras, i: int, z_near: float, z_far: float, cull_m: float) -> list[tuple[int, int]]:
         """(first index, index count) of the terrain's tiles frame ``i`` may see, neighbours joined into one range.
         Nothing nearer than the terrain's cull is drawn either."""
         seen = cameras.boxes_in_view(i, self._tile_lo, self._tile_hi, max(z_near, cull_m), z_far)
@@ -333,7 +333,7 @@ class Rasterizer:
             self._terrain_prog["u_cam_rel"].value = tuple(float(v) for v in (pos - self.anchor).astype(np.float32))
             self._terrain_prog["u_h_off"].value = float(self.anchor[1] - h_min)
             self.ctx.enable_direct(GL_CLIP_DISTANCE0)  # the terrain's near cull; the bones' shader writes none
-            for first, count in self._terrain_ranges(cameras, i, z_near, z_far, cull_m):
+            for first, count in self.terrain_ranges(cameras, i, z_near, z_far, cull_m):
                 self._terrain_vao.render(vertices=count, first=first)
             self.ctx.disable_direct(GL_CLIP_DISTANCE0)
         a, b, r, ids = bones

@@ -144,19 +144,6 @@ def pose_matches(rec: dict, chunk_json: bytes, state_hash: str) -> bool:
     return rec.get("video_json") == hashlib.sha256(chunk_json).hexdigest() and rec.get("state_hash") == state_hash
 
 
-def member_digests(path: Path) -> list[tuple[str, str]]:
-    """(name, sha256) of every member of a shard, in order, each checked; the bytes are streamed, never held."""
-    path = Path(path)
-    out = []
-    with _open_shard(path) as tar:
-        for m, _, _ in _checked(tar, path):
-            h, f = hashlib.sha256(), tar.extractfile(m)
-            while block := f.read(1 << 20):
-                h.update(block)
-            out.append((m.name, h.hexdigest()))
-    return out
-
-
 def member_index(path: Path) -> dict[str, dict[str, tarfile.TarInfo]]:
     """Chunk key → {kind: member header} of a shard, every header checked (module docstring); no member's bytes
     are read. ``offset_data`` and ``size`` of a header locate its bytes in the file (``read_at``)."""
@@ -295,7 +282,6 @@ __all__ = [
     "add_member",
     "chunk_key",
     "chunk_record",
-    "member_digests",
     "member_index",
     "member_name",
     "parse_member",
